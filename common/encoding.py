@@ -1,0 +1,227 @@
+"""Three-frame RGB scan encoding of the paper, and its inverse (SPEC §2).
+
+A 2D scan (bearings θ, ranges ρ) becomes a sparse binary image: 64 range rows × 360 one-degree angle
+columns, padded to 384 columns so the width is a multiple of YOLO's stride 32. The last three images,
+stacked as channels (0 = scan t−2, 1 = t−1, 2 = t), are the detector's input: motion shows up as
+colour, and no pose alignment or occupancy grid is needed.
+
+Conventions, fixed here once for every process:
+
+* Bearings are counter-clockwise from the sensor's forward axis (ROS REP-103: x forward, y left).
+* Column ``a = floor(deg(θ) + 0.5) mod 360``: rounding half up, so 359.5° lands in column 0.
+* Row ``r = floor(clip(ρ · 63 / R_MAX, 0, 63))`` with ``R_MAX = 4.0`` m; row 0 is nearest.
+* Invalid returns (inf, NaN, below ``range_min``, above ``range_max``) become ``R_MAX`` (row 63):
+  they are kept, not dropped, because "nothing seen along this bearing" is information too.
+* Continuous pixel coordinates (what label and detection boxes use) put column ``a`` on
+  ``[a, a + 1)`` and row ``r`` on ``[r, r + 1)``; so pixel ``u`` is bearing ``u − 0.5`` degrees and
+  pixel ``v`` is range ``v · R_MAX / 63`` metres.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Literal, get_args
+
+import numpy as np
+
+RANGE_ROWS = 64
+ANGLE_COLUMNS = 360
+IMAGE_WIDTH = 384  # 360 + 24 padding columns: divisible by the YOLO stride 32
+PAD_COLUMNS = IMAGE_WIDTH - ANGLE_COLUMNS
+R_MAX_M = 4.0
+SENTINEL_ROW = RANGE_ROWS - 1
+ROW_SCALE = (RANGE_ROWS - 1) / R_MAX_M  # rows per metre: 63 / 4
+HIT = np.uint8(255)
+STACK_DEPTH = 3
+
+Padding = Literal["zero", "wrap"]
+PADDINGS: tuple[str, ...] = get_args(Padding)
+
+
+class ScanError(ValueError):
+    """A scan that cannot be encoded (wrong shapes or nonsensical sensor parameters)."""
+
+
+def _check_scan(
+    ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
+) -> np.ndarray:
+    values = np.asarray(ranges)
+    if values.ndim != 1:
+        raise ScanError(f"ranges must be one-dimensional, got shape {values.shape}")
+    if values.size == 0:
+        raise ScanError("ranges is empty: a scan needs at least one beam")
+    if not np.issubdtype(values.dtype, np.floating) and not np.issubdtype(values.dtype, np.integer):
+        raise ScanError(f"ranges must be numeric, got dtype {values.dtype}")
+    for name, value in (
+        ("angle_min", angle_min),
+        ("angle_increment", angle_increment),
+        ("range_min", range_min),
+        ("range_max", range_max),
+    ):
+        if not np.isfinite(value):
+            raise ScanError(f"{name} must be finite, got {value}")
+    if angle_increment == 0.0:
+        raise ScanError("angle_increment must be non-zero")
+    if not 0.0 <= range_min < range_max:
+        raise ScanError(f"need 0 <= range_min < range_max, got {range_min} and {range_max}")
+    return values.astype(np.float64, copy=False)
+
+
+def beam_bearings_rad(angle_min: float, angle_increment: float, beams: int) -> np.ndarray:
+    """Bearing of each beam, as ROS ``LaserScan`` defines it: ``angle_min + i · angle_increment``."""
+    return angle_min + angle_increment * np.arange(beams, dtype=np.float64)
+
+
+def angle_columns(bearings_rad: np.ndarray) -> np.ndarray:
+    """Column of each bearing: ``round(deg(θ)) mod 360``, rounding half up."""
+    return (np.floor(np.degrees(bearings_rad) + 0.5).astype(np.int64)) % ANGLE_COLUMNS
+
+
+def sanitize_ranges(ranges: np.ndarray, range_min: float, range_max: float) -> np.ndarray:
+    """Replace every invalid return by ``R_MAX`` (the sentinel), keeping the beam."""
+    values = np.asarray(ranges, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(values) & (values >= range_min) & (values <= range_max)
+    return np.where(valid, values, R_MAX_M)
+
+
+def range_rows(ranges_m: np.ndarray) -> np.ndarray:
+    """Row of each (already sanitised) range: ``floor(clip(ρ · 63 / R_MAX, 0, 63))``."""
+    return np.floor(np.clip(ranges_m * ROW_SCALE, 0.0, SENTINEL_ROW)).astype(np.int64)
+
+
+def encode_scan(
+    ranges: np.ndarray,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+) -> np.ndarray:
+    """Rasterise one scan to ``uint8[64, 360]`` (255 where hit).
+
+    Any beam count and field of view works: each beam is binned by its own bearing, several beams
+    may share a column (denser sensors) and columns no beam points at stay 0 (narrower sensors).
+    """
+    values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
+    cols = angle_columns(beam_bearings_rad(angle_min, angle_increment, values.size))
+    rows = range_rows(sanitize_ranges(values, range_min, range_max))
+    raster = np.zeros((RANGE_ROWS, ANGLE_COLUMNS), dtype=np.uint8)
+    raster[rows, cols] = HIT
+    return raster
+
+
+def pad_raster(raster: np.ndarray, padding: Padding = "zero") -> np.ndarray:
+    """Widen a ``uint8[64, 360]`` raster to 384 columns.
+
+    ``zero`` is the paper's choice. ``wrap`` repeats columns 0–23 after column 359, so an object
+    straddling the 0°/360° seam also appears whole once; it is this project's idea and is always
+    chosen explicitly, never mixed with ``zero`` in one model.
+    """
+    if raster.shape != (RANGE_ROWS, ANGLE_COLUMNS):
+        raise ScanError(f"raster must have shape {(RANGE_ROWS, ANGLE_COLUMNS)}, got {raster.shape}")
+    if padding == "zero":
+        pad = np.zeros((RANGE_ROWS, PAD_COLUMNS), dtype=raster.dtype)
+    elif padding == "wrap":
+        pad = raster[:, :PAD_COLUMNS]
+    else:
+        raise ScanError(f"padding must be one of {PADDINGS}, got {padding!r}")
+    return np.concatenate([raster, pad], axis=1)
+
+
+def stack_rasters(oldest: np.ndarray, middle: np.ndarray, newest: np.ndarray) -> np.ndarray:
+    """``uint8[64, 384, 3]`` with channel 0 = scan t−2, 1 = t−1, 2 = t (the paper's R, G, B)."""
+    return np.stack([oldest, middle, newest], axis=-1)
+
+
+def to_model_input(tensor: np.ndarray) -> np.ndarray:
+    """HWC ``uint8`` tensor → ``float32[1, 3, 64, 384]`` in [0, 1], channel order unchanged.
+
+    Ultralytics trains on the same layout: it reads PNGs as BGR and flips them to RGB, so a PNG whose
+    red plane holds scan t−2 reaches the network with t−2 in channel 0, exactly like this tensor.
+    """
+    if tensor.shape != (RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH) or tensor.dtype != np.uint8:
+        raise ScanError(
+            f"tensor must be uint8{(RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH)}, got {tensor.dtype}{tensor.shape}"
+        )
+    return (tensor.transpose(2, 0, 1)[None].astype(np.float32)) / np.float32(255.0)
+
+
+class ScanStacker:
+    """The FIFO of Algorithm 1: the last three padded rasters of ONE sensor.
+
+    One stacker per robot; mixing two robots' scans in one FIFO would fuse unrelated geometry.
+    """
+
+    def __init__(self, padding: Padding = "zero") -> None:
+        if padding not in PADDINGS:
+            raise ScanError(f"padding must be one of {PADDINGS}, got {padding!r}")
+        self.padding: Padding = padding
+        self._frames: deque[np.ndarray] = deque(maxlen=STACK_DEPTH)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def ready(self) -> bool:
+        return len(self._frames) == STACK_DEPTH
+
+    def reset(self) -> None:
+        self._frames.clear()
+
+    def push_raster(self, raster: np.ndarray) -> np.ndarray | None:
+        """Add an unpadded ``uint8[64, 360]`` raster; return the stacked tensor once three are held."""
+        self._frames.append(pad_raster(raster, self.padding))
+        return stack_rasters(*self._frames) if self.ready else None
+
+    def push_scan(
+        self, ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
+    ) -> np.ndarray | None:
+        """Encode a scan and push it; a scan that cannot be encoded raises and leaves the FIFO as it was."""
+        raster = encode_scan(ranges, angle_min, angle_increment, range_min, range_max)
+        return self.push_raster(raster)
+
+
+# --- inverse mapping: raster pixels <-> bearing/range <-> metric position --------------------------------
+
+
+def bearing_to_pixel_x(bearing_deg: np.ndarray | float) -> np.ndarray:
+    """Continuous x of a bearing in degrees (column ``a`` spans ``[a, a+1)`` and is centred on ``a``°)."""
+    return np.asarray(bearing_deg, dtype=np.float64) + 0.5
+
+
+def pixel_x_to_bearing_deg(x_px: np.ndarray | float) -> np.ndarray:
+    """Bearing in degrees of a continuous pixel x; columns 360–383 give 359.5°–383.5° (wrap them)."""
+    return np.asarray(x_px, dtype=np.float64) - 0.5
+
+
+def range_to_pixel_y(range_m: np.ndarray | float) -> np.ndarray:
+    """Continuous y of a range in metres (row ``r`` spans ranges ``[r, r+1) · 4/63``)."""
+    return np.asarray(range_m, dtype=np.float64) * ROW_SCALE
+
+
+def pixel_y_to_range_m(y_px: np.ndarray | float) -> np.ndarray:
+    return np.asarray(y_px, dtype=np.float64) / ROW_SCALE
+
+
+def wrap_bearing_deg(bearing_deg: np.ndarray | float) -> np.ndarray:
+    """Normalise degrees to (−180, 180], the range ROS users expect for a bearing."""
+    wrapped = np.mod(np.asarray(bearing_deg, dtype=np.float64) + 180.0, 360.0) - 180.0
+    return np.where(wrapped == -180.0, 180.0, wrapped)
+
+
+def polar_to_xy(bearing_deg: np.ndarray | float, range_m: np.ndarray | float) -> np.ndarray:
+    """Sensor-frame position ``float64[..., 2]`` (x forward, y left) of bearings and ranges."""
+    theta = np.radians(np.asarray(bearing_deg, dtype=np.float64))
+    rho = np.asarray(range_m, dtype=np.float64)
+    return np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=-1)
+
+
+def scan_points_xy(
+    ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
+) -> np.ndarray:
+    """The valid returns of a scan as sensor-frame points ``float64[K, 2]`` (invalid beams left out)."""
+    values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(values) & (values >= range_min) & (values <= range_max)
+    bearings = np.degrees(beam_bearings_rad(angle_min, angle_increment, values.size))
+    return polar_to_xy(bearings[valid], values[valid])

@@ -1,0 +1,121 @@
+"""Zenoh key expressions shared by every triscan process.
+
+All services talk through keys of the form ``<prefix>/<robot_id>/<topic>`` (SPEC §7). Building and
+parsing them in one place keeps publishers and subscribers from drifting apart, and validating the
+robot id here means a malformed id (one containing ``/`` or a Zenoh wildcard) can never silently
+turn a publication key into a pattern that matches, or leaks into, another robot's traffic.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Final
+
+PREFIX: Final[str] = "triscan"
+
+ROBOT_ID_PATTERN: Final[str] = r"[A-Za-z0-9_-]+"
+"""One Zenoh key chunk made only of characters that carry no key-expression meaning."""
+
+ROBOT_ID_MAX_LEN: Final[int] = 64
+"""Bounded so that an id arriving from the network cannot bloat logs, metrics labels or keys."""
+
+SCAN: Final[str] = "scan"
+TENSOR: Final[str] = "tensor"
+DETECTIONS: Final[str] = "detections"
+TRUTH: Final[str] = "truth"
+TOPICS: Final[tuple[str, ...]] = (SCAN, TENSOR, DETECTIONS, TRUTH)
+
+_CHUNK_RE: Final[re.Pattern[str]] = re.compile(ROBOT_ID_PATTERN)
+
+
+def validate_robot_id(robot_id: str) -> str:
+    """Return ``robot_id`` unchanged if it is usable as exactly one key chunk, else raise ValueError.
+
+    A non-str raises TypeError: that is a programming error, not bad data.
+
+    fullmatch (not match with ``$``) is used on purpose: ``$`` would accept a trailing newline.
+    """
+    if not isinstance(robot_id, str):
+        raise TypeError(f"robot_id must be a str, got {type(robot_id).__name__}")
+    if len(robot_id) > ROBOT_ID_MAX_LEN:
+        raise ValueError(f"robot_id is {len(robot_id)} characters long, the limit is {ROBOT_ID_MAX_LEN}")
+    if _CHUNK_RE.fullmatch(robot_id) is None:
+        raise ValueError(
+            f"robot_id {robot_id!r} is not one key chunk: use only letters, digits, '_' and '-' "
+            "(no '/', no wildcards, not empty)"
+        )
+    return robot_id
+
+
+def _validate_prefix(prefix: str) -> str:
+    """Check a deployment prefix; it may span several chunks (``site1/triscan``) but holds no wildcards."""
+    if not isinstance(prefix, str) or not prefix:
+        raise ValueError("key prefix must be a non-empty str")
+    for chunk in prefix.split("/"):
+        if _CHUNK_RE.fullmatch(chunk) is None:
+            raise ValueError(
+                f"key prefix {prefix!r} has an invalid chunk {chunk!r}: chunks use only letters, "
+                "digits, '_' and '-'"
+            )
+    return prefix
+
+
+def _key(robot_id: str, topic: str, prefix: str) -> str:
+    return f"{_validate_prefix(prefix)}/{validate_robot_id(robot_id)}/{topic}"
+
+
+def scan_key(robot_id: str, *, prefix: str = PREFIX) -> str:
+    """Key on which the LiDAR (or simulator) of ``robot_id`` publishes its scans."""
+    return _key(robot_id, SCAN, prefix)
+
+
+def tensor_key(robot_id: str, *, prefix: str = PREFIX) -> str:
+    """Key on which the encoder publishes stacked three-scan tensors for ``robot_id``."""
+    return _key(robot_id, TENSOR, prefix)
+
+
+def detections_key(robot_id: str, *, prefix: str = PREFIX) -> str:
+    """Key on which the detector publishes detections for ``robot_id``."""
+    return _key(robot_id, DETECTIONS, prefix)
+
+
+def truth_key(robot_id: str, *, prefix: str = PREFIX) -> str:
+    """Key on which the simulator publishes ground truth for ``robot_id``."""
+    return _key(robot_id, TRUTH, prefix)
+
+
+def wildcard_key(topic: str, *, prefix: str = PREFIX) -> str:
+    """Key expression matching ``topic`` for every robot, so one service can serve a whole fleet."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    return f"{_validate_prefix(prefix)}/*/{topic}"
+
+
+ALL_SCANS: Final[str] = wildcard_key(SCAN)
+ALL_TENSORS: Final[str] = wildcard_key(TENSOR)
+ALL_DETECTIONS: Final[str] = wildcard_key(DETECTIONS)
+ALL_TRUTH: Final[str] = wildcard_key(TRUTH)
+
+
+def parse_key(key: str, *, prefix: str = PREFIX) -> tuple[str, str]:
+    """Split a concrete key into ``(robot_id, topic)``.
+
+    Subscribers on a wildcard learn which robot a sample came from only through its key, so a key
+    that does not have exactly the expected shape is rejected rather than guessed at.
+    """
+    if not isinstance(key, str):
+        raise TypeError(f"key must be a str, got {type(key).__name__}")
+    head = _validate_prefix(prefix) + "/"
+    if not key.startswith(head):
+        raise ValueError(f"key {key!r} does not start with {head!r}")
+    parts = key[len(head) :].split("/")
+    if len(parts) != 2:
+        raise ValueError(f"key {key!r} is not of the form {head}<robot_id>/<topic>")
+    robot_id, topic = parts
+    if topic not in TOPICS:
+        raise ValueError(f"key {key!r} has unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    try:
+        validate_robot_id(robot_id)
+    except ValueError as exc:
+        raise ValueError(f"key {key!r}: {exc}") from None
+    return robot_id, topic

@@ -1,0 +1,497 @@
+"""Wire messages of triscan: pydantic v2 models plus a msgpack codec (SPEC §7).
+
+Every payload that crosses Zenoh is a msgpack map carrying ``kind`` and ``schema_version`` next to
+the model's fields. Numeric arrays travel as ``{"dtype", "shape", "data"}`` with raw little-endian
+bytes, so a C++ or Rust peer can produce them without numpy and a decoder can wrap them without a
+parse step.
+
+Payloads come from the network and may be hostile or simply from another build. ``decode_message``
+therefore turns *every* way a payload can be wrong into one exception type, ``MessageError``, whose
+``reason`` is a short fixed token a service can count, and whose text names the offending field in one
+line, so a service can log, count and drop a bad sample and keep serving.
+
+Arrays held by models are always C-contiguous, little-endian and read-only. Read-only is the price
+of not copying on decode (``np.frombuffer`` views the unpacked bytes); it also keeps frozen models
+honestly immutable. Call ``.copy()`` on an array to get a writable one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar, Final, Literal, TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    GetCoreSchemaHandler,
+    GetJsonSchemaHandler,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import core_schema
+
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
+from common.keys import validate_robot_id
+
+SCHEMA_VERSION: Final[int] = 1
+MAX_PAYLOAD_BYTES: Final[int] = 4 * 1024 * 1024
+MAX_BEAMS: Final[int] = 8192
+MAX_DETECTIONS: Final[int] = 300
+MAX_TRUTH_OBJECTS: Final[int] = 64
+TENSOR_SHAPE: Final[tuple[int, int, int]] = (RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH)
+CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe")
+
+# Unpacker limits: no legitimate message comes near them, and they stop a small hostile payload from
+# declaring a huge container that msgpack would pre-allocate before noticing the data is missing.
+_MAX_STR_LEN: Final[int] = 4096
+_MAX_ARRAY_LEN: Final[int] = 1024
+_MAX_MAP_LEN: Final[int] = 64
+
+_TWO_PI: Final[float] = 2.0 * math.pi
+
+
+class MessageError(ValueError):
+    """A payload that cannot be accepted; ``reason`` is a fixed token suitable as a metrics label.
+
+    Reasons: ``not_bytes``, ``too_large``, ``not_msgpack``, ``not_a_map``, ``wrong_kind``,
+    ``schema_version``, ``invalid``.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+# --------------------------------------------------------------------------------------------------
+# Array fields
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NDArraySpec:
+    """Pydantic annotation turning ``np.ndarray`` into a checked wire array.
+
+    Use as ``Annotated[np.ndarray, NDArraySpec(...)]``. ``shape`` gives one entry per axis: an int
+    fixes that axis, ``None`` leaves it free (bounded by ``min_elements``/``max_elements``). The
+    element cap is checked on the *declared* shape before any buffer is touched, so a forged shape
+    cannot trigger a large allocation. ``finite`` rejects NaN/inf where they can only be a bug
+    (geometry), while sensor data such as ranges legitimately carries them.
+    """
+
+    dtypes: tuple[str, ...]
+    shape: tuple[int | None, ...]
+    min_elements: int = 0
+    max_elements: int | None = None
+    finite: bool = False
+
+    def _allowed(self) -> tuple[np.dtype[Any], ...]:
+        return tuple(np.dtype(d).newbyteorder("<") for d in self.dtypes)
+
+    def _wire_names(self) -> dict[str, np.dtype[Any]]:
+        # Accept the canonical numpy spelling ("<f4", "|u1") and, for one-byte types, "<u1"/"u1",
+        # which non-numpy producers naturally write. A fixed table means we never hand an arbitrary
+        # network string to np.dtype().
+        names: dict[str, np.dtype[Any]] = {}
+        for dt in self._allowed():
+            names[dt.str] = dt
+            if dt.itemsize == 1:
+                names["<" + dt.str[1:]] = dt
+                names[dt.str[1:]] = dt
+        return names
+
+    def _describe_allowed(self) -> str:
+        return "/".join(dt.name for dt in self._allowed())
+
+    def _check_shape(self, shape: tuple[int, ...]) -> int:
+        if len(shape) != len(self.shape):
+            raise ValueError(f"expected a {len(self.shape)}-d array, got shape {list(shape)}")
+        for axis, (got, want) in enumerate(zip(shape, self.shape, strict=True)):
+            if want is not None and got != want:
+                raise ValueError(f"expected shape {self._shape_text()}, got {list(shape)} (axis {axis})")
+        count = math.prod(shape)
+        if count < self.min_elements:
+            raise ValueError(f"expected at least {self.min_elements} elements, got {count}")
+        if self.max_elements is not None and count > self.max_elements:
+            raise ValueError(f"at most {self.max_elements} elements allowed, got {count}")
+        return count
+
+    def _shape_text(self) -> str:
+        return "[" + ", ".join("N" if d is None else str(d) for d in self.shape) + "]"
+
+    def _finish(self, arr: np.ndarray) -> np.ndarray:
+        if self.finite and arr.dtype.kind == "f" and not bool(np.isfinite(arr).all()):
+            raise ValueError("array must contain only finite values")
+        arr.flags.writeable = False
+        return arr
+
+    def validate(self, value: Any) -> np.ndarray:
+        """Accept an ndarray (from a producer) or the wire map (from the decoder)."""
+        if isinstance(value, np.ndarray):
+            return self._from_ndarray(value)
+        if isinstance(value, dict):
+            return self._from_map(value)
+        raise ValueError(
+            f"expected a numpy array or a {{dtype, shape, data}} map, got {type(value).__name__}"
+        )
+
+    def _from_ndarray(self, arr: np.ndarray) -> np.ndarray:
+        target = arr.dtype.newbyteorder("<")
+        if target not in self._allowed():
+            raise ValueError(f"dtype must be {self._describe_allowed()}, got {arr.dtype.name}")
+        self._check_shape(arr.shape)
+        out = np.ascontiguousarray(arr, dtype=target)
+        if arr.flags.writeable and np.may_share_memory(out, arr):
+            # Decouple from the caller's buffer: a frozen message must not change under our feet.
+            out = arr.copy(order="C")
+        return self._finish(out)
+
+    def _from_map(self, value: dict[Any, Any]) -> np.ndarray:
+        if set(value) != {"dtype", "shape", "data"}:
+            raise ValueError(
+                f"array map must have exactly the keys dtype, shape, data; got {sorted(map(str, value))}"
+            )
+        dtype_name, shape_raw, data = value["dtype"], value["shape"], value["data"]
+        dt = self._wire_names().get(dtype_name) if isinstance(dtype_name, str) else None
+        if dt is None:
+            raise ValueError(f"dtype must be {self._describe_allowed()} (little-endian), got {dtype_name!r}")
+        if not isinstance(shape_raw, list | tuple) or not all(type(d) is int and d >= 0 for d in shape_raw):
+            raise ValueError(f"shape must be a list of non-negative ints, got {shape_raw!r}")
+        shape = tuple(shape_raw)
+        count = self._check_shape(shape)
+        if not isinstance(data, bytes | bytearray):
+            # ValueError, not TypeError: pydantic only turns ValueError into a ValidationError.
+            raise ValueError(f"data must be bytes, got {type(data).__name__}")
+        expected = count * dt.itemsize
+        if len(data) != expected:
+            raise ValueError(f"{count} {dt.name} expected {expected} bytes, got {len(data)}")
+        # Zero-copy view of the unpacked bytes; _finish makes it read-only (bytearray input is writable).
+        return self._finish(np.frombuffer(data, dtype=dt).reshape(shape))
+
+    @staticmethod
+    def serialize(arr: np.ndarray) -> dict[str, Any]:
+        """Validated arrays are already little-endian and contiguous, so tobytes() is the wire format."""
+        return {"dtype": arr.dtype.str, "shape": list(arr.shape), "data": arr.tobytes()}
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> core_schema.CoreSchema:
+        return core_schema.no_info_plain_validator_function(
+            self.validate,
+            serialization=core_schema.plain_serializer_function_ser_schema(self.serialize),
+        )
+
+    def __get_pydantic_json_schema__(
+        self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        return {
+            "type": "object",
+            "description": f"{self._describe_allowed()} {self._shape_text()}, raw little-endian bytes",
+            "properties": {
+                "dtype": {"type": "string"},
+                "shape": {"type": "array", "items": {"type": "integer"}},
+                "data": {"type": "string", "format": "binary"},
+            },
+            "required": ["dtype", "shape", "data"],
+        }
+
+
+RangesArray = Annotated[
+    np.ndarray, NDArraySpec(dtypes=("float32",), shape=(None,), min_elements=1, max_elements=MAX_BEAMS)
+]
+TensorArray = Annotated[np.ndarray, NDArraySpec(dtypes=("uint8",), shape=TENSOR_SHAPE)]
+CornersArray = Annotated[np.ndarray, NDArraySpec(dtypes=("float32",), shape=(4, 2), finite=True)]
+
+# --------------------------------------------------------------------------------------------------
+# Models
+# --------------------------------------------------------------------------------------------------
+
+RobotId = Annotated[str, AfterValidator(validate_robot_id)]
+NonNegInt = Annotated[int, Field(ge=0)]
+NonNegFloat = Annotated[float, Field(ge=0.0)]
+ClassId = Annotated[int, Field(ge=0, le=len(CLASS_NAMES) - 1)]
+BoxPx = tuple[float, float, float, float]
+Pose2D = tuple[float, float, float]
+
+
+def _values_equal(a: Any, b: Any) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        # Bit-exact: NaN ranges with equal payloads compare equal, unlike ndarray ==.
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and a.tobytes() == b.tobytes()
+        )
+    return bool(a == b)
+
+
+def _check_class(class_id: int, class_name: str) -> None:
+    if CLASS_NAMES[class_id] != class_name:
+        raise ValueError(
+            f"class_name {class_name!r} does not match class_id {class_id} ({CLASS_NAMES[class_id]!r})"
+        )
+
+
+def _check_box(box: BoxPx | None) -> None:
+    if box is not None and (box[0] > box[2] or box[1] > box[3]):
+        raise ValueError(f"box_px must be (x1, y1, x2, y2) with x1 <= x2 and y1 <= y2, got {box}")
+
+
+class WireModel(BaseModel):
+    """Base of every wire model: immutable, no unknown fields, no NaN/inf in scalar floats.
+
+    ``__eq__`` is replaced because pydantic's compares field dicts, which raises on ndarray fields.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    def __eq__(self, other: object) -> bool:
+        if type(self) is not type(other):
+            return NotImplemented
+        return all(_values_equal(getattr(self, n), getattr(other, n)) for n in type(self).model_fields)
+
+
+class Message(WireModel):
+    """A top-level message: one Zenoh sample. ``KIND`` names it on the wire."""
+
+    KIND: ClassVar[str] = ""
+
+    schema_version: int = SCHEMA_VERSION
+    robot_id: RobotId
+    seq: NonNegInt
+    stamp_ns: NonNegInt
+
+    @field_validator("schema_version")
+    @classmethod
+    def _known_version(cls, v: int) -> int:
+        if v != SCHEMA_VERSION:
+            raise ValueError(f"schema_version {v} is not supported (this build speaks {SCHEMA_VERSION})")
+        return v
+
+
+class Scan(Message):
+    """One 2D LiDAR sweep, mirroring ROS ``sensor_msgs/LaserScan``.
+
+    ``ranges`` may hold NaN/inf (real sensors report them); the encoder maps them to its sentinel.
+    """
+
+    KIND: ClassVar[str] = "scan"
+
+    angle_min: float
+    angle_increment: float
+    range_min: NonNegFloat
+    range_max: float
+    ranges: RangesArray
+    frame_id: str = Field(default="laser", min_length=1, max_length=256)
+
+    @field_validator("angle_increment")
+    @classmethod
+    def _nonzero_increment(cls, v: float) -> float:
+        if v == 0.0:
+            raise ValueError("angle_increment must be nonzero")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Scan:
+        if not self.range_min < self.range_max:
+            raise ValueError(f"range_min ({self.range_min}) must be < range_max ({self.range_max})")
+        inc = abs(self.angle_increment)
+        fov = self.ranges.shape[0] * inc
+        # One increment of slack: an N-beam full circle spans (N-1)*inc between its first and last
+        # beam, and float32-derived increments round either way.
+        if fov > _TWO_PI + inc + 1e-9:
+            raise ValueError(
+                f"field of view {self.ranges.shape[0]} beams x {inc:.6g} rad = {fov:.6g} rad exceeds 2*pi"
+            )
+        return self
+
+
+class StackedTensor(Message):
+    """Three consecutive rasters stacked as the network input (channel 0 = t-2, 1 = t-1, 2 = t)."""
+
+    KIND: ClassVar[str] = "tensor"
+
+    tensor: TensorArray
+    padding: Literal["zero", "wrap"]
+    scan_seqs: tuple[NonNegInt, NonNegInt, NonNegInt]
+    scan_stamps_ns: tuple[NonNegInt, NonNegInt, NonNegInt]
+
+    @model_validator(mode="after")
+    def _seq_is_newest(self) -> StackedTensor:
+        if self.seq != self.scan_seqs[2]:
+            raise ValueError(
+                f"seq ({self.seq}) must equal the newest scan's seq scan_seqs[2] ({self.scan_seqs[2]})"
+            )
+        return self
+
+
+class Detection(WireModel):
+    """One detected object; pixel box plus its polar and Cartesian reading in the laser frame.
+
+    ``x_m``/``y_m`` follow ROS REP-103 (x forward, y left).
+    """
+
+    class_id: ClassId
+    class_name: str
+    score: Annotated[float, Field(ge=0.0, le=1.0)]
+    box_px: BoxPx
+    bearing_deg: float
+    bearing_min_deg: float
+    bearing_max_deg: float
+    range_min_m: NonNegFloat
+    range_max_m: NonNegFloat
+    x_m: float
+    y_m: float
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Detection:
+        _check_class(self.class_id, self.class_name)
+        _check_box(self.box_px)
+        if self.range_min_m > self.range_max_m:
+            raise ValueError(f"range_min_m ({self.range_min_m}) must be <= range_max_m ({self.range_max_m})")
+        return self
+
+
+class StageTimings(WireModel):
+    """Per-frame stage durations, so latency regressions are visible from the wire alone."""
+
+    encode_ms: NonNegFloat
+    inference_ms: NonNegFloat
+    nms_ms: NonNegFloat
+
+
+class Detections(Message):
+    """The detector's output for one tensor; ``scan_stamp_ns`` lets consumers measure end-to-end latency."""
+
+    KIND: ClassVar[str] = "detections"
+
+    detections: list[Detection] = Field(max_length=MAX_DETECTIONS)
+    timings: StageTimings
+    model_id: str = Field(min_length=1, max_length=256)
+    scan_stamp_ns: NonNegInt
+
+
+class TruthObject(WireModel):
+    """A simulated object's true footprint (world frame, metres) and, if the sensor sees it, its label box."""
+
+    class_id: ClassId
+    class_name: str
+    corners_xy: CornersArray
+    center_xy: tuple[float, float]
+    yaw_rad: float
+    visible: bool
+    box_px: BoxPx | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> TruthObject:
+        _check_class(self.class_id, self.class_name)
+        _check_box(self.box_px)
+        # Labels exist exactly for visible objects (SPEC §4); anything else is a simulator bug.
+        if self.visible and self.box_px is None:
+            raise ValueError("a visible object must carry box_px")
+        if not self.visible and self.box_px is not None:
+            raise ValueError("an object that is not visible must not carry box_px")
+        return self
+
+
+class GroundTruth(Message):
+    """Simulator ground truth for the scan with the same ``seq``; poses are (x, y, yaw) in the world frame."""
+
+    KIND: ClassVar[str] = "truth"
+
+    scenario_id: NonNegInt
+    robot_pose: Pose2D
+    lidar_pose: Pose2D
+    objects: list[TruthObject] = Field(max_length=MAX_TRUTH_OBJECTS)
+
+
+MESSAGE_TYPES: Final[dict[str, type[Message]]] = {
+    cls.KIND: cls for cls in (Scan, StackedTensor, Detections, GroundTruth)
+}
+
+M = TypeVar("M", bound=Message)
+
+# --------------------------------------------------------------------------------------------------
+# Codec
+# --------------------------------------------------------------------------------------------------
+
+
+def encode_message(msg: Message) -> bytes:
+    """Serialise a top-level message; ``kind`` goes first so a reader can route before validating."""
+    if not isinstance(msg, Message) or type(msg).KIND not in MESSAGE_TYPES:
+        raise TypeError(f"only top-level messages can be encoded, got {type(msg).__name__}")
+    body: dict[str, Any] = {"kind": type(msg).KIND}
+    body.update(msg.model_dump())
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def _loc_prefix(loc: Iterable[int | str]) -> str:
+    # Model-level validators have an empty location; their messages already name the fields.
+    text = ".".join(str(p) for p in loc)
+    return f"{text}: " if text else ""
+
+
+def _validation_text(kind: str, exc: ValidationError) -> str:
+    errors = exc.errors(include_url=False, include_input=False)
+    first = errors[0]
+    text = str(first["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
+    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+    return " ".join(f"{kind}: {_loc_prefix(first['loc'])}{text}{more}".split())
+
+
+def decode_message(payload: bytes | bytearray | memoryview, expected: type[M]) -> M:
+    """Validate a payload as an ``expected`` message, or raise MessageError and nothing else.
+
+    Checks run cheapest-first and size before parsing, so a hostile sample costs little. The
+    schema version is checked before the kind because a different version may rename kinds.
+    """
+    kind = expected.KIND
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise MessageError("not_bytes", f"{kind}: payload must be bytes, got {type(payload).__name__}")
+    size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
+    if size > MAX_PAYLOAD_BYTES:
+        raise MessageError("too_large", f"{kind}: payload is {size} bytes, the limit is {MAX_PAYLOAD_BYTES}")
+    try:
+        body = msgpack.unpackb(
+            payload,
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=MAX_PAYLOAD_BYTES,
+            max_str_len=_MAX_STR_LEN,
+            max_array_len=_MAX_ARRAY_LEN,
+            max_map_len=_MAX_MAP_LEN,
+            max_ext_len=0,
+        )
+    except Exception as exc:  # msgpack raises a zoo of exception types for malformed input
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise MessageError("not_msgpack", f"{kind}: payload is not valid msgpack ({detail})") from None
+    if not isinstance(body, dict):
+        raise MessageError("not_a_map", f"{kind}: payload must be a msgpack map, got {type(body).__name__}")
+
+    version = body.pop("schema_version", None)
+    if version is None:
+        raise MessageError(
+            "schema_version", f"{kind}: schema_version is missing (this build speaks {SCHEMA_VERSION})"
+        )
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise MessageError(
+            "schema_version",
+            f"{kind}: schema_version {version!r} is not supported (this build speaks {SCHEMA_VERSION})",
+        )
+    got_kind = body.pop("kind", None)
+    if got_kind != kind:
+        raise MessageError("wrong_kind", f"{kind}: payload kind is {got_kind!r}, expected {kind!r}")
+    try:
+        body["schema_version"] = version
+        return expected.model_validate(body)
+    except ValidationError as exc:
+        raise MessageError("invalid", _validation_text(kind, exc)) from None

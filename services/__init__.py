@@ -1,0 +1,1 @@
+"""triscan's processes: simulator-publisher, encoder, detector, visualizer; each thin wiring of a core."""

@@ -1,0 +1,161 @@
+"""Ground-truth boxes for one sample, by SPEC §4.
+
+A sample's labels describe its middle scan (t−1), seen from the true LiDAR pose at that scan. Each
+object's footprint is projected into (bearing, range): the box spans the arc that covers its corners
+and the range interval from its nearest boundary point to its farthest corner, snapped outward to
+whole raster pixels — exactly the pixels a return from that object can light. An object is a target
+only if the sensor saw it: at least two beams of scan t−1 hit it (for the doorway: pass through it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.encoding import (
+    ANGLE_COLUMNS,
+    IMAGE_WIDTH,
+    RANGE_ROWS,
+    ROW_SCALE,
+    Padding,
+)
+from services.simulator.scenario import DOORFRAME, Rect, Scenario
+
+MIN_BEAMS_ON_OBJECT = 2
+Box = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class ObjectLabel:
+    """How one object looks from one sensor pose; ``boxes_px`` is empty when it is no target."""
+
+    class_id: int
+    beams_on_object: int
+    visible: bool
+    bearing_center_deg: float  # in [0, 360)
+    bearing_min_deg: float  # arc ends, unwrapped around the centre: min may be < 0, max may be > 360
+    bearing_max_deg: float
+    range_min_m: float
+    range_max_m: float
+    boxes_px: tuple[Box, ...]  # (x1, y1, x2, y2) in raster pixels, one per copy in the image
+
+
+def _to_sensor_frame(points: np.ndarray, lidar_pose: tuple[float, float, float]) -> np.ndarray:
+    x, y, yaw = lidar_pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = np.asarray(points, dtype=np.float64) - np.array([x, y])
+    return np.stack([d[..., 0] * c + d[..., 1] * s, -d[..., 0] * s + d[..., 1] * c], axis=-1)
+
+
+def footprint_polar(
+    rect: Rect, lidar_pose: tuple[float, float, float]
+) -> tuple[float, float, float, float, float]:
+    """(centre bearing in [0, 360), arc min, arc max, range min, range max) of a footprint.
+
+    The arc is measured around the centre bearing so it never breaks at 0°/360°; its ends are
+    unwrapped (e.g. −12° … 15°). A sensor inside the footprint sees it all around: the full circle.
+    """
+    sensor_xy = np.array(lidar_pose[:2])
+    local = _to_sensor_frame(np.vstack([rect.corners(), [rect.center]]), lidar_pose)
+    bearings = np.degrees(np.arctan2(local[:, 1], local[:, 0]))
+    center = float(np.mod(bearings[-1], 360.0))
+    range_min = float(rect.distance(sensor_xy))
+    range_max = float(np.hypot(local[:4, 0], local[:4, 1]).max())
+    if range_min == 0.0:
+        return center, 0.0, 360.0, 0.0, range_max
+    offsets = np.mod(bearings[:4] - center + 180.0, 360.0) - 180.0
+    return center, center + float(offsets.min()), center + float(offsets.max()), range_min, range_max
+
+
+def _pixel_boxes(
+    center_deg: float, lo_deg: float, hi_deg: float, range_min: float, range_max: float, padding: Padding
+) -> tuple[Box, ...]:
+    """Boxes of one arc in the padded image, applying the seam rule of SPEC §4."""
+    x1 = math.floor(lo_deg + 0.5)  # column of the arc's first bearing
+    x2 = math.floor(hi_deg + 0.5) + 1  # one past the column of its last bearing
+    y1 = float(min(math.floor(range_min * ROW_SCALE), RANGE_ROWS - 1))
+    y2 = float(min(math.floor(range_max * ROW_SCALE) + 1, RANGE_ROWS))
+    x2 = min(x2, x1 + ANGLE_COLUMNS)  # a full circle covers each column once
+    if padding == "zero":
+        # Keep the one piece (shifted by k·360°) that holds the centre column; clip it to [0, 360).
+        shift = -ANGLE_COLUMNS * math.floor(math.floor(center_deg + 0.5) / ANGLE_COLUMNS)
+        a, b = max(x1 + shift, 0), min(x2 + shift, ANGLE_COLUMNS)
+        return ((float(a), y1, float(b), y2),) if b > a else ()
+    # wrap: columns 360–383 repeat 0–23, so every copy of the arc that falls in the image is real.
+    boxes = []
+    for shift in (-ANGLE_COLUMNS, 0, ANGLE_COLUMNS):
+        a, b = max(x1 + shift, 0), min(x2 + shift, IMAGE_WIDTH)
+        if b > a:
+            boxes.append((float(a), y1, float(b), y2))
+    return tuple(boxes)
+
+
+def beams_through_segment(
+    segment: np.ndarray,
+    lidar_pose: tuple[float, float, float],
+    bearings_rad: np.ndarray,
+    true_ranges: np.ndarray,
+    range_max: float,
+) -> int:
+    """How many beams cross ``segment`` before their first hit and within the sensor's reach."""
+    x, y, yaw = lidar_pose
+    angles = yaw + np.asarray(bearings_rad, dtype=np.float64)
+    direction = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    p, q = np.asarray(segment[0], dtype=np.float64), np.asarray(segment[1], dtype=np.float64)
+    edge = q - p
+    origin_to_p = p - np.array([x, y])
+    denom = direction[:, 0] * edge[1] - direction[:, 1] * edge[0]  # cross(direction, edge)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (origin_to_p[0] * edge[1] - origin_to_p[1] * edge[0]) / denom  # distance along the beam
+        u = (origin_to_p[0] * direction[:, 1] - origin_to_p[1] * direction[:, 0]) / denom  # along segment
+    reach = np.minimum(np.where(np.isfinite(true_ranges), true_ranges, np.inf), range_max)
+    crossing = (denom != 0) & (t > 0) & (u >= 0) & (u <= 1) & (t <= reach)
+    return int(np.count_nonzero(crossing))
+
+
+def label_scan(
+    scenario: Scenario,
+    lidar_pose: tuple[float, float, float],
+    bearings_rad: np.ndarray,
+    true_ranges: np.ndarray,
+    hit_object: np.ndarray,
+    range_max: float,
+    padding: Padding = "zero",
+) -> list[ObjectLabel]:
+    """Labels of every object of ``scenario`` (chair, box, desk, doorframe) for one scan.
+
+    ``true_ranges`` and ``hit_object`` are the noise-free first hit of each beam and the index in
+    ``scenario.objects`` of what it hit (−1 wall, −2 nothing within range).
+    """
+    labels: list[ObjectLabel] = []
+    hits = np.asarray(hit_object)
+    candidates: list[tuple[int, Rect, int]] = [
+        (obj.class_id, obj.footprint, int(np.count_nonzero(hits == index)))
+        for index, obj in enumerate(scenario.objects)
+    ]
+    door_beams = beams_through_segment(
+        scenario.door.opening, lidar_pose, bearings_rad, true_ranges, range_max
+    )
+    candidates.append((DOORFRAME, scenario.door.frame, door_beams))
+    for class_id, rect, beams in candidates:
+        center, lo, hi, rmin, rmax = footprint_polar(rect, lidar_pose)
+        visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max
+        boxes = _pixel_boxes(center, lo, hi, rmin, rmax, padding) if visible else ()
+        labels.append(
+            ObjectLabel(class_id, beams, visible and bool(boxes), center, lo, hi, rmin, rmax, boxes)
+        )
+    return labels
+
+
+def yolo_lines(labels: list[ObjectLabel]) -> list[str]:
+    """YOLO text lines (class, x-centre, y-centre, width, height; normalised by 384 and 64)."""
+    lines = []
+    for label in labels:
+        for x1, y1, x2, y2 in label.boxes_px:
+            lines.append(
+                f"{label.class_id} {(x1 + x2) / 2 / IMAGE_WIDTH:.6f} {(y1 + y2) / 2 / RANGE_ROWS:.6f} "
+                f"{(x2 - x1) / IMAGE_WIDTH:.6f} {(y2 - y1) / RANGE_ROWS:.6f}"
+            )
+    return lines

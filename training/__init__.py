@@ -1,0 +1,1 @@
+"""Offline tooling: dataset generation, training, export, evaluation. Never imported by the services."""
