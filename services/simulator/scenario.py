@@ -302,9 +302,9 @@ def sample_waypoints(
     rng: np.random.Generator,
     count: int = 2,
     min_step_m: float = 0.1,
-    max_step_m: float = 0.3,
+    max_step_m: float = 0.2,
 ) -> list[tuple[float, float]]:
-    """``count`` waypoints, each a free cell 0.1–0.3 m from the previous one (the short motion of SPEC §3)."""
+    """``count`` waypoints, each a free cell 0.1–0.2 m from the previous one (the short motion of SPEC §3)."""
     cells = free_grid_cells(scenario)
     points: list[tuple[float, float]] = []
     current = np.asarray(start, dtype=np.float64)

@@ -1,0 +1,155 @@
+"""A 2D LiDAR (ROBOTIS LDS-01 by default, SPEC §3) ray-cast in a :class:`~services.simulator.world.World`.
+
+The reading mirrors ROS ``sensor_msgs/LaserScan``: beam i has bearing ``angle_min + i·angle_increment``,
+counter-clockwise from the sensor's forward axis (REP-103), and a return that is missing or outside
+[range_min, range_max] is published as ``inf``, as real drivers do; the encoder maps those to its
+sentinel row. Besides the noisy ranges the reading keeps the noise-free ranges and the id of the object
+each beam hit, which the labeller needs ("at least 2 beams hit it", SPEC §4).
+
+All beams of one scan go to PyBullet in one ``rayTestBatch`` call; noise comes from the caller's seeded
+generator and is drawn for every beam on every scan, so the random stream advances identically
+whatever the scene and the same seed reproduces the same ranges byte for byte.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as p
+
+from services.simulator.robot import Pose
+from services.simulator.world import World
+
+# PyBullet rejects batches above MAX_RAY_INTERSECTION_BATCH_SIZE (16384 in 3.2.7) and, in 3.2.7,
+# silently returns no results for a batch of exactly that size; one ray less is always safe.
+RAY_BATCH_LIMIT = int(getattr(p, "MAX_RAY_INTERSECTION_BATCH_SIZE", 1024)) - 1
+
+
+@dataclass(frozen=True)
+class LidarSpec:
+    """Sensor geometry and noise. Defaults: LDS-01 on a TurtleBot3 Burger (SPEC §3)."""
+
+    beams: int = 360
+    angle_min: float = 0.0
+    angle_increment: float = 2.0 * math.pi / 360
+    range_min: float = 0.12
+    range_max: float = 3.5
+    noise_sigma_m: float = 0.015
+    mount_offset_x_m: float = -0.03  # the LDS-01 sits 3 cm behind the robot centre
+    mount_height_m: float = 0.173
+
+    def __post_init__(self) -> None:
+        if self.beams < 1:
+            raise ValueError(f"beams must be positive, got {self.beams}")
+        if not 0.0 <= self.range_min < self.range_max:
+            raise ValueError(f"need 0 <= range_min < range_max, got {self.range_min}, {self.range_max}")
+        if self.noise_sigma_m < 0.0:
+            raise ValueError(f"noise_sigma_m must be >= 0, got {self.noise_sigma_m}")
+
+    @property
+    def bearings_rad(self) -> np.ndarray:
+        """float64[beams]: bearing of each beam in the sensor frame, CCW from forward."""
+        return self.angle_min + np.arange(self.beams) * self.angle_increment
+
+    @property
+    def angle_max(self) -> float:
+        """Bearing of the last beam, as ``LaserScan.angle_max`` defines it."""
+        return self.angle_min + (self.beams - 1) * self.angle_increment
+
+
+DEFAULT_SPEC = LidarSpec()
+
+
+@dataclass(frozen=True)
+class LidarReading:
+    """One scan with its ground truth.
+
+    ``ranges`` is what the sensor publishes; ``true_ranges`` and ``hit_object`` describe the first
+    surface along each beam without noise, so a beam whose noisy range fell out of bounds still records
+    what it hit. ``hit_object``: furniture index in ``scenario.objects``, -1 wall, -2 nothing within
+    ``range_max``.
+    """
+
+    ranges: np.ndarray  # float32[N], noisy, inf where invalid
+    true_ranges: np.ndarray  # float64[N], inf where nothing within range_max
+    hit_object: np.ndarray  # int16[N]
+    lidar_pose: Pose
+
+
+def lidar_pose(robot_pose: Pose, spec: LidarSpec = DEFAULT_SPEC) -> Pose:
+    """Sensor pose in the world: the mount offset is along the robot's forward axis, yaw unchanged.
+
+    The 3 cm offset matters for labels: bearings and ranges are measured from here, not from the robot
+    centre, and a rotation in place moves the sensor on a small circle.
+    """
+    x, y, yaw = robot_pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (x + spec.mount_offset_x_m * c, y + spec.mount_offset_x_m * s, yaw)
+
+
+class Lidar:
+    """Ray-casts a :class:`LidarSpec` in a :class:`World` and adds seeded Gaussian range noise.
+
+    The generator is required rather than defaulted: every scan of the dataset must be reproducible
+    from its seed, and a hidden default seed would make two sensors silently share one noise stream.
+    """
+
+    def __init__(self, world: World, spec: LidarSpec = DEFAULT_SPEC, *, rng: np.random.Generator) -> None:
+        self.world = world
+        self.spec = spec
+        self.rng = rng
+        bearings = spec.bearings_rad
+        self._cos_b = np.cos(bearings)
+        self._sin_b = np.sin(bearings)
+
+    def pose_of(self, robot_pose: Pose) -> Pose:
+        """Sensor pose for a robot pose under this sensor's mount offset."""
+        return lidar_pose(robot_pose, self.spec)
+
+    def cast(self, sensor_pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free first hits from a sensor pose: (true ranges float64[N] with inf, body ids int64[N]).
+
+        Rays start at the sensor origin and end at ``range_max``; PyBullet's hit fraction times
+        ``range_max`` is then the distance. Batches above PyBullet's limit are split (only a
+        >16k-beam sensor would need it).
+        """
+        self.world.require_open()
+        spec = self.spec
+        x, y, yaw = sensor_pose
+        c, s = math.cos(yaw), math.sin(yaw)
+        starts = np.empty((spec.beams, 3))
+        starts[:] = (x, y, spec.mount_height_m)
+        ends = starts.copy()
+        ends[:, 0] += spec.range_max * (c * self._cos_b - s * self._sin_b)
+        ends[:, 1] += spec.range_max * (s * self._cos_b + c * self._sin_b)
+        body_ids: list[int] = []
+        fractions: list[float] = []
+        for first in range(0, spec.beams, RAY_BATCH_LIMIT):
+            last = first + RAY_BATCH_LIMIT
+            results = p.rayTestBatch(
+                starts[first:last], ends[first:last], numThreads=1, physicsClientId=self.world.client_id
+            )
+            # Transpose the per-ray tuples in C: (ids, links, fractions, positions, normals).
+            ids, _links, fracs, _positions, _normals = zip(*results, strict=True)
+            body_ids.extend(ids)
+            fractions.extend(fracs)
+        bodies = np.asarray(body_ids, dtype=np.int64)
+        true_ranges = np.where(bodies >= 0, np.asarray(fractions, dtype=np.float64) * spec.range_max, np.inf)
+        return true_ranges, bodies
+
+    def scan(self, robot_pose: Pose) -> LidarReading:
+        """One scan from a robot pose (the sensor offset is applied here)."""
+        sensor_pose = self.pose_of(robot_pose)
+        true_ranges, bodies = self.cast(sensor_pose)
+        # Always draw N samples, even where there is no return, so the stream does not depend on the scene.
+        noisy = true_ranges + self.rng.normal(0.0, self.spec.noise_sigma_m, size=self.spec.beams)
+        valid = (noisy >= self.spec.range_min) & (noisy <= self.spec.range_max)  # inf and NaN fail both
+        ranges = np.where(valid, noisy, np.inf).astype(np.float32)
+        return LidarReading(
+            ranges=ranges,
+            true_ranges=true_ranges,
+            hit_object=self.world.hit_object(bodies),
+            lidar_pose=sensor_pose,
+        )
