@@ -1,0 +1,268 @@
+"""Seeded generator of YOLO data sets from the simulated room (SPEC §3, §4).
+
+Per scenario: build the world, draw up to M robot positions, let the robot drive a short motion from
+each while the LiDAR scans at 10 Hz, and turn every three consecutive scans into one sample — the
+stacked RGB tensor as a PNG plus the labels of its middle scan. Splits are made by scenario, never by
+frame, because neighbouring frames are near-duplicates and would leak between train and test.
+
+Every scenario owns its random streams (derived from ``[seed, index]``), so the output is byte-for-byte
+the same for a seed whatever the number of workers or the order they finish in.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import multiprocessing
+import shutil
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from common.encoding import PADDINGS, Padding, encode_scan, pad_raster, stack_rasters
+from common.messages import CLASS_NAMES
+from services.simulator.labels import label_scan, yolo_lines
+from services.simulator.lidar import Lidar, LidarReading, LidarSpec
+from services.simulator.robot import follow_waypoints
+from services.simulator.scenario import (
+    Scenario,
+    sample_robot_positions,
+    sample_scenario,
+    sample_waypoints,
+)
+from services.simulator.world import World
+from training.png import write_rgb_png
+
+log = logging.getLogger(__name__)
+
+SPLITS = ("train", "val", "test")
+SPLIT_FRACTIONS = (0.85, 0.10, 0.05)
+HEADINGS_DEG = np.arange(0, 360, 45)
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What ``triscan dataset`` was asked for; written into the summary so a set can be remade."""
+
+    out: Path
+    scenarios: int = 160
+    positions: int = 90
+    seed: int = 0
+    padding: Padding = "zero"
+    frame_stride: int = 1  # keep every k-th three-scan window of a motion (1 = all, as the paper)
+    workers: int = 1
+
+    def __post_init__(self) -> None:
+        if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
+            raise ValueError("scenarios, positions, frame_stride and workers must all be >= 1")
+        if self.padding not in PADDINGS:
+            raise ValueError(f"padding must be one of {PADDINGS}, got {self.padding!r}")
+
+
+@dataclass
+class ScenarioResult:
+    """What one scenario contributed: its split, sample count, boxes per class and per-sample poses."""
+
+    index: int
+    split: str
+    samples: int = 0
+    boxes_per_class: list[int] = field(default_factory=lambda: [0] * len(CLASS_NAMES))
+    sample_records: list[dict[str, object]] = field(default_factory=list)
+    scenario_json: dict[str, object] = field(default_factory=dict)
+    positions: int = 0
+
+
+def split_of_scenarios(scenarios: int, seed: int) -> list[str]:
+    """Assign each scenario index to train/val/test (85/10/5 %), shuffled by the seed.
+
+    Val and test get at least one scenario each once there are three or more, so tiny sets still
+    exercise every split.
+    """
+    n_val = round(scenarios * SPLIT_FRACTIONS[1])
+    n_test = round(scenarios * SPLIT_FRACTIONS[2])
+    if scenarios >= 3:
+        n_val, n_test = max(n_val, 1), max(n_test, 1)
+    order = np.random.default_rng(np.random.SeedSequence([seed, 0x5B1])).permutation(scenarios)
+    splits = ["train"] * scenarios
+    for rank, index in enumerate(order):
+        if rank < n_test:
+            splits[index] = "test"
+        elif rank < n_test + n_val:
+            splits[index] = "val"
+    return splits
+
+
+def scans_of_motion(
+    lidar: Lidar, scenario: Scenario, start_xy: np.ndarray, heading_rad: float, rng: np.random.Generator
+) -> tuple[np.ndarray, list[LidarReading]]:
+    """Drive the short motion of SPEC §3 from one position and scan at every 10 Hz tick."""
+    waypoints = sample_waypoints(scenario, start_xy, rng)
+    poses = follow_waypoints((float(start_xy[0]), float(start_xy[1]), heading_rad), waypoints)
+    return poses, [lidar.scan(tuple(pose)) for pose in poses]
+
+
+_WORLD: World | None = None
+
+
+def _world() -> World:
+    """One PyBullet world per worker process, reused across its scenarios."""
+    global _WORLD
+    if _WORLD is None:
+        _WORLD = World()
+    return _WORLD
+
+
+def generate_scenario(index: int, split: str, config: DatasetConfig) -> ScenarioResult:
+    """Simulate scenario ``index`` and write its samples; safe to run in any process, in any order."""
+    scenario = sample_scenario(index, config.seed)
+    world = _world()
+    world.load(scenario)
+    spec = LidarSpec()
+    motion_rng = np.random.default_rng(np.random.SeedSequence([config.seed, index, 1]))
+    lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([config.seed, index, 2])))
+    result = ScenarioResult(index=index, split=split, scenario_json=scenario.to_json())
+    image_dir = config.out / "images" / split
+    label_dir = config.out / "labels" / split
+    positions = sample_robot_positions(scenario, config.positions, motion_rng)
+    result.positions = len(positions)
+    for p_index, start in enumerate(positions):
+        heading = math.radians(float(motion_rng.choice(HEADINGS_DEG)))
+        _, readings = scans_of_motion(lidar, scenario, start, heading, motion_rng)
+        rasters = [
+            pad_raster(
+                encode_scan(r.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max),
+                config.padding,
+            )
+            for r in readings
+        ]
+        for t in range(2, len(readings), config.frame_stride):
+            middle = readings[t - 1]
+            labels = label_scan(
+                scenario,
+                middle.lidar_pose,
+                spec.bearings_rad,
+                middle.true_ranges,
+                middle.hit_object,
+                spec.range_max,
+                config.padding,
+            )
+            name = f"s{index:04d}_p{p_index:03d}_f{t:03d}"
+            write_rgb_png(
+                image_dir / f"{name}.png", stack_rasters(rasters[t - 2], rasters[t - 1], rasters[t])
+            )
+            lines = yolo_lines(labels)
+            (label_dir / f"{name}.txt").write_text("".join(f"{line}\n" for line in lines))
+            for label in labels:
+                result.boxes_per_class[label.class_id] += len(label.boxes_px)
+            result.samples += 1
+            result.sample_records.append(
+                {
+                    "image": f"images/{split}/{name}.png",
+                    "scenario": index,
+                    "position": p_index,
+                    "frame": t,
+                    "lidar_pose": [round(v, 6) for v in middle.lidar_pose],
+                }
+            )
+    return result
+
+
+def _generate_task(task: tuple[int, str, DatasetConfig]) -> ScenarioResult:
+    return generate_scenario(*task)
+
+
+def _results(config: DatasetConfig, splits: list[str]) -> Iterator[ScenarioResult]:
+    tasks = [(i, splits[i], config) for i in range(config.scenarios)]
+    if config.workers == 1:
+        yield from map(_generate_task, tasks)
+        return
+    # fork would copy a parent's PyBullet client; spawn gives each worker a clean interpreter.
+    with multiprocessing.get_context("spawn").Pool(config.workers) as pool:
+        yield from pool.imap(_generate_task, tasks)
+
+
+def _prepare_out_dir(out: Path, overwrite: bool) -> None:
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"{out} is not empty; pass --overwrite to replace it")
+        for child in ("images", "labels"):
+            shutil.rmtree(out / child, ignore_errors=True)
+        for name in ("data.yaml", "scenarios.jsonl", "samples.jsonl", "summary.json"):
+            (out / name).unlink(missing_ok=True)
+    for kind in ("images", "labels"):
+        for split in SPLITS:
+            (out / kind / split).mkdir(parents=True, exist_ok=True)
+
+
+def _data_yaml(config: DatasetConfig) -> str:
+    names = "\n".join(f"  {i}: {name}" for i, name in enumerate(CLASS_NAMES))
+    # No "path:" key: Ultralytics then resolves the splits next to this file, so the set can be moved.
+    return (
+        f"# triscan data set: seed {config.seed}, {config.scenarios} scenarios, padding {config.padding}\n"
+        "train: images/train\nval: images/val\ntest: images/test\n"
+        f"nc: {len(CLASS_NAMES)}\nnames:\n{names}\n"
+    )
+
+
+def generate_dataset(
+    config: DatasetConfig, *, overwrite: bool = False, progress: bool = True
+) -> dict[str, object]:
+    """Write the whole data set under ``config.out`` and return its summary (also in ``summary.json``)."""
+    _prepare_out_dir(config.out, overwrite)
+    splits = split_of_scenarios(config.scenarios, config.seed)
+    started = time.perf_counter()
+    samples = {s: 0 for s in SPLITS}
+    scenarios = {s: 0 for s in SPLITS}
+    boxes = {s: [0] * len(CLASS_NAMES) for s in SPLITS}
+    results = _results(config, splits)
+    if progress:
+        from tqdm import tqdm
+
+        results = tqdm(results, total=config.scenarios, unit="scenario", desc="triscan dataset")
+    with (
+        (config.out / "scenarios.jsonl").open("w") as scen_file,
+        (config.out / "samples.jsonl").open("w") as smp_file,
+    ):
+        for result in results:
+            scenarios[result.split] += 1
+            samples[result.split] += result.samples
+            boxes[result.split] = [
+                a + b for a, b in zip(boxes[result.split], result.boxes_per_class, strict=True)
+            ]
+            record = {
+                "split": result.split,
+                "positions": result.positions,
+                "samples": result.samples,
+                **result.scenario_json,
+            }
+            scen_file.write(json.dumps(record, sort_keys=True) + "\n")
+            for sample in result.sample_records:
+                smp_file.write(json.dumps(sample, sort_keys=True) + "\n")
+    elapsed = time.perf_counter() - started
+    (config.out / "data.yaml").write_text(_data_yaml(config))
+    summary: dict[str, object] = {
+        "config": {
+            k: (str(v) if isinstance(v, Path) else v)
+            for k, v in asdict(config).items()
+            if k not in ("out", "workers")
+        },
+        "scenarios": scenarios,
+        "samples": samples,
+        "boxes_per_class": {s: dict(zip(CLASS_NAMES, boxes[s], strict=True)) for s in SPLITS},
+    }
+    # Timing is reported, not stored: summary.json must be identical between two runs of one seed.
+    (config.out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    total = sum(samples.values())
+    log.info(
+        "wrote %d samples from %d scenarios in %.1f s (%.0f samples/s, %d workers)",
+        total,
+        config.scenarios,
+        elapsed,
+        total / max(elapsed, 1e-9),
+        config.workers,
+    )
+    return {**summary, "elapsed_s": elapsed, "samples_per_s": total / max(elapsed, 1e-9)}
