@@ -143,3 +143,37 @@ def test_doorframe_label_uses_the_proxy_rectangle() -> None:
     x1, y1, x2, y2 = door.boxes_px[0]
     assert (x1, x2) == (79.0, 102.0)  # arc ±atan(0.4/2.0) = ±11.31° → columns 79…101
     assert (y1, y2) == (31.0, 34.0)  # 2.0 m → row 31 (31.5); hypot(0.4, 2.1) = 2.138 m → row 33 (33.67) → 34
+
+
+def test_occluded_object_gets_no_label_in_the_simulated_world() -> None:
+    """A chair hidden behind the solid box (seen through real PyBullet beams) is no target."""
+    from services.simulator.lidar import Lidar, LidarSpec
+    from services.simulator.world import World
+
+    spec = LidarSpec(noise_sigma_m=0.0)
+    chair = Furniture(CHAIR, Rect((1.6, 0.0), (0.4, 0.4), 0.0), 0.4, 0.03)  # legs within ±7.5° from origin
+    desk = Furniture(DESK, Rect((-1.0, 1.0), (0.8, 1.6), 0.0), 0.74, 0.05)
+    robot_pose = (0.03, 0.0, 0.0)  # puts the LiDAR (0.03 m behind the centre) at the origin
+
+    def labels_with_box_at(box_center: tuple[float, float]) -> dict[int, object]:
+        box = Furniture(BOX, Rect(box_center, (0.4, 0.6), 0.0), 0.4)  # at (0.8, 0): hides ±26°
+        scenario = Scenario(0, 0, Doorway(2, 0.8), (chair, box, desk))
+        with World(scenario) as world:
+            reading = Lidar(world, spec, rng=np.random.default_rng(0)).scan(robot_pose)
+        labels = label_scan(
+            scenario,
+            reading.lidar_pose,
+            spec.bearings_rad,
+            reading.true_ranges,
+            reading.hit_object,
+            spec.range_max,
+            "zero",
+        )
+        return {label.class_id: label for label in labels}
+
+    hidden = labels_with_box_at((0.8, 0.0))
+    assert hidden[CHAIR].beams_on_object == 0 and not hidden[CHAIR].visible and hidden[CHAIR].boxes_px == ()
+    assert hidden[BOX].visible and hidden[DESK].visible
+    in_view = labels_with_box_at((0.8, -1.2))
+    assert in_view[CHAIR].visible and in_view[CHAIR].beams_on_object >= 2
+    assert len(in_view[CHAIR].boxes_px) == 1
