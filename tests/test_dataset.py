@@ -11,11 +11,12 @@ import pytest
 
 from common.encoding import ScanStacker
 from services.simulator.lidar import Lidar, LidarSpec
-from services.simulator.scenario import Scenario, sample_robot_positions
+from services.simulator.scenario import Scenario
 from services.simulator.world import World
 from training.dataset import (
     DatasetConfig,
     generate_dataset,
+    plan_motions,
     scans_of_motion,
     split_of_scenarios,
 )
@@ -110,13 +111,10 @@ def test_trainer_reads_the_same_tensor_the_runtime_encoder_makes(small_set: Path
     scenario = Scenario.from_json(json.loads((small_set / "scenarios.jsonl").read_text().splitlines()[0]))
     assert sample["scenario"] == scenario.index == 0
     # Re-simulate that sample the way a robot would produce it: scans → ScanStacker, the run-time path.
-    motion_rng = np.random.default_rng(np.random.SeedSequence([7, 0, 1]))
     spec = LidarSpec()
     with World(scenario) as world:
         lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([7, 0, 2])))
-        positions = sample_robot_positions(scenario, 2, motion_rng)
-        heading = np.radians(float(motion_rng.choice(np.arange(0, 360, 45))))
-        _, readings = scans_of_motion(lidar, scenario, positions[0], heading, motion_rng)
+        _, readings = scans_of_motion(lidar, plan_motions(scenario, 7, 2)[0])
     stacker = ScanStacker("zero")
     tensors = [
         stacker.push_scan(r.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max)

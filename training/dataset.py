@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common.encoding import PADDINGS, Padding, encode_scan, pad_raster, stack_rasters
+from common.encoding import PADDINGS, Padding, ScanStacker
 from common.messages import CLASS_NAMES
-from services.simulator.labels import label_scan, yolo_lines
+from services.simulator.labels import ObjectLabel, label_scan, yolo_lines
 from services.simulator.lidar import Lidar, LidarReading, LidarSpec
 from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
@@ -96,13 +96,81 @@ def split_of_scenarios(scenarios: int, seed: int) -> list[str]:
     return splits
 
 
-def scans_of_motion(
-    lidar: Lidar, scenario: Scenario, start_xy: np.ndarray, heading_rad: float, rng: np.random.Generator
-) -> tuple[np.ndarray, list[LidarReading]]:
-    """Drive the short motion of SPEC §3 from one position and scan at every 10 Hz tick."""
-    waypoints = sample_waypoints(scenario, start_xy, rng)
-    poses = follow_waypoints((float(start_xy[0]), float(start_xy[1]), heading_rad), waypoints)
+@dataclass(frozen=True)
+class Motion:
+    """One robot position of a scenario and the short drive made from it (SPEC §3)."""
+
+    start_xy: tuple[float, float]
+    heading_rad: float
+    waypoints: list[tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One example: the run-time tensor of scans t-2, t-1, t and the labels of scan t-1."""
+
+    name: str
+    position: int
+    frame: int
+    tensor: np.ndarray  # uint8[64, 384, 3], built by the run-time ScanStacker
+    labels: list[ObjectLabel]
+    lidar_pose: tuple[float, float, float]  # true pose of the sensor at scan t-1
+
+
+def plan_motions(scenario: Scenario, seed: int, positions: int) -> list[Motion]:
+    """Draw every position, heading and waypoint pair of a scenario from its own motion stream."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 1]))
+    motions = []
+    for start in sample_robot_positions(scenario, positions, rng):
+        heading = math.radians(float(rng.choice(HEADINGS_DEG)))
+        waypoints = sample_waypoints(scenario, start, rng)
+        motions.append(Motion((float(start[0]), float(start[1])), heading, waypoints))
+    return motions
+
+
+def scans_of_motion(lidar: Lidar, motion: Motion) -> tuple[np.ndarray, list[LidarReading]]:
+    """Drive one motion and scan at every 10 Hz tick."""
+    poses = follow_waypoints((*motion.start_xy, motion.heading_rad), motion.waypoints)
     return poses, [lidar.scan(tuple(pose)) for pose in poses]
+
+
+def simulate_samples(
+    world: World,
+    scenario: Scenario,
+    motions: list[Motion],
+    seed: int,
+    padding: Padding,
+    frame_stride: int = 1,
+) -> Iterator[Sample]:
+    """Simulate one scenario and yield its samples, tensors made exactly as on the robot.
+
+    Scans go through :class:`ScanStacker`, the FIFO the encoder service runs, so training, evaluation
+    and deployment share one code path from ranges to tensor.
+    """
+    world.load(scenario)
+    spec = LidarSpec()
+    lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 2])))
+    for p_index, motion in enumerate(motions):
+        _, readings = scans_of_motion(lidar, motion)
+        stacker = ScanStacker(padding)
+        for t, reading in enumerate(readings):
+            tensor = stacker.push_scan(
+                reading.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max
+            )
+            if tensor is None or (t - 2) % frame_stride:
+                continue
+            middle = readings[t - 1]
+            labels = label_scan(
+                scenario,
+                middle.lidar_pose,
+                spec.bearings_rad,
+                middle.true_ranges,
+                middle.hit_object,
+                spec.range_max,
+                padding,
+            )
+            name = f"s{scenario.index:04d}_p{p_index:03d}_f{t:03d}"
+            yield Sample(name, p_index, t, tensor, labels, middle.lidar_pose)
 
 
 _WORLD: World | None = None
@@ -119,55 +187,28 @@ def _world() -> World:
 def generate_scenario(index: int, split: str, config: DatasetConfig) -> ScenarioResult:
     """Simulate scenario ``index`` and write its samples; safe to run in any process, in any order."""
     scenario = sample_scenario(index, config.seed)
-    world = _world()
-    world.load(scenario)
-    spec = LidarSpec()
-    motion_rng = np.random.default_rng(np.random.SeedSequence([config.seed, index, 1]))
-    lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([config.seed, index, 2])))
     result = ScenarioResult(index=index, split=split, scenario_json=scenario.to_json())
     image_dir = config.out / "images" / split
     label_dir = config.out / "labels" / split
-    positions = sample_robot_positions(scenario, config.positions, motion_rng)
-    result.positions = len(positions)
-    for p_index, start in enumerate(positions):
-        heading = math.radians(float(motion_rng.choice(HEADINGS_DEG)))
-        _, readings = scans_of_motion(lidar, scenario, start, heading, motion_rng)
-        rasters = [
-            pad_raster(
-                encode_scan(r.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max),
-                config.padding,
-            )
-            for r in readings
-        ]
-        for t in range(2, len(readings), config.frame_stride):
-            middle = readings[t - 1]
-            labels = label_scan(
-                scenario,
-                middle.lidar_pose,
-                spec.bearings_rad,
-                middle.true_ranges,
-                middle.hit_object,
-                spec.range_max,
-                config.padding,
-            )
-            name = f"s{index:04d}_p{p_index:03d}_f{t:03d}"
-            write_rgb_png(
-                image_dir / f"{name}.png", stack_rasters(rasters[t - 2], rasters[t - 1], rasters[t])
-            )
-            lines = yolo_lines(labels)
-            (label_dir / f"{name}.txt").write_text("".join(f"{line}\n" for line in lines))
-            for label in labels:
-                result.boxes_per_class[label.class_id] += len(label.boxes_px)
-            result.samples += 1
-            result.sample_records.append(
-                {
-                    "image": f"images/{split}/{name}.png",
-                    "scenario": index,
-                    "position": p_index,
-                    "frame": t,
-                    "lidar_pose": [round(v, 6) for v in middle.lidar_pose],
-                }
-            )
+    motions = plan_motions(scenario, config.seed, config.positions)
+    result.positions = len(motions)
+    samples = simulate_samples(_world(), scenario, motions, config.seed, config.padding, config.frame_stride)
+    for sample in samples:
+        write_rgb_png(image_dir / f"{sample.name}.png", sample.tensor)
+        lines = yolo_lines(sample.labels)
+        (label_dir / f"{sample.name}.txt").write_text("".join(f"{line}\n" for line in lines))
+        for label in sample.labels:
+            result.boxes_per_class[label.class_id] += len(label.boxes_px)
+        result.samples += 1
+        result.sample_records.append(
+            {
+                "image": f"images/{split}/{sample.name}.png",
+                "scenario": index,
+                "position": sample.position,
+                "frame": sample.frame,
+                "lidar_pose": [round(v, 6) for v in sample.lidar_pose],
+            }
+        )
     return result
 
 
