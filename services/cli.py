@@ -80,12 +80,141 @@ def _run_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train YOLOv8n from yolov8n.yaml on a triscan data set (offline)")
+    p.add_argument("--data", type=Path, required=True, help="data.yaml written by `triscan dataset`")
+    p.add_argument("--out", type=Path, default=Path("runs/triscan"), help="run directory")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--patience", type=int, default=8, help="early stopping: epochs without val improvement")
+    p.add_argument("--workers", type=int, default=2, help="data loader processes")
+    p.add_argument("--device", default="", help="'cpu', '0', ... (default: GPU if present, else CPU)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fraction", type=float, default=1.0, help="share of the training images to use")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/weights/last.pt if it exists")
+    p.set_defaults(run=_run_train)
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from training.train import TrainConfig, train
+
+    config = TrainConfig(
+        data=args.data,
+        out=args.out,
+        epochs=args.epochs,
+        batch=args.batch,
+        patience=args.patience,
+        workers=args.workers,
+        device=args.device,
+        seed=args.seed,
+        fraction=args.fraction,
+    )
+    summary = train(config, resume=args.resume)
+    print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")
+    return 0
+
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="ONNX fp32 + INT8 (static QDQ, per-channel) models from a checkpoint")
+    p.add_argument("--weights", type=Path, required=True, help="Ultralytics checkpoint (best.pt)")
+    p.add_argument(
+        "--data", type=Path, required=True, help="the data set (or its data.yaml) it was trained on"
+    )
+    p.add_argument("--out", type=Path, default=Path("models"), help="directory for the .onnx files")
+    p.add_argument("--name", required=True, help="file stem, e.g. triscan-yolov8n-zero")
+    p.add_argument("--padding", choices=PADDINGS, default=None, help="default: read from the data set")
+    p.add_argument("--calib-count", type=int, default=200, help="val images used to calibrate INT8")
+    p.add_argument("--calib-method", choices=("percentile", "minmax", "entropy"), default="percentile")
+    p.add_argument(
+        "--activations",
+        choices=("uint8", "int8"),
+        default="uint8",
+        help="INT8 activation type: uint8 for x86 (VNNI), int8 for ARM",
+    )
+    p.add_argument("--compare-count", type=int, default=20, help="val images for the INT8-vs-fp32 check")
+    p.add_argument("--timing-runs", type=int, default=200, help="latency runs per model (0 skips)")
+    p.set_defaults(run=_run_export)
+
+
+def _run_export(args: argparse.Namespace) -> int:
+    import json
+
+    from training.export import export_models
+
+    result = export_models(
+        args.weights,
+        args.data,
+        args.out,
+        name=args.name,
+        padding=args.padding,
+        calib_count=args.calib_count,
+        method=args.calib_method,
+        activation_type=args.activations,
+        compare_count=args.compare_count,
+        timing_runs=args.timing_runs,
+    )
+    print(json.dumps(result, indent=2, default=str))
+    return 0
+
+
+def _add_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "eval", help="mAP, P, R per class of an ONNX model, through the run-time detector code"
+    )
+    p.add_argument("--model", type=Path, required=True, help="ONNX model")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", type=Path, help="a data set written by `triscan dataset`")
+    source.add_argument("--fresh", type=int, metavar="N", help="simulate N new scenarios instead")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split of --data")
+    p.add_argument("--seed", type=int, default=1000, help="seed of the --fresh scenarios")
+    p.add_argument("--positions", type=int, default=90, help="positions per --fresh scenario")
+    p.add_argument("--frame-stride", type=int, default=15, help="window stride of --fresh motions")
+    p.add_argument("--padding", choices=PADDINGS, default="zero", help="padding the model was trained with")
+    p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
+    p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
+    p.set_defaults(run=_run_eval)
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from common.inference import OnnxDetector
+    from training.evaluate import (
+        VAL_CONF,
+        VAL_IOU,
+        VAL_MAX_DET,
+        dataset_samples,
+        evaluate,
+        format_table,
+        fresh_samples,
+    )
+
+    detector = OnnxDetector(
+        args.model,
+        conf_threshold=VAL_CONF,
+        iou_threshold=VAL_IOU,
+        max_detections=VAL_MAX_DET,
+        padding=args.padding,
+        intra_op_threads=args.threads,
+    )
+    if args.data is not None:
+        samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
+    else:
+        samples = fresh_samples(args.seed, args.fresh, args.positions, args.padding, args.frame_stride)
+        source = f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions}"
+    report = evaluate(detector, samples, args.out, source=source)
+    print(format_table(report))
+    print(f"images {report.images}; mean ms: {report.mean_timings_ms}; written to {args.out}/metrics.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="triscan", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_dataset(sub)
     _add_show(sub)
+    _add_train(sub)
+    _add_export(sub)
+    _add_eval(sub)
     return parser
 
 

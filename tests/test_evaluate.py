@@ -1,0 +1,86 @@
+"""Evaluation arithmetic against Ultralytics' own implementation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from services.simulator.labels import ObjectLabel, yolo_lines
+from training.evaluate import IOU_THRESHOLDS, box_iou, format_table, match_predictions, yolo_labels_to_boxes
+
+
+@pytest.fixture(scope="module")
+def ultralytics_offline(tmp_path_factory: pytest.TempPathFactory) -> None:
+    from training.offline import configure_offline
+
+    configure_offline(tmp_path_factory.mktemp("yolo"))
+
+
+def random_boxes(rng: np.random.Generator, n: int) -> np.ndarray:
+    xy = rng.uniform(0, 340, size=(n, 2)) * [1, 60 / 340]
+    wh = rng.uniform(2, 40, size=(n, 2)) * [1, 0.25]
+    return np.concatenate([xy, xy + wh], axis=1)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_matching_equals_ultralytics_validator(seed: int, ultralytics_offline: None) -> None:
+    import torch
+    from ultralytics.models.yolo.detect import DetectionValidator
+    from ultralytics.utils.metrics import box_iou as ultralytics_iou
+
+    rng = np.random.default_rng(seed)
+    labels = random_boxes(rng, 12)
+    # Predictions near the labels (jittered) plus clutter, in descending confidence like NMS output.
+    preds = np.concatenate([labels + rng.normal(0, 2.0, labels.shape), random_boxes(rng, 10)])
+    pred_cls = rng.integers(0, 4, len(preds))
+    true_cls = rng.integers(0, 4, len(labels))
+    pred_cls[: len(labels)] = np.where(rng.random(len(labels)) < 0.8, true_cls, pred_cls[: len(labels)])
+    order = rng.permutation(len(preds))
+    preds, pred_cls = preds[order], pred_cls[order]
+
+    iou_ours = box_iou(labels, preds)
+    iou_theirs = ultralytics_iou(torch.tensor(labels), torch.tensor(preds)).numpy()
+    assert np.allclose(iou_ours, iou_theirs, atol=1e-6)
+
+    validator = SimpleNamespace(iouv=torch.tensor(IOU_THRESHOLDS))
+    theirs = DetectionValidator.match_predictions(
+        validator, torch.tensor(pred_cls), torch.tensor(true_cls), torch.tensor(iou_theirs)
+    ).numpy()
+    ours = match_predictions(pred_cls, true_cls, iou_ours)
+    assert ours.any() and np.array_equal(ours, theirs)
+
+
+def test_matching_with_no_labels_or_no_predictions_is_all_false() -> None:
+    assert match_predictions(np.array([0, 1]), np.array([], dtype=np.int64), np.zeros((0, 2))).shape == (
+        2,
+        10,
+    )
+    assert not match_predictions(np.array([0, 1]), np.array([], dtype=np.int64), np.zeros((0, 2))).any()
+    assert match_predictions(np.array([], dtype=np.int64), np.array([1]), np.zeros((1, 0))).shape == (0, 10)
+
+
+def test_label_lines_convert_back_to_the_pixel_boxes() -> None:
+    label = ObjectLabel(
+        2, 5, True, 90.0, 81.0, 99.0, 1.3, 1.7, ((81.0, 20.0, 100.0, 27.0), (363.0, 3.0, 382.0, 9.0))
+    )
+    boxes, classes = yolo_labels_to_boxes("\n".join(yolo_lines([label])))
+    assert classes.tolist() == [2, 2]
+    assert np.allclose(boxes, [[81, 20, 100, 27], [363, 3, 382, 9]], atol=1e-3)
+    empty_boxes, empty_classes = yolo_labels_to_boxes("")
+    assert empty_boxes.shape == (0, 4) and empty_classes.shape == (0,)
+
+
+def test_table_has_a_row_per_class_and_all(tmp_path: Path) -> None:
+    from training.evaluate import EvalReport
+
+    report = EvalReport(model_id="m@0", source="x", images=3, instances=7)
+    report.overall = {"precision": 0.9, "recall": 0.8, "mAP50": 0.95, "mAP50-95": 0.7}
+    report.per_class = {
+        "chair": {"instances": 7, "precision": 0.9, "recall": 0.8, "mAP50": 0.95, "mAP50-95": 0.7}
+    }
+    table = format_table(report).splitlines()
+    assert table[1].split() == ["chair", "7", "0.900", "0.800", "0.950", "0.700"]
+    assert table[-1].split()[0] == "all"

@@ -1,0 +1,357 @@
+"""ONNX export and INT8 quantisation: the files the robot loads, their shape, metadata and numerics.
+
+The network under test is an untrained YOLOv8n with 4 classes whose convolutions are re-initialised
+(Kaiming) so that activations survive 22 layers: with Ultralytics' default init the head's inputs
+are ~0 and every output is its bias, which would make any numeric comparison pass vacuously.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.encoding import to_model_input
+from common.messages import CLASS_NAMES
+from training.dataset import DatasetConfig, generate_dataset
+from training.export import (
+    ANCHORS,
+    BOX_CHANNELS,
+    INPUT_SHAPE,
+    ExportError,
+    _calibration_reader,
+    _check_io,
+    calibration_images,
+    compare_outputs,
+    export_models,
+    export_onnx,
+    head_decode_nodes,
+    median_latency_ms,
+    onnx_metadata,
+    quantize_int8,
+    read_tensor_png,
+    sha256_of,
+)
+from training.offline import configure_offline
+from training.png import write_rgb_png
+
+pytest.importorskip("ultralytics")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+torch = pytest.importorskip("torch")
+
+CALIB_COUNT = 8
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny ``wrap`` set: not the default padding, so reading it from the set is observable."""
+    out = tmp_path_factory.mktemp("export_ds") / "set"
+    generate_dataset(
+        DatasetConfig(out=out, scenarios=3, positions=2, seed=3, padding="wrap", frame_stride=4),
+        progress=False,
+    )
+    return out
+
+
+def _save_checkpoint(path: Path, data_yaml: Path | None, names: dict[int, str]) -> Path:
+    """An Ultralytics checkpoint of a lively 4-class YOLOv8n, saved the way Ultralytics saves one."""
+    configure_offline()
+    from ultralytics import YOLO
+    from ultralytics.nn.tasks import DetectionModel
+
+    torch.manual_seed(0)
+    yolo = YOLO("yolov8n.yaml")
+    yolo.model = DetectionModel("yolov8n.yaml", nc=len(names), verbose=False)
+    for module in yolo.model.modules():
+        if isinstance(module, torch.nn.Conv2d) and module.weight.requires_grad:  # the DFL conv is fixed
+            torch.nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
+    for branch in yolo.model.model[-1].cv3:
+        torch.nn.init.zeros_(branch[-1].bias)  # scores near 0.5, where an error is visible
+    yolo.model.names = names
+    yolo.ckpt = {"train_args": {"data": str(data_yaml)}} if data_yaml else {}
+    yolo.save(str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory: pytest.TempPathFactory, dataset: Path) -> Path:
+    path = tmp_path_factory.mktemp("weights") / "last.pt"
+    return _save_checkpoint(path, dataset / "data.yaml", dict(enumerate(CLASS_NAMES)))
+
+
+@pytest.fixture(scope="module")
+def fp32(tmp_path_factory: pytest.TempPathFactory, weights: Path) -> Path:
+    return export_onnx(weights, tmp_path_factory.mktemp("models") / "model.onnx")
+
+
+@pytest.fixture(scope="module")
+def int8(tmp_path_factory: pytest.TempPathFactory, fp32: Path, dataset: Path) -> Path:
+    out = tmp_path_factory.mktemp("models_q") / "model-int8.onnx"
+    return quantize_int8(fp32, out, calibration_images(dataset, CALIB_COUNT))
+
+
+def _run(path: Path, x: np.ndarray) -> np.ndarray:
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return session.run(None, {session.get_inputs()[0].name: x})[0]
+
+
+def _dims(value: Any) -> list[int]:
+    return [d.dim_value for d in value.type.tensor_type.shape.dim]
+
+
+# --- fp32 export ---------------------------------------------------------------------------------------
+
+
+def test_fp32_file_is_valid_with_fixed_input_and_output(fp32: Path) -> None:
+    model = onnx.load(str(fp32))
+    onnx.checker.check_model(model, full_check=True)
+    (graph_input,) = model.graph.input
+    assert graph_input.type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+    assert _dims(graph_input) == list(INPUT_SHAPE) == [1, 3, 64, 384]
+    assert all(d.HasField("dim_value") for d in graph_input.type.tensor_type.shape.dim), "no dynamic axes"
+    assert _dims(model.graph.output[0]) == [1, BOX_CHANNELS + len(CLASS_NAMES), ANCHORS] == [1, 8, 504]
+
+
+def test_shape_check_rejects_dynamic_axes_and_other_outputs(fp32: Path) -> None:
+    model = onnx.load(str(fp32))
+    dim = model.graph.input[0].type.tensor_type.shape.dim[0]
+    dim.dim_param = "batch"  # what `dynamic=True` would have produced
+    with pytest.raises(ExportError, match="input must be"):
+        _check_io(model, fp32)
+    model = onnx.load(str(fp32))
+    model.graph.output[0].type.tensor_type.shape.dim[2].dim_value = 2100  # a 640×320-sized anchor grid
+    with pytest.raises(ExportError, match="output must be"):
+        _check_io(model, fp32)
+
+
+def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: Path) -> None:
+    meta = onnx_metadata(fp32)
+    assert meta["imgsz"] == "[64, 384]" and meta["stride"] == "32" and meta["task"] == "detect"
+    assert "doorframe" in meta["names"]
+    assert meta["triscan.padding"] == "wrap", "padding must come from the training data set"
+    assert json.loads(meta["triscan.classes"]) == list(CLASS_NAMES)
+    assert meta["triscan.source_weights"] == f"last.pt sha256:{sha256_of(weights)[:12]}"
+    assert meta["triscan.precision"] == "fp32"
+
+
+def test_fp32_output_equals_the_torch_model(fp32: Path, weights: Path) -> None:
+    from ultralytics import YOLO
+
+    model = YOLO(str(weights)).model.float().eval()
+    x = np.random.default_rng(0).random(INPUT_SHAPE, dtype=np.float32)
+    with torch.no_grad():
+        expected = model(torch.from_numpy(x))
+    expected = (expected[0] if isinstance(expected, tuple | list) else expected).numpy()
+    got = _run(fp32, x)
+    assert got.shape == expected.shape
+    assert np.std(expected[0, :BOX_CHANNELS]) > 1.0, "outputs must depend on the input for this test to bite"
+    # Scores in [0, 1] within 1e-4. Boxes are in pixels up to ~480 where one float32 ulp is 3e-5 and the
+    # exported graph has conv+BN folded, so they are compared in normalised coordinates (÷ 384) to 1e-4.
+    np.testing.assert_allclose(got[0, BOX_CHANNELS:], expected[0, BOX_CHANNELS:], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(
+        got[0, :BOX_CHANNELS] / 384, expected[0, :BOX_CHANNELS] / 384, rtol=0, atol=1e-4
+    )
+
+
+def test_export_refuses_a_padding_that_contradicts_the_training_set(weights: Path, tmp_path: Path) -> None:
+    with pytest.raises(ExportError, match="padding"):
+        export_onnx(weights, tmp_path / "m.onnx", padding="zero")
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_export_rejects_missing_weights_and_foreign_classes(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="weights"):
+        export_onnx(tmp_path / "nope.pt", tmp_path / "m.onnx")
+    foreign = _save_checkpoint(tmp_path / "foreign.pt", None, {0: "cat", 1: "dog", 2: "car", 3: "tree"})
+    with pytest.raises(ExportError, match="triscan classes"):
+        export_onnx(foreign, tmp_path / "m.onnx")
+
+
+# --- INT8 ----------------------------------------------------------------------------------------------
+
+
+def test_int8_is_qdq_with_per_channel_conv_weights(int8: Path) -> None:
+    model = onnx.load(str(int8))
+    onnx.checker.check_model(model, full_check=True)
+    ops = [n.op_type for n in model.graph.node]
+    assert ops.count("QuantizeLinear") > 50 and ops.count("DequantizeLinear") > 50
+    initializers = {t.name: t for t in model.graph.initializer}
+    conv_weights = {n.input[1] for n in model.graph.node if n.op_type == "Conv"}
+    per_channel = 0
+    for node in model.graph.node:
+        if node.op_type != "DequantizeLinear" or node.output[0] not in conv_weights:
+            continue
+        weight = initializers[node.input[0]]
+        scale = initializers[node.input[1]]
+        assert weight.data_type == onnx.TensorProto.INT8
+        axis = [a.i for a in node.attribute if a.name == "axis"]
+        if axis == [0] and len(scale.dims) == 1 and scale.dims[0] == weight.dims[0] > 1:
+            per_channel += 1
+    assert per_channel >= 60, f"only {per_channel} conv weights have per-channel scales"
+    assert _dims(model.graph.input[0]) == list(INPUT_SHAPE)
+
+
+def test_int8_keeps_the_head_decode_in_float(int8: Path) -> None:
+    model = onnx.load(str(int8))
+    tail = set(head_decode_nodes(model))
+    assert {"Sigmoid", "Softmax", "Concat"} <= {n.op_type for n in model.graph.node if n.name in tail}
+    produced_by = {o: n for n in model.graph.node for o in n.output}
+    for node in model.graph.node:
+        if node.op_type == "QuantizeLinear":
+            producer = produced_by.get(node.input[0])
+            assert producer is None or producer.name not in tail, f"{producer.name} output is quantised"
+    assert produced_by[model.graph.output[0].name].op_type == "Concat"
+
+
+def test_int8_metadata_is_carried_over(int8: Path, fp32: Path) -> None:
+    meta, source = onnx_metadata(int8), onnx_metadata(fp32)
+    for key in ("names", "imgsz", "stride", "triscan.padding", "triscan.classes", "triscan.source_weights"):
+        assert meta[key] == source[key]
+    assert meta["triscan.precision"] == "int8"
+    quant = json.loads(meta["triscan.quantization"])
+    assert quant["format"] == "QDQ" and "per-channel" in quant["weights"]
+    assert quant["calibration"].startswith("percentile") and quant["activations"] == "uint8"
+    assert quant["calibration_images"] == CALIB_COUNT
+
+
+def test_int8_runs_and_tracks_fp32(int8: Path, fp32: Path, dataset: Path) -> None:
+    images = calibration_images(dataset, 6, split="test")  # not the calibration images
+    x = to_model_input(read_tensor_png(images[0]))
+    assert np.isfinite(_run(int8, x)).all()
+    diff = compare_outputs(fp32, int8, images)
+    # One raster pixel is 1° × 6.3 cm: an INT8 box must stay within it. Scores here sit near 0.5, so a
+    # quantised output concat (one scale for 0–480 px and 0–1 scores) would be off by ~0.5.
+    assert diff["box_max_abs_px"] < 1.0, diff
+    assert diff["score_max_abs"] < 0.02, diff
+    assert diff["confident_anchors"] == len(images) * ANCHORS, "every score is near 0.5 here"
+    assert diff["confident_class_agreement"] > 0.5, diff
+
+
+def _activation_scales(path: Path) -> dict[str, float]:
+    """Scale of every activation QuantizeLinear (weights are stored already quantised)."""
+    model = onnx.load(str(path))
+    initializers = {t.name: onnx.numpy_helper.to_array(t) for t in model.graph.initializer}
+    return {
+        n.input[0]: float(initializers[n.input[1]])
+        for n in model.graph.node
+        if n.op_type == "QuantizeLinear" and n.input[0] not in initializers
+    }
+
+
+def test_calibration_method_changes_the_activation_ranges(
+    int8: Path, fp32: Path, dataset: Path, tmp_path: Path
+) -> None:
+    minmax = quantize_int8(
+        fp32, tmp_path / "mm.onnx", calibration_images(dataset, CALIB_COUNT), method="minmax"
+    )
+    a, b = _activation_scales(int8), _activation_scales(minmax)
+    assert a.keys() == b.keys() and len(a) > 50
+    # Percentile clips outliers, so its ranges are never wider than MinMax's and, where a tensor has
+    # tails (17 of 218 with this random-weight net and 8 images), narrower. Equal ranges everywhere
+    # would mean the method was silently ignored, as ONNX Runtime's own "entropy" does with 128 bins.
+    assert all(a[k] <= b[k] * (1 + 1e-6) for k in a)
+    assert sum(a[k] < b[k] * 0.99 for k in a) >= 10
+    with pytest.raises(ValueError, match="method"):
+        quantize_int8(fp32, tmp_path / "x.onnx", [tmp_path / "a.png"], method="kl")  # type: ignore[arg-type]
+
+
+def test_latency_is_measured_for_each_model_in_turn(fp32: Path, int8: Path, dataset: Path) -> None:
+    image = calibration_images(dataset, 1)[0]
+    times = median_latency_ms([fp32, int8], image, runs=5, warmup=1)
+    assert len(times) == 2 and all(0 < t < 10_000 for t in times)
+    with pytest.raises(ValueError, match="runs"):
+        median_latency_ms([fp32], image, runs=0)
+
+
+def test_quantize_rejects_empty_or_missing_calibration(fp32: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="empty"):
+        quantize_int8(fp32, tmp_path / "q.onnx", [])
+    with pytest.raises(FileNotFoundError, match="calibration image"):
+        quantize_int8(fp32, tmp_path / "q.onnx", [tmp_path / "missing.png"])
+    with pytest.raises(FileNotFoundError, match="fp32 model"):
+        quantize_int8(tmp_path / "none.onnx", tmp_path / "q.onnx", [tmp_path / "missing.png"])
+    assert not (tmp_path / "q.onnx").exists()
+
+
+# --- calibration data ----------------------------------------------------------------------------------
+
+
+def test_calibration_images_are_deterministic_sorted_and_spread(dataset: Path) -> None:
+    every = sorted((dataset / "images" / "val").glob("*.png"))
+    assert len(every) >= 10
+    picks = calibration_images(dataset, 5)
+    assert picks == calibration_images(dataset, 5)
+    assert picks[0] == every[0] and picks[-1] == every[-1] and len(set(picks)) == 5
+    positions = [every.index(p) for p in picks]
+    gaps = np.diff(positions)
+    assert positions == sorted(positions) and gaps.max() - gaps.min() <= 1, positions
+    assert calibration_images(dataset, 10**6) == every
+    test_split = calibration_images(dataset, 3, split="test")
+    assert all(p.parent.name == "test" for p in test_split)
+
+
+def test_calibration_images_reject_bad_arguments(dataset: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="count"):
+        calibration_images(dataset, 0)
+    with pytest.raises(FileNotFoundError, match="triscan dataset"):
+        calibration_images(tmp_path, 5)
+    (tmp_path / "images" / "val").mkdir(parents=True)
+    with pytest.raises(ExportError, match="no PNG"):
+        calibration_images(tmp_path, 5)
+
+
+def test_calibration_feeds_the_run_time_tensor_in_png_channel_order(tmp_path: Path) -> None:
+    tensor = np.zeros((64, 384, 3), dtype=np.uint8)
+    tensor[10, 20, 0] = 255  # scan t−2 only: would move to channel 2 if read as BGR
+    tensor[30, 40, 2] = 255  # scan t only
+    write_rgb_png(tmp_path / "a.png", tensor)
+    np.testing.assert_array_equal(read_tensor_png(tmp_path / "a.png"), tensor)
+    reader = _calibration_reader("images", [tmp_path / "a.png"])
+    feed = reader.get_next()
+    assert feed is not None and set(feed) == {"images"}
+    np.testing.assert_array_equal(feed["images"], to_model_input(tensor))
+    assert feed["images"][0, 0, 10, 20] == 1.0 and feed["images"][0, 2, 30, 40] == 1.0
+    assert reader.get_next() is None
+    reader.rewind()
+    assert reader.get_next() is not None
+
+
+def test_read_tensor_png_rejects_other_sizes(tmp_path: Path) -> None:
+    write_rgb_png(tmp_path / "small.png", np.zeros((64, 360, 3), dtype=np.uint8))
+    with pytest.raises(ExportError, match="384"):
+        read_tensor_png(tmp_path / "small.png")
+
+
+# --- both models ---------------------------------------------------------------------------------------
+
+
+def test_export_models_writes_and_describes_both_files(weights: Path, dataset: Path, tmp_path: Path) -> None:
+    result = export_models(
+        weights,
+        dataset,
+        tmp_path / "models",
+        name="triscan-test",
+        padding="wrap",
+        calib_count=4,
+        compare_count=3,
+        timing_runs=2,
+    )
+    assert Path(result["fp32"]["path"]) == tmp_path / "models" / "triscan-test.onnx"
+    assert Path(result["int8"]["path"]) == tmp_path / "models" / "triscan-test-int8.onnx"
+    for kind in ("fp32", "int8"):
+        path = Path(result[kind]["path"])
+        assert result[kind]["bytes"] == path.stat().st_size
+        assert result[kind]["sha256"] == sha256_of(path)
+    assert result["int8"]["bytes"] < result["fp32"]["bytes"] / 2
+    assert result["padding"] == "wrap" and result["calibration_images"] == 4
+    assert math.isfinite(result["int8_vs_fp32"]["box_max_abs_px"])
+    assert set(result["latency_ms_1_thread"]) == {"fp32", "int8"}
+    with pytest.raises(ExportError, match="padding"):
+        export_models(weights, dataset, tmp_path / "other", name="x", padding="zero", calib_count=4)
+    with pytest.raises(ValueError, match="name"):
+        export_models(weights, dataset, tmp_path / "other", name="../x", padding="wrap", calib_count=4)

@@ -1,0 +1,59 @@
+"""train → export → eval end to end on a tiny generated set, offline (one CPU epoch)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.inference import OnnxDetector
+from training.dataset import DatasetConfig, generate_dataset
+from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    from training.offline import configure_offline
+    from training.train import TrainConfig, train
+
+    root = tmp_path_factory.mktemp("smoke")
+    configure_offline(root / "yolo")
+    data = root / "data"
+    generate_dataset(
+        DatasetConfig(out=data, scenarios=3, positions=2, seed=3, frame_stride=4), progress=False
+    )
+    summary = train(
+        TrainConfig(data=data / "data.yaml", out=root / "run", epochs=1, batch=8, workers=0, device="cpu")
+    )
+    assert summary["epochs_run"] == 1 and not summary["diverged"]
+    return data, Path(summary["best_weights"])
+
+
+def test_training_writes_weights_and_a_summary(trained_run: tuple[Path, Path]) -> None:
+    _, best = trained_run
+    assert best.is_file() and best.name == "best.pt"
+    summary = json.loads((best.parent.parent / "train_summary.json").read_text())
+    assert summary["device"] == "cpu" and summary["config"]["epochs"] == 1
+    assert (best.parent.parent / "results.csv").is_file()
+
+
+def test_export_then_eval_runs_through_the_runtime_detector(
+    trained_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    from training.export import export_onnx
+
+    data, best = trained_run
+    onnx_path = export_onnx(best, tmp_path / "smoke.onnx", padding="zero")
+    detector = OnnxDetector(
+        onnx_path, conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, max_detections=VAL_MAX_DET
+    )
+    report = evaluate(detector, dataset_samples(data, "val"), tmp_path / "eval", source="smoke")
+    assert report.images > 0 and report.instances > 0
+    assert all(0.0 <= v <= 1.0 for v in report.overall.values())
+    written = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert written["model_id"] == detector.model_id and written["images"] == report.images
+    for png in report.files.values():
+        assert Path(png).is_file() and Path(png).stat().st_size > 1000
+    assert np.isfinite(report.mean_timings_ms["inference_ms"])
