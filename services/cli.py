@@ -133,6 +133,7 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--compare-count", type=int, default=20, help="val images for the INT8-vs-fp32 check")
     p.add_argument("--timing-runs", type=int, default=200, help="latency runs per model (0 skips)")
+    p.add_argument("--report", type=Path, default=None, help="also write the JSON report to this file")
     p.set_defaults(run=_run_export)
 
 
@@ -153,7 +154,11 @@ def _run_export(args: argparse.Namespace) -> int:
         compare_count=args.compare_count,
         timing_runs=args.timing_runs,
     )
-    print(json.dumps(result, indent=2, default=str))
+    text = json.dumps(result, indent=2, default=str)
+    if args.report is not None:
+        args.report.parent.mkdir(parents=True, exist_ok=True)
+        args.report.write_text(text + "\n")
+    print(text)
     return 0
 
 
@@ -206,6 +211,52 @@ def _run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_card(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("card", help="write models/MODEL_CARD.md and .json from the measuring artefacts")
+    p.add_argument("--data", type=Path, required=True, help="the training data set directory")
+    p.add_argument(
+        "--run-dir", type=Path, required=True, help="the Ultralytics run directory (results.csv, weights)"
+    )
+    p.add_argument(
+        "--export-report", type=Path, required=True, help="JSON written by `triscan export --report`"
+    )
+    p.add_argument("--eval-fp32", type=Path, required=True, help="metrics.json of the fp32 test-split eval")
+    p.add_argument("--eval-int8", type=Path, required=True, help="metrics.json of the INT8 test-split eval")
+    p.add_argument("--eval-gate", type=Path, required=True, help="metrics.json of the quality-gate set eval")
+    p.add_argument("--gate-seed", type=int, default=1000)
+    p.add_argument("--gate-scenarios", type=int, default=6)
+    p.add_argument("--gate-positions", type=int, default=15)
+    p.add_argument("--gate-frame-stride", type=int, default=15)
+    p.add_argument("--train-command", required=True, help="the exact training command, quoted in the card")
+    p.add_argument("--notes", type=Path, default=None, help="markdown file with known limits and status")
+    p.add_argument("--out", type=Path, default=Path("models"))
+    p.set_defaults(run=_run_card)
+
+
+def _run_card(args: argparse.Namespace) -> int:
+    from training.model_card import write_card
+
+    card = write_card(
+        dataset_dir=args.data,
+        run_dir=args.run_dir,
+        export_json=args.export_report,
+        eval_test_fp32=args.eval_fp32,
+        eval_test_int8=args.eval_int8,
+        eval_gate=args.eval_gate,
+        out_dir=args.out,
+        gate={
+            "seed": args.gate_seed,
+            "scenarios": args.gate_scenarios,
+            "positions": args.gate_positions,
+            "frame_stride": args.gate_frame_stride,
+        },
+        train_command=args.train_command,
+        notes=args.notes.read_text() if args.notes else "",
+    )
+    print(f"wrote {args.out}/MODEL_CARD.md (recommended: {card['recommended']})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="triscan", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -215,6 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_export(sub)
     _add_eval(sub)
+    _add_card(sub)
     return parser
 
 

@@ -57,3 +57,20 @@ def test_export_then_eval_runs_through_the_runtime_detector(
     for png in report.files.values():
         assert Path(png).is_file() and Path(png).stat().st_size > 1000
     assert np.isfinite(report.mean_timings_ms["inference_ms"])
+
+
+def test_validation_sees_the_images_unpadded(trained_run: tuple[Path, Path]) -> None:
+    """Stock rect validation letterboxes 64 rows to 96; ours must validate the 64×384 run-time tensor."""
+    from ultralytics.cfg import get_cfg
+    from ultralytics.data.utils import check_det_dataset
+
+    from training.train import validation_dataset
+
+    data, _ = trained_run
+    args = get_cfg(overrides={"imgsz": 384, "rect": True, "task": "detect"})
+    dataset = validation_dataset(
+        args, check_det_dataset(str(data / "data.yaml")), str(data / "images" / "val"), 4, 32
+    )
+    assert len(dataset) > 0
+    assert {tuple(shape) for shape in dataset.batch_shapes} == {(64, 384)}
+    assert dataset[0]["img"].shape == (3, 64, 384)

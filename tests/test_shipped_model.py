@@ -1,0 +1,122 @@
+"""The model shipped in models/: same boxes as its checkpoint, same figures as Ultralytics, a quality gate.
+
+The gate threshold is not picked to pass: it is read from models/MODEL_CARD.json, where it is derived
+from the held-out figures the card reports (see the card's "Quality gate" section).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.inference import OnnxDetector
+from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate, fresh_samples
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+CARD = json.loads((MODELS / "MODEL_CARD.json").read_text())
+FP32 = MODELS / CARD["files"]["fp32"]
+INT8 = MODELS / CARD["files"]["int8"]
+CHECKPOINT = MODELS / CARD["files"]["checkpoint"]
+GATE = CARD["quality_gate"]
+
+
+@pytest.fixture(scope="module")
+def offline(tmp_path_factory: pytest.TempPathFactory) -> None:
+    from training.offline import configure_offline
+
+    configure_offline(tmp_path_factory.mktemp("yolo"))
+
+
+@pytest.fixture(scope="module")
+def unseen_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small data set from a seed no model was trained on."""
+    from training.dataset import DatasetConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("unseen") / "set"
+    generate_dataset(
+        DatasetConfig(
+            out=out,
+            scenarios=GATE["scenarios"],
+            positions=GATE["positions"],
+            seed=GATE["seed"],
+            frame_stride=GATE["frame_stride"],
+        ),
+        progress=False,
+    )
+    return out
+
+
+def test_card_files_exist_and_ids_match() -> None:
+    for path in (FP32, INT8, CHECKPOINT):
+        assert path.is_file(), path
+    assert OnnxDetector(FP32).model_id == CARD["model_ids"]["fp32"]
+    assert OnnxDetector(INT8).model_id == CARD["model_ids"]["int8"]
+
+
+def test_onnx_gives_the_checkpoints_boxes_within_one_pixel(offline: None) -> None:
+    import torch
+    from ultralytics import YOLO
+    from ultralytics.utils.nms import non_max_suppression
+    from ultralytics.utils.ops import clip_boxes
+
+    from common.encoding import to_model_input
+
+    torch_model = YOLO(str(CHECKPOINT)).model.float().eval()
+    detector = OnnxDetector(FP32, conf_threshold=0.25, iou_threshold=0.45)
+    compared = 0
+    for sample in fresh_samples(GATE["seed"], 1, 12, "zero", GATE["frame_stride"]):
+        with torch.no_grad():
+            raw = torch_model(torch.from_numpy(to_model_input(sample.tensor)))[0]
+        expected = non_max_suppression(raw, 0.25, 0.45, max_det=100)[0]
+        clip_boxes(expected[:, :4], (64, 384))
+        boxes, _, classes, _ = detector.detect_boxes(sample.tensor)
+        assert len(boxes) == len(expected), sample.name
+        order = np.lexsort((boxes[:, 0], classes))
+        theirs = expected.numpy()
+        their_order = np.lexsort((theirs[:, 0], theirs[:, 5]))
+        np.testing.assert_array_equal(classes[order], theirs[their_order, 5].astype(np.int64))
+        np.testing.assert_allclose(boxes[order], theirs[their_order, :4], atol=1.0)
+        compared += len(boxes)
+    assert compared > 20
+
+
+def test_eval_matches_ultralytics_val_within_0_01(unseen_set: Path, offline: None, tmp_path: Path) -> None:
+    from ultralytics import YOLO
+
+    detector = OnnxDetector(FP32, conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, max_detections=VAL_MAX_DET)
+    ours = evaluate(
+        detector, dataset_samples(unseen_set, "train"), tmp_path / "ours", source="gate", plots=False
+    )
+    theirs = YOLO(str(FP32), task="detect").val(
+        data=str(unseen_set / "data.yaml"),
+        split="train",
+        batch=1,
+        conf=VAL_CONF,
+        iou=VAL_IOU,
+        max_det=VAL_MAX_DET,
+        plots=False,
+        project=str(tmp_path),
+        name="val",
+        device="cpu",
+        verbose=False,
+    )
+    assert abs(ours.overall["mAP50"] - float(theirs.box.map50)) < 0.01
+    assert abs(ours.overall["mAP50-95"] - float(theirs.box.map)) < 0.01
+
+
+@pytest.mark.parametrize("model", ["fp32", "int8"])
+def test_quality_gate_on_unseen_scenarios(model: str, tmp_path: Path) -> None:
+    """`triscan eval --fresh` on the gate's scenarios: simulated through ScanStacker, never trained on."""
+    detector = OnnxDetector(
+        MODELS / CARD["files"][model],
+        conf_threshold=VAL_CONF,
+        iou_threshold=VAL_IOU,
+        max_detections=VAL_MAX_DET,
+    )
+    samples = fresh_samples(GATE["seed"], GATE["scenarios"], GATE["positions"], "zero", GATE["frame_stride"])
+    report = evaluate(detector, samples, tmp_path, source="gate", plots=False)
+    assert report.instances >= GATE["min_instances"]
+    assert report.overall["mAP50"] >= GATE["min_map50"], report.overall
