@@ -22,6 +22,7 @@ import numpy as np
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, Padding
 from common.inference import OnnxDetector
 from common.messages import CLASS_NAMES
+from training.export import read_tensor_png
 
 log = logging.getLogger(__name__)
 
@@ -68,14 +69,6 @@ def yolo_labels_to_boxes(text: str) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([xc - w / 2, yc - h / 2, xc + w / 2, yc + h / 2], axis=1), rows[:, 0].astype(np.int64)
 
 
-def read_rgb_png(path: Path) -> np.ndarray:
-    """A data-set PNG as the run-time tensor: red plane = channel 0 = scan t-2 (no BGR swap)."""
-    from PIL import Image
-
-    with Image.open(path) as image:
-        return np.asarray(image.convert("RGB"), dtype=np.uint8)
-
-
 def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSample]:
     """Samples of one split of a data set written by ``triscan dataset``."""
     image_dir = dataset_dir / "images" / split
@@ -85,7 +78,7 @@ def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSamp
     for image in images:
         label = dataset_dir / "labels" / split / f"{image.stem}.txt"
         boxes, classes = yolo_labels_to_boxes(label.read_text() if label.exists() else "")
-        yield EvalSample(image.stem, read_rgb_png(image), boxes, classes)
+        yield EvalSample(image.stem, read_tensor_png(image), boxes, classes)
 
 
 def fresh_samples(
