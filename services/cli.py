@@ -92,6 +92,12 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fraction", type=float, default=1.0, help="share of the training images to use")
     p.add_argument("--resume", action="store_true", help="continue from OUT/weights/last.pt if it exists")
+    p.add_argument(
+        "--resume-from",
+        type=Path,
+        default=None,
+        help="with --resume: checkpoint to continue from when OUT has none (e.g. training/checkpoints/)",
+    )
     p.set_defaults(run=_run_train)
 
 
@@ -109,7 +115,7 @@ def _run_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         fraction=args.fraction,
     )
-    summary = train(config, resume=args.resume)
+    summary = train(config, resume=args.resume, resume_from=args.resume_from)
     print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")
     return 0
 

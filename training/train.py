@@ -15,6 +15,7 @@ import logging
 import os
 import platform
 import shlex
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -182,8 +183,14 @@ def use_all_cores(trainer: Any) -> None:
         torch.set_num_threads(os.cpu_count() or 1)
 
 
-def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
-    """Train (or resume) one run and write ``train_summary.json`` beside its weights."""
+def train(config: TrainConfig, *, resume: bool = False, resume_from: Path | None = None) -> dict[str, Any]:
+    """Train (or resume) one run and write ``train_summary.json`` beside its weights.
+
+    ``resume_from`` seeds ``OUT/weights/last.pt`` from a saved checkpoint (e.g. the one committed in
+    ``training/checkpoints/``) when the run directory has none, so a run can continue on another
+    machine. The data set and run directory are taken from ``config``, not from the paths stored in
+    the checkpoint.
+    """
     if not config.data.is_file():
         raise FileNotFoundError(f"{config.data} not found: pass the data.yaml written by `triscan dataset`")
     configure_offline()
@@ -193,12 +200,24 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
     last = config.out / "weights" / "last.pt"
     watch = DivergenceWatch()
     started = time.perf_counter()
+    if resume and resume_from is not None and not last.is_file():
+        if not resume_from.is_file():
+            raise FileNotFoundError(f"{resume_from} not found: no checkpoint to resume from")
+        last.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(resume_from, last)
     if resume and last.is_file():
         log.info("resuming from %s", last)
         model = YOLO(str(last))
         model.add_callback("on_fit_epoch_end", watch)
         model.add_callback("on_train_start", use_all_cores)
-        model.train(trainer=triscan_trainer(), resume=True, device=device, workers=config.workers)
+        model.train(
+            trainer=triscan_trainer(),
+            resume=True,
+            data=str(config.data),
+            save_dir=str(config.out.resolve()),
+            device=device,
+            workers=config.workers,
+        )
     else:
         if resume:
             log.info("no %s yet: starting a new run", last)
