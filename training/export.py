@@ -129,6 +129,16 @@ def _check_io(model: Any, path: Path) -> None:
         raise ExportError(f"{path}: output must be float32{list(expected_out)}, got {outputs}")
 
 
+def _save_checked(model: Any, out: Path) -> None:
+    """Write a model only once it passes the ONNX checker and has the robot's fixed input and output."""
+    import onnx
+
+    onnx.checker.check_model(model, full_check=True)
+    _check_io(model, out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(model, str(out))
+
+
 def onnx_metadata(path: Path) -> dict[str, str]:
     """All ``metadata_props`` of an ONNX file (Ultralytics' and ours)."""
     import onnx
@@ -202,10 +212,7 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
             f"{META_PREFIX}precision": "fp32",
         },
     )
-    onnx.checker.check_model(model, full_check=True)
-    _check_io(model, out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(model, str(out))
+    _save_checked(model, out)
     log.info(
         "exported %s → %s (opset %d, padding %s, %.1f MB, %.1f s)",
         weights,
@@ -448,10 +455,7 @@ def quantize_int8(
             ),
         },
     )
-    onnx.checker.check_model(model, full_check=True)
-    _check_io(model, out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(model, str(out))
+    _save_checked(model, out)
     log.info(
         "quantised %s → %s (%s, %d calibration images, %d head nodes float, %.1f MB, %.1f s)",
         fp32_onnx,
