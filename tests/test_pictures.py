@@ -7,7 +7,6 @@ wrong channel or a misplaced box makes a test fail.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import shutil
@@ -20,7 +19,6 @@ from PIL import Image
 pytest.importorskip("pybullet")  # generating the tiny data set needs the simulator extra
 
 from services.cli import main as cli_main
-from services.simulator.scenario import Doorway, sample_scenario
 from training.dataset import DatasetConfig, generate_dataset
 from training.pictures import (
     AXIS,
@@ -31,7 +29,6 @@ from training.pictures import (
     RASTER_ORIGIN,
     decode_hits,
     render_sample,
-    room_wall_rects,
 )
 
 ROWS_PER_M = 63 / 4.0
@@ -82,17 +79,6 @@ def test_decode_hits_inverts_the_encoding_and_skips_sentinel_and_padding() -> No
     np.testing.assert_allclose(middle, [[1.0 - rho, 2.0]], atol=1e-12)  # left of +y is -x
     np.testing.assert_allclose(oldest, [[1.0, 2.0 + 0.5 / ROWS_PER_M]], atol=1e-12)
     assert newest.shape == (0, 2)
-
-
-@pytest.mark.parametrize("wall_k", [0, 1, 2, 3])
-def test_map_walls_are_the_simulators_walls(wall_k: int) -> None:
-    world = pytest.importorskip("services.simulator.world")
-    scenario = dataclasses.replace(sample_scenario(0, 0), door=Doorway(wall_k, 0.73))
-
-    def footprint(rects: list) -> list:
-        return sorted(tuple(np.round(np.sort(r.corners(), axis=0), 9).ravel()) for r in rects)
-
-    assert footprint(room_wall_rects(scenario)) == footprint(world.room_wall_rects(scenario.door))
 
 
 def test_render_by_index_writes_both_pngs_named_after_the_sample(dataset: Path, tmp_path: Path) -> None:

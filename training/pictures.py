@@ -43,11 +43,10 @@ from common.encoding import (
 from common.messages import CLASS_NAMES
 from services.simulator.scenario import (
     DOORFRAME,
-    OUTER_HALF_M,
-    ROOM_HALF_M,
-    WALL_THICKNESS_M,
     Rect,
     Scenario,
+    enclosure_rects,
+    room_wall_rects,
 )
 
 log = logging.getLogger(__name__)
@@ -303,45 +302,6 @@ def world_to_map_px(points: np.ndarray) -> np.ndarray:
     return np.stack([u, v], axis=-1)
 
 
-def room_wall_rects(scenario: Scenario) -> list[Rect]:
-    """The inner walls as floor rectangles, the doorway cut out of wall ``door.wall_k``.
-
-    Built in the door's frame (door in the +x wall, as :class:`Doorway` defines it) and turned by the
-    door's yaw, with the gap taken from :attr:`Doorway.opening` so the picture cannot disagree with
-    the labeller about where the door is. Pure geometry: drawing must not need PyBullet.
-    """
-    door = scenario.door
-    outer = ROOM_HALF_M + WALL_THICKNESS_M
-    mid = ROOM_HALF_M + WALL_THICKNESS_M / 2.0
-    c, s = math.cos(door.yaw), math.sin(door.yaw)
-    to_local = np.array([[c, s], [-s, c]])
-    gap = np.sort((door.opening @ to_local.T)[:, 1])  # opening ends along the door wall, door frame
-    pieces = [
-        ((mid, (-outer + gap[0]) / 2.0), (WALL_THICKNESS_M, gap[0] + outer)),
-        ((mid, (gap[1] + outer) / 2.0), (WALL_THICKNESS_M, outer - gap[1])),
-        ((-mid, 0.0), (WALL_THICKNESS_M, 2 * outer)),
-        ((0.0, mid), (2 * outer, WALL_THICKNESS_M)),
-        ((0.0, -mid), (2 * outer, WALL_THICKNESS_M)),
-    ]
-    return [
-        Rect((cx * c - cy * s, cx * s + cy * c), size, door.yaw)
-        for (cx, cy), size in pieces
-        if min(size) > 0.0
-    ]
-
-
-def enclosure_rects() -> list[Rect]:
-    """The outer enclosure: four walls with inner faces at ±3.1 m, seen through the doorway."""
-    mid = OUTER_HALF_M + WALL_THICKNESS_M / 2.0
-    span = 2 * (OUTER_HALF_M + WALL_THICKNESS_M)
-    return [
-        Rect((mid, 0.0), (WALL_THICKNESS_M, span), 0.0),
-        Rect((-mid, 0.0), (WALL_THICKNESS_M, span), 0.0),
-        Rect((0.0, mid), (span, WALL_THICKNESS_M), 0.0),
-        Rect((0.0, -mid), (span, WALL_THICKNESS_M), 0.0),
-    ]
-
-
 def robot_centre(lidar_pose: Pose) -> tuple[float, float]:
     """The robot centre: the LiDAR sits 3 cm behind it, so the centre is 3 cm ahead along the yaw."""
     x, y, yaw = lidar_pose
@@ -559,7 +519,7 @@ def draw_map_picture(sample: Sample) -> Image.Image:
     draw.text((ox + map_px - 40, oy + map_px + 18), "x (m)", font=small, fill=MUTED)
     draw.text((4, oy - 18), "y (m)", font=small, fill=MUTED)
 
-    for rect in enclosure_rects() + room_wall_rects(sample.scenario):
+    for rect in enclosure_rects() + room_wall_rects(sample.scenario.door):
         _polygon(draw, rect, fill=WALL)
 
     labelled = {b.class_id for b in sample.boxes}

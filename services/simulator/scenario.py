@@ -182,6 +182,59 @@ class Scenario:
         )
 
 
+# --- walls: the room with its doorway and the outer enclosure, as floor rectangles -----------------
+
+# Exact quarter-turn rotations (cos, sin) so that rotated walls keep bit-exact coordinates.
+_QUARTER_TURNS: tuple[tuple[int, int], ...] = ((1, 0), (0, 1), (-1, 0), (0, -1))
+
+
+def _axis_rect(x_min: float, x_max: float, y_min: float, y_max: float, k: int = 0) -> Rect:
+    """An axis-aligned rectangle given by its extents, then turned by k quarter turns about the origin.
+
+    Quarter turns are applied with integer cos/sin and a swap of the sizes, so walls on every side keep
+    exact coordinates (a float rotation by ``k·π/2`` would leave 1e-16 m crumbs in the geometry).
+    """
+    c, s = _QUARTER_TURNS[k % 4]
+    cx, cy = (x_min + x_max) / 2.0, (y_min + y_max) / 2.0
+    sx, sy = x_max - x_min, y_max - y_min
+    size = (sx, sy) if k % 2 == 0 else (sy, sx)
+    return Rect((c * cx - s * cy, s * cx + c * cy), size, 0.0)
+
+
+def ring_of_walls(inner_half_m: float) -> list[Rect]:
+    """Four walls whose inner faces are at ±inner_half_m; each spans the full outer width.
+
+    Spanning the outer width makes neighbouring walls overlap in the corner squares, so a beam aimed at
+    a corner can never slip through a gap.
+    """
+    outer = inner_half_m + WALL_THICKNESS_M
+    return [_axis_rect(inner_half_m, outer, -outer, outer, k) for k in range(4)]
+
+
+def room_wall_rects(door: Doorway) -> list[Rect]:
+    """Floor rectangles of the inner room walls with the doorway cut out.
+
+    The door is cut, centred, from the +x wall and that wall is turned by ``door.wall_k`` quarter turns,
+    which is exactly how :attr:`Doorway.opening` and :attr:`Doorway.frame` place the opening.
+    """
+    outer = ROOM_HALF_M + WALL_THICKNESS_M
+    half_door = door.width_m / 2.0
+    if not 0.0 < half_door < ROOM_HALF_M:
+        raise ValueError(f"door width {door.width_m} m does not fit in a {2 * ROOM_HALF_M} m wall")
+    k = door.wall_k % 4
+    walls = [
+        _axis_rect(ROOM_HALF_M, outer, -outer, -half_door, k),
+        _axis_rect(ROOM_HALF_M, outer, half_door, outer, k),
+    ]
+    walls += [_axis_rect(ROOM_HALF_M, outer, -outer, outer, k + j) for j in (1, 2, 3)]
+    return walls
+
+
+def enclosure_rects() -> list[Rect]:
+    """Floor rectangles of the closed outer enclosure, seen through the doorway."""
+    return ring_of_walls(OUTER_HALF_M)
+
+
 def _rects_overlap(a: Rect, b: Rect) -> bool:
     """Separating-axis test for two oriented rectangles (touching counts as overlapping)."""
     ca, cb = a.corners(), b.corners()

@@ -25,14 +25,14 @@ import numpy as np
 import pybullet as p
 
 from services.simulator.scenario import (
-    OUTER_HALF_M,
     ROOM_HALF_M,
     WALL_HEIGHT_M,
-    WALL_THICKNESS_M,
-    Doorway,
     Furniture,
     Rect,
     Scenario,
+    enclosure_rects,
+    ring_of_walls,
+    room_wall_rects,
 )
 
 log = logging.getLogger(__name__)
@@ -41,8 +41,6 @@ TOP_THICKNESS_M = 0.03  # chair and desk top slab; it lies above the scan plane 
 WALL_OBJECT = -1  # object index of a room wall or the enclosure
 NO_HIT = -2  # object index of a beam that hit nothing (PyBullet reports body id -1)
 
-# Exact quarter-turn rotations (cos, sin) so that rotated walls keep bit-exact coordinates.
-_QUARTER_TURNS: tuple[tuple[int, int], ...] = ((1, 0), (0, 1), (-1, 0), (0, -1))
 
 # Twelve outward-facing triangles of a cuboid whose corners are numbered bottom 0-3 then top 4-7,
 # each ring counter-clockwise seen from above (the order Rect.corners returns).
@@ -73,53 +71,6 @@ class Cuboid:
         bottom = np.column_stack([xy, np.full(4, self.z_min_m)])
         top = np.column_stack([xy, np.full(4, self.z_max_m)])
         return np.concatenate([bottom, top])
-
-
-def _axis_rect(x_min: float, x_max: float, y_min: float, y_max: float, k: int = 0) -> Rect:
-    """An axis-aligned rectangle given by its extents, then turned by k quarter turns about the origin.
-
-    Quarter turns are applied with integer cos/sin and a swap of the sizes, so walls on every side keep
-    exact coordinates (a float rotation by ``k·π/2`` would leave 1e-16 m crumbs in the geometry).
-    """
-    c, s = _QUARTER_TURNS[k % 4]
-    cx, cy = (x_min + x_max) / 2.0, (y_min + y_max) / 2.0
-    sx, sy = x_max - x_min, y_max - y_min
-    size = (sx, sy) if k % 2 == 0 else (sy, sx)
-    return Rect((c * cx - s * cy, s * cx + c * cy), size, 0.0)
-
-
-def _ring_of_walls(inner_half_m: float) -> list[Rect]:
-    """Four walls whose inner faces are at ±inner_half_m; each spans the full outer width.
-
-    Spanning the outer width makes neighbouring walls overlap in the corner squares, so a beam aimed at
-    a corner can never slip through a gap.
-    """
-    outer = inner_half_m + WALL_THICKNESS_M
-    return [_axis_rect(inner_half_m, outer, -outer, outer, k) for k in range(4)]
-
-
-def room_wall_rects(door: Doorway) -> list[Rect]:
-    """Floor rectangles of the inner room walls with the doorway cut out.
-
-    The door is cut, centred, from the +x wall and that wall is turned by ``door.wall_k`` quarter turns,
-    which is exactly how :attr:`Doorway.opening` and :attr:`Doorway.frame` place the opening.
-    """
-    outer = ROOM_HALF_M + WALL_THICKNESS_M
-    half_door = door.width_m / 2.0
-    if not 0.0 < half_door < ROOM_HALF_M:
-        raise ValueError(f"door width {door.width_m} m does not fit in a {2 * ROOM_HALF_M} m wall")
-    k = door.wall_k % 4
-    walls = [
-        _axis_rect(ROOM_HALF_M, outer, -outer, -half_door, k),
-        _axis_rect(ROOM_HALF_M, outer, half_door, outer, k),
-    ]
-    walls += [_axis_rect(ROOM_HALF_M, outer, -outer, outer, k + j) for j in (1, 2, 3)]
-    return walls
-
-
-def enclosure_rects() -> list[Rect]:
-    """Floor rectangles of the closed outer enclosure, seen through the doorway."""
-    return _ring_of_walls(OUTER_HALF_M)
 
 
 def furniture_cuboids(obj: Furniture) -> list[Cuboid]:
@@ -192,7 +143,7 @@ class World:
         self.require_open()
         p.resetSimulation(physicsClientId=self.client_id)
         wall_rects = enclosure_rects() + (
-            room_wall_rects(scenario.door) if scenario else _ring_of_walls(ROOM_HALF_M)
+            room_wall_rects(scenario.door) if scenario else ring_of_walls(ROOM_HALF_M)
         )
         walls = self._add_static_mesh(_wall_cuboids(wall_rects))
         objects = scenario.objects if scenario else ()
