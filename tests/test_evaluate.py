@@ -9,7 +9,17 @@ import numpy as np
 import pytest
 
 from services.simulator.labels import ObjectLabel, yolo_lines
-from training.evaluate import IOU_THRESHOLDS, box_iou, format_table, match_predictions, yolo_labels_to_boxes
+from training.evaluate import (
+    IOU_THRESHOLDS,
+    EvalSample,
+    box_iou,
+    circular_box_iou,
+    format_table,
+    match_predictions,
+    merge_label_copies,
+    seam_subset,
+    yolo_labels_to_boxes,
+)
 
 
 @pytest.fixture(scope="module")
@@ -84,3 +94,46 @@ def test_table_has_a_row_per_class_and_all(tmp_path: Path) -> None:
     table = format_table(report).splitlines()
     assert table[1].split() == ["chair", "7", "0.900", "0.800", "0.950", "0.700"]
     assert table[-1].split()[0] == "all"
+
+
+def test_circular_iou_sees_the_copy_across_the_seam() -> None:
+    whole = np.array([[346.0, 20.0, 365.0, 27.0]])
+    low_copy = np.array([[-14.0, 20.0, 5.0, 27.0]])  # the same bearings, one turn earlier
+    partial = np.array([[0.0, 20.0, 5.0, 27.0]])  # the part of it in columns 0–4
+    assert circular_box_iou(whole, low_copy)[0, 0] == pytest.approx(1.0)
+    assert circular_box_iou(whole, partial)[0, 0] == pytest.approx(5.0 / 19.0)
+    assert box_iou(whole, low_copy)[0, 0] == 0.0
+    far = np.array([[100.0, 20.0, 120.0, 27.0]])
+    assert circular_box_iou(whole, far)[0, 0] == 0.0
+
+
+def test_wrap_label_copies_merge_to_the_whole_object() -> None:
+    # Labels of SPEC §4 for a box across the seam under wrap: the partial copy at 0–5 and the whole box.
+    boxes = np.array([[0.0, 20.0, 5.0, 27.0], [346.0, 20.0, 365.0, 27.0], [100.0, 5.0, 130.0, 15.0]])
+    sample = EvalSample(
+        "s", np.zeros((64, 384, 3), np.uint8), boxes, np.array([1, 1, 2]), np.array([1, 1, 0], bool)
+    )
+    merged = merge_label_copies(sample)
+    assert merged.boxes.tolist() == [[346.0, 20.0, 365.0, 27.0], [100.0, 5.0, 130.0, 15.0]]
+    assert merged.crosses_seam is not None and merged.crosses_seam.tolist() == [True, False]
+
+
+def test_seam_subset_keeps_seam_objects_and_their_class_predictions() -> None:
+    boxes = np.array([[346.0, 20.0, 365.0, 27.0], [100.0, 5.0, 130.0, 15.0]])
+    sample = EvalSample(
+        "s", np.zeros((64, 384, 3), np.uint8), boxes, np.array([1, 2]), np.array([True, False])
+    )
+    preds = np.array(
+        [
+            [347.0, 20.0, 364.0, 27.0],  # the seam box, found
+            [101.0, 5.0, 129.0, 15.0],  # the desk, off the seam: out of the set
+            [200.0, 5.0, 210.0, 15.0],  # a stray box of the seam object's class: counts against it
+            [50.0, 5.0, 60.0, 15.0],  # a stray chair: its class has no seam object here, out
+        ]
+    )
+    pred_classes = np.array([1, 2, 1, 0])
+    label_in, pred_in = seam_subset(sample, box_iou(boxes, preds), pred_classes)
+    assert label_in.tolist() == [True, False]
+    assert pred_in.tolist() == [True, False, True, False]
+    unknown = EvalSample("s", sample.tensor, boxes, sample.classes, None)
+    assert not seam_subset(unknown, box_iou(boxes, preds), pred_classes)[0].any()

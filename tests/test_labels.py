@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from services.simulator.labels import (
+    arc_crosses_seam,
     beams_through_segment,
     footprint_polar,
     label_scan,
@@ -97,6 +98,20 @@ def test_seam_crossing_box_wrap_padding_extends_whole_into_the_padding() -> None
     twice = box_label(scenario, pose, [10, 12], padding="wrap")
     assert twice.boxes_px == ((3.0, 20.0, 22.0, 27.0), (363.0, 20.0, 382.0, 27.0))
     assert box_label(scenario, pose, [10, 12], padding="zero").boxes_px == ((3.0, 20.0, 22.0, 27.0),)
+
+
+@pytest.mark.parametrize(
+    ("yaw_deg", "crosses"),
+    [(0.0, True), (5.0, True), (-4.0, True), (-12.0, False), (12.0, False), (180.0, False)],
+)
+def test_seam_crossing_is_exactly_where_zero_padding_clips(yaw_deg: float, crosses: bool) -> None:
+    scenario = scenario_with(Rect((1.5, 0.0), (0.4, 0.4), 0.0))  # arc ±8.75° around the box centre
+    pose = (0.0, 0.0, math.radians(yaw_deg))
+    label = box_label(scenario, pose, [0, 1])
+    assert arc_crosses_seam(label.bearing_center_deg, label.bearing_min_deg, label.bearing_max_deg) is crosses
+    wrap = box_label(scenario, pose, [0, 1], padding="wrap")
+    whole = max(wrap.boxes_px, key=lambda box: box[2] - box[0])
+    assert (whole[0] < 360.0 < whole[2]) is crosses  # wrap shows it whole across column 360
 
 
 def test_far_object_is_not_a_target_even_with_hits() -> None:

@@ -1,4 +1,4 @@
-"""train → export → eval end to end on a tiny generated set, offline (one CPU epoch)."""
+"""train → export → eval end to end on a tiny generated set, offline (two CPU epochs, one resume)."""
 
 from __future__ import annotations
 
@@ -24,10 +24,18 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     generate_dataset(
         DatasetConfig(out=data, scenarios=3, positions=2, seed=3, frame_stride=4), progress=False
     )
-    summary = train(
-        TrainConfig(data=data / "data.yaml", out=root / "run", epochs=1, batch=8, workers=0, device="cpu")
+    config = TrainConfig(
+        data=data / "data.yaml", out=root / "run", epochs=2, batch=8, workers=0, device="cpu"
     )
-    assert summary["epochs_run"] == 1 and not summary["diverged"]
+    first = train(config, stop_after=1)
+    assert first["epochs_run"] == 1 and not first["diverged"]
+    import torch
+
+    # Stopped by --stop-after, not finished: last.pt must still hold the optimizer to be resumable.
+    last = torch.load(root / "run" / "weights" / "last.pt", map_location="cpu", weights_only=False)
+    assert last["optimizer"] is not None and last["epoch"] == 0
+    summary = train(config, resume=True)
+    assert summary["epochs_run"] == 2 and not summary["diverged"]
     return data, Path(summary["best_weights"])
 
 
@@ -35,7 +43,7 @@ def test_training_writes_weights_and_a_summary(trained_run: tuple[Path, Path]) -
     _, best = trained_run
     assert best.is_file() and best.name == "best.pt"
     summary = json.loads((best.parent.parent / "train_summary.json").read_text())
-    assert summary["device"] == "cpu" and summary["config"]["epochs"] == 1
+    assert summary["device"] == "cpu" and summary["config"]["epochs"] == 2
     assert (best.parent.parent / "results.csv").is_file()
 
 

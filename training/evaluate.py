@@ -6,6 +6,17 @@ test proves it; ``--fresh`` simulates new scenarios straight through ScanStacker
 arithmetic is Ultralytics' own (``ap_per_class`` via ``DetMetrics``, its ``ConfusionMatrix``), and
 predictions are matched to labels with the same greedy policy as its validator, so the figures can be
 compared with ``yolo val`` — a test checks they agree within 0.01.
+
+Two additions serve the ``zero`` vs ``wrap`` ablation (SPEC §2):
+
+* With ``wrap`` padding one object can be labelled twice (whole across the seam and as the copy in
+  columns 0–23 or 360–383), while the detector merges such copies into one detection. Labels are
+  merged the same way and boxes are compared on the circle (IoU over ±360-column shifts), so both
+  padding modes are scored per object.
+* Every label carries whether its object crosses the 0°/360° seam (from the scene geometry, not the
+  box), and a second set of figures is computed on those objects alone: in each image, a class is
+  scored only when its object crosses the seam, with its predictions and label; other classes are
+  left out of that set.
 """
 
 from __future__ import annotations
@@ -19,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from common.encoding import IMAGE_WIDTH, RANGE_ROWS, Padding
-from common.inference import OnnxDetector
+from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding
+from common.inference import OnnxDetector, unwrap_seam_duplicates
 from common.messages import CLASS_NAMES
 from training.export import read_tensor_png
 
@@ -34,12 +45,13 @@ VAL_MAX_DET = 300
 
 @dataclass(frozen=True)
 class EvalSample:
-    """A tensor and its ground truth: boxes xyxy in raster pixels, class ids."""
+    """A tensor and its ground truth: boxes xyxy in raster pixels, class ids, seam crossing."""
 
     name: str
     tensor: np.ndarray
     boxes: np.ndarray  # float64[M, 4]
     classes: np.ndarray  # int64[M]
+    crosses_seam: np.ndarray | None = None  # bool[M]; None when the scene geometry is unknown
 
 
 @dataclass
@@ -50,8 +62,10 @@ class EvalReport:
     source: str
     images: int = 0
     instances: int = 0
+    padding: str = "zero"
     overall: dict[str, float] = field(default_factory=dict)
     per_class: dict[str, dict[str, float]] = field(default_factory=dict)
+    seam_crossing: dict[str, float] = field(default_factory=dict)  # the same figures, seam objects only
     mean_timings_ms: dict[str, float] = field(default_factory=dict)
     files: dict[str, str] = field(default_factory=dict)
 
@@ -69,22 +83,58 @@ def yolo_labels_to_boxes(text: str) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([xc - w / 2, yc - h / 2, xc + w / 2, yc + h / 2], axis=1), rows[:, 0].astype(np.int64)
 
 
+def _seam_flags_of_dataset(dataset_dir: Path) -> dict[str, dict[int, bool]] | None:
+    """Image stem → class → whether that object crosses the seam, from scenarios.jsonl + samples.jsonl.
+
+    ``None`` for a data set without them (e.g. recorded on a real robot in the YOLO layout).
+    """
+    from services.simulator.labels import arc_crosses_seam, footprint_polar
+    from services.simulator.scenario import Scenario
+
+    scenarios_file, samples_file = dataset_dir / "scenarios.jsonl", dataset_dir / "samples.jsonl"
+    if not (scenarios_file.is_file() and samples_file.is_file()):
+        return None
+    scenarios: dict[int, Scenario] = {}
+    for line in scenarios_file.read_text().splitlines():
+        if line.strip():
+            data = json.loads(line)
+            scenarios[int(data["index"])] = Scenario.from_json(data)
+    flags: dict[str, dict[int, bool]] = {}
+    for line in samples_file.read_text().splitlines():
+        if not line.strip():
+            continue
+        sample = json.loads(line)
+        scenario = scenarios[int(sample["scenario"])]
+        pose = tuple(float(v) for v in sample["lidar_pose"])
+        flags[Path(sample["image"]).stem] = {
+            class_id: arc_crosses_seam(*footprint_polar(scenario.footprint_of(class_id), pose)[:3])
+            for class_id in range(len(CLASS_NAMES))
+        }
+    return flags
+
+
 def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSample]:
     """Samples of one split of a data set written by ``triscan dataset``."""
     image_dir = dataset_dir / "images" / split
     images = sorted(image_dir.glob("*.png"))
     if not images:
         raise FileNotFoundError(f"no images in {image_dir}: is {dataset_dir} a triscan data set?")
+    seam_flags = _seam_flags_of_dataset(dataset_dir)
     for image in images:
         label = dataset_dir / "labels" / split / f"{image.stem}.txt"
         boxes, classes = yolo_labels_to_boxes(label.read_text() if label.exists() else "")
-        yield EvalSample(image.stem, read_tensor_png(image), boxes, classes)
+        crosses = None
+        if seam_flags is not None:
+            of_class = seam_flags[image.stem]
+            crosses = np.array([of_class[int(c)] for c in classes], dtype=bool)
+        yield EvalSample(image.stem, read_tensor_png(image), boxes, classes, crosses)
 
 
 def fresh_samples(
     seed: int, scenarios: int, positions: int, padding: Padding, frame_stride: int
 ) -> Iterator[EvalSample]:
     """Newly simulated scenarios, straight through ScanStacker: data no model has seen."""
+    from services.simulator.labels import arc_crosses_seam
     from services.simulator.scenario import sample_scenario
     from services.simulator.world import World
     from training.dataset import plan_motions, simulate_samples
@@ -96,11 +146,17 @@ def fresh_samples(
             for sample in simulate_samples(world, scenario, motions, seed, padding, frame_stride):
                 boxes = [box for label in sample.labels for box in label.boxes_px]
                 classes = [label.class_id for label in sample.labels for _ in label.boxes_px]
+                crosses = [
+                    arc_crosses_seam(label.bearing_center_deg, label.bearing_min_deg, label.bearing_max_deg)
+                    for label in sample.labels
+                    for _ in label.boxes_px
+                ]
                 yield EvalSample(
                     sample.name,
                     sample.tensor,
                     np.array(boxes, dtype=np.float64).reshape(-1, 4),
                     np.array(classes, dtype=np.int64),
+                    np.array(crosses, dtype=bool),
                 )
 
 
@@ -112,6 +168,45 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     area_a = (a[:, 2:] - a[:, :2]).prod(axis=1)
     area_b = (b[:, 2:] - b[:, :2]).prod(axis=1)
     return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-7)
+
+
+def circular_box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU on the circle: the best of ``b`` as it is and moved by ±360 columns (the same bearings)."""
+    shift = np.array([ANGLE_COLUMNS, 0.0, ANGLE_COLUMNS, 0.0])
+    return np.maximum.reduce([box_iou(a, b), box_iou(a, b + shift), box_iou(a, b - shift)])
+
+
+def merge_label_copies(sample: EvalSample) -> EvalSample:
+    """One label per object under ``wrap`` padding: the copies the detector would merge, merged."""
+    if len(sample.classes) < 2:
+        return sample
+    keep = unwrap_seam_duplicates(sample.boxes, np.ones(len(sample.classes)), sample.classes, "wrap")
+    crosses = None if sample.crosses_seam is None else sample.crosses_seam[keep]
+    return EvalSample(sample.name, sample.tensor, sample.boxes[keep], sample.classes[keep], crosses)
+
+
+def seam_subset(
+    sample: EvalSample, iou: np.ndarray, pred_classes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Masks (labels, predictions) of the seam-crossing set.
+
+    A label is in when its object crosses the seam. A prediction is in when its class has such a
+    label in this image and its best-overlapping label of that class crosses the seam, so a stray
+    box of that class still counts against it while boxes of objects off the seam stay out.
+    """
+    crosses = (
+        np.zeros(len(sample.classes), dtype=bool) if sample.crosses_seam is None else sample.crosses_seam
+    )
+    label_in = crosses.copy()
+    pred_in = np.zeros(len(pred_classes), dtype=bool)
+    if not label_in.any() or len(pred_classes) == 0:
+        return label_in, pred_in
+    same_class = sample.classes[:, None] == pred_classes[None, :]
+    overlap = np.where(same_class, iou, -1.0)
+    has_seam_label = (same_class & crosses[:, None]).any(axis=0)
+    best_label = overlap.argmax(axis=0)
+    pred_in = has_seam_label & crosses[best_label]
+    return label_in, pred_in
 
 
 def match_predictions(
@@ -139,6 +234,20 @@ def match_predictions(
     return correct
 
 
+def _stats(
+    correct: np.ndarray, scores: np.ndarray, classes: np.ndarray, true_classes: np.ndarray, name: str
+) -> dict[str, Any]:
+    """One image's entry for Ultralytics' ``DetMetrics.update_stats``."""
+    return {
+        "tp": correct,
+        "conf": scores.astype(np.float64),
+        "pred_cls": classes.astype(np.float64),
+        "target_cls": true_classes.astype(np.float64),
+        "target_img": np.unique(true_classes).astype(np.float64),
+        "im_name": name,
+    }
+
+
 def evaluate(
     detector: OnnxDetector,
     samples: Iterator[EvalSample],
@@ -156,24 +265,30 @@ def evaluate(
 
     names = dict(enumerate(CLASS_NAMES))
     metrics = DetMetrics(names=names)
+    seam_metrics = DetMetrics(names=names)
     confusion = ConfusionMatrix(names=names)
-    report = EvalReport(model_id=detector.model_id, source=source)
+    wrap = detector.padding == "wrap"
+    report = EvalReport(model_id=detector.model_id, source=source, padding=detector.padding)
     timing_sums = {"encode_ms": 0.0, "inference_ms": 0.0, "nms_ms": 0.0}
-    for sample in samples:
+    seam_instances = 0
+    for raw_sample in samples:
+        sample = merge_label_copies(raw_sample) if wrap else raw_sample
         boxes, scores, classes, timings = detector.detect_boxes(sample.tensor)
         for key in timing_sums:
             timing_sums[key] += float(getattr(timings, key))
-        iou = box_iou(sample.boxes, boxes) if len(boxes) and len(sample.boxes) else np.zeros((0, 0))
-        metrics.update_stats(
-            {
-                "tp": match_predictions(classes, sample.classes, iou),
-                "conf": scores.astype(np.float64),
-                "pred_cls": classes.astype(np.float64),
-                "target_cls": sample.classes.astype(np.float64),
-                "target_img": np.unique(sample.classes).astype(np.float64),
-                "im_name": sample.name,
-            }
-        )
+        iou_of = circular_box_iou if wrap else box_iou
+        iou = iou_of(sample.boxes, boxes) if len(boxes) and len(sample.boxes) else np.zeros((0, 0))
+        correct = match_predictions(classes, sample.classes, iou)
+        metrics.update_stats(_stats(correct, scores, classes, sample.classes, sample.name))
+        label_in, pred_in = seam_subset(sample, iou.reshape(len(sample.classes), len(classes)), classes)
+        if label_in.any():
+            seam_instances += int(label_in.sum())
+            seam_correct = match_predictions(
+                classes[pred_in], sample.classes[label_in], iou[label_in][:, pred_in]
+            )
+            seam_metrics.update_stats(
+                _stats(seam_correct, scores[pred_in], classes[pred_in], sample.classes[label_in], sample.name)
+            )
         confusion.process_batch(
             {
                 "bboxes": torch.from_numpy(np.asarray(boxes, dtype=np.float32)),
@@ -199,6 +314,16 @@ def evaluate(
         )
         report.per_class[names[int(class_index)]] = {
             "instances": int(metrics.nt_per_class[int(class_index)]),
+            "precision": p,
+            "recall": r,
+            "mAP50": ap50,
+            "mAP50-95": ap,
+        }
+    if seam_instances:
+        seam_metrics.process(save_dir=out_dir, plot=False)
+        p, r, ap50, ap = (float(v) for v in seam_metrics.mean_results())
+        report.seam_crossing = {
+            "instances": seam_instances,
             "precision": p,
             "recall": r,
             "mAP50": ap50,
@@ -230,4 +355,10 @@ def format_table(report: EvalReport) -> str:
         f"{'all':10s} {report.instances:7d} {o['precision']:6.3f} {o['recall']:6.3f} "
         f"{o['mAP50']:6.3f} {o['mAP50-95']:8.3f}"
     )
+    if report.seam_crossing:
+        m = report.seam_crossing
+        lines.append(
+            f"{'seam':10s} {int(m['instances']):7d} {m['precision']:6.3f} {m['recall']:6.3f} "
+            f"{m['mAP50']:6.3f} {m['mAP50-95']:8.3f}"
+        )
     return "\n".join(lines)

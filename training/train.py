@@ -125,6 +125,39 @@ class DivergenceWatch:
             self.low_epochs = 0
 
 
+class StopAfterEpoch:
+    """Ends this invocation after a given epoch while keeping the run's schedule (``--epochs``).
+
+    A CPU run of 30 epochs takes days; stopping at epoch N and resuming later follows the same cosine
+    learning-rate curve as one uninterrupted run, so two runs stopped at the same epoch compare fairly.
+    Ultralytics strips the optimizer from ``last.pt`` when a run ends, which would make it impossible
+    to resume: the full checkpoint is kept aside here and put back by :meth:`restore_last`.
+    """
+
+    def __init__(self, epoch: int) -> None:
+        if epoch < 1:
+            raise ValueError(f"stop_after must be >= 1 epoch, got {epoch}")
+        self.epoch = epoch
+        self.kept: tuple[Path, Path] | None = None
+
+    def __call__(self, trainer: Any) -> None:
+        if self.kept is not None or int(trainer.epoch) + 1 < self.epoch:
+            return
+        log.info("epoch %d reached: stopping this invocation (resume to continue)", self.epoch)
+        trainer.stop = True
+        last = Path(trainer.last)
+        if last.is_file():
+            kept = last.with_name("last_resumable.pt")
+            shutil.copyfile(last, kept)
+            self.kept = (kept, last)
+
+    def restore_last(self) -> None:
+        """Put the resumable checkpoint (optimizer included) back as ``last.pt``."""
+        if self.kept is not None:
+            kept, last = self.kept
+            kept.replace(last)
+
+
 def validation_dataset(args: Any, data: dict[str, Any], img_path: str, batch: int | None, stride: int) -> Any:
     """A validation set of the images as they are: 64×384, rectangular batches with no letterbox pad.
 
@@ -183,13 +216,26 @@ def use_all_cores(trainer: Any) -> None:
         torch.set_num_threads(os.cpu_count() or 1)
 
 
-def train(config: TrainConfig, *, resume: bool = False, resume_from: Path | None = None) -> dict[str, Any]:
+def _add_callbacks(model: Any, watch: DivergenceWatch, stopper: StopAfterEpoch | None) -> None:
+    model.add_callback("on_fit_epoch_end", watch)
+    model.add_callback("on_train_start", use_all_cores)
+    if stopper is not None:
+        model.add_callback("on_fit_epoch_end", stopper)
+
+
+def train(
+    config: TrainConfig,
+    *,
+    resume: bool = False,
+    resume_from: Path | None = None,
+    stop_after: int | None = None,
+) -> dict[str, Any]:
     """Train (or resume) one run and write ``train_summary.json`` beside its weights.
 
     ``resume_from`` seeds ``OUT/weights/last.pt`` from a saved checkpoint (e.g. the one committed in
     ``training/checkpoints/``) when the run directory has none, so a run can continue on another
     machine. The data set and run directory are taken from ``config``, not from the paths stored in
-    the checkpoint.
+    the checkpoint. ``stop_after`` ends this invocation once that epoch (1-based) is done.
     """
     if not config.data.is_file():
         raise FileNotFoundError(f"{config.data} not found: pass the data.yaml written by `triscan dataset`")
@@ -199,6 +245,7 @@ def train(config: TrainConfig, *, resume: bool = False, resume_from: Path | None
     device = pick_device(config.device)
     last = config.out / "weights" / "last.pt"
     watch = DivergenceWatch()
+    stopper = StopAfterEpoch(stop_after) if stop_after is not None else None
     started = time.perf_counter()
     if resume and resume_from is not None and not last.is_file():
         if not resume_from.is_file():
@@ -208,8 +255,7 @@ def train(config: TrainConfig, *, resume: bool = False, resume_from: Path | None
     if resume and last.is_file():
         log.info("resuming from %s", last)
         model = YOLO(str(last))
-        model.add_callback("on_fit_epoch_end", watch)
-        model.add_callback("on_train_start", use_all_cores)
+        _add_callbacks(model, watch, stopper)
         model.train(
             trainer=triscan_trainer(),
             resume=True,
@@ -222,9 +268,10 @@ def train(config: TrainConfig, *, resume: bool = False, resume_from: Path | None
         if resume:
             log.info("no %s yet: starting a new run", last)
         model = YOLO("yolov8n.yaml")  # architecture only: no pretrained weights exist offline
-        model.add_callback("on_fit_epoch_end", watch)
-        model.add_callback("on_train_start", use_all_cores)
+        _add_callbacks(model, watch, stopper)
         model.train(trainer=triscan_trainer(), **recipe(config, device))
+    if stopper is not None:
+        stopper.restore_last()
     elapsed = time.perf_counter() - started
     trainer = model.trainer
     summary = {

@@ -69,6 +69,17 @@ def footprint_polar(
     return center, center + float(offsets.min()), center + float(offsets.max()), range_min, range_max
 
 
+def arc_crosses_seam(center_deg: float, lo_deg: float, hi_deg: float) -> bool:
+    """Whether an object's arc spans the 0°/360° column seam (where ``zero`` padding clips its box).
+
+    Uses the column arithmetic of the labels, so it is true exactly when the ``zero`` box is clipped.
+    """
+    shift = -ANGLE_COLUMNS * math.floor(math.floor(center_deg + 0.5) / ANGLE_COLUMNS)
+    first = math.floor(lo_deg + 0.5) + shift
+    past_last = min(math.floor(hi_deg + 0.5) + 1, math.floor(lo_deg + 0.5) + ANGLE_COLUMNS) + shift
+    return first < 0 or past_last > ANGLE_COLUMNS
+
+
 def _pixel_boxes(
     center_deg: float, lo_deg: float, hi_deg: float, range_min: float, range_max: float, padding: Padding
 ) -> tuple[Box, ...]:
