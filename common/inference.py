@@ -435,10 +435,12 @@ class OnnxDetector:
         conf_threshold: float = DEFAULT_CONF,
         iou_threshold: float = DEFAULT_IOU,
         max_detections: int = MAX_DETECTIONS,
-        padding: Padding = "zero",
+        padding: Padding | None = None,
         intra_op_threads: int | None = None,
         providers: list[str] | None = None,
     ) -> None:
+        """``padding`` defaults to the model's own ``triscan.padding`` metadata (``zero`` if absent);
+        asking for the other one than the model was trained with is refused."""
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"ONNX model {path} not found")
@@ -448,7 +450,7 @@ class OnnxDetector:
             raise ValueError(f"iou_threshold must lie in [0, 1], got {iou_threshold}")
         if max_detections < 1:
             raise ValueError(f"max_detections must be >= 1, got {max_detections}")
-        if padding not in PADDINGS:
+        if padding is not None and padding not in PADDINGS:
             raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
         if intra_op_threads is not None and intra_op_threads < 1:
             raise ValueError(f"intra_op_threads must be >= 1, got {intra_op_threads}")
@@ -456,7 +458,6 @@ class OnnxDetector:
         self.conf_threshold = conf_threshold
         self.iou_threshold = iou_threshold
         self.max_detections = max_detections
-        self.padding: Padding = padding
         self.model_id = file_model_id(path)
 
         options = ort.SessionOptions()
@@ -473,16 +474,28 @@ class OnnxDetector:
             raise ValueError(f"{path} is not a loadable ONNX model: {exc}") from exc
         self.providers: list[str] = self._session.get_providers()
         self._input_name, self._output_names, self.num_classes, self.num_anchors = self._check_model(path)
+        self.padding: Padding = self._padding_of_model(path, padding)
         log.info(
             "loaded %s (%d classes, %d anchors) on %s, padding=%s conf=%.3g iou=%.3g",
             self.model_id,
             self.num_classes,
             self.num_anchors,
             ",".join(self.providers),
-            padding,
+            self.padding,
             conf_threshold,
             iou_threshold,
         )
+
+    def _padding_of_model(self, path: Path, requested: Padding | None) -> Padding:
+        trained = self._session.get_modelmeta().custom_metadata_map.get("triscan.padding")
+        if trained is not None and trained not in PADDINGS:
+            raise ValueError(f"{path} declares an unknown triscan.padding {trained!r}")
+        if requested is not None and trained is not None and requested != trained:
+            raise ValueError(
+                f"{path} was trained with {trained!r} padding; running it on {requested!r} tensors would "
+                "misplace every object near the seam"
+            )
+        return requested or trained or "zero"  # type: ignore[return-value]
 
     def _check_model(self, path: Path) -> tuple[str, list[str], int, int]:
         """Refuse, with the reason, any model this pipeline would misread rather than fail later."""

@@ -98,6 +98,13 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="with --resume: checkpoint to continue from when OUT has none (e.g. training/checkpoints/)",
     )
+    p.add_argument(
+        "--stop-after",
+        type=int,
+        default=None,
+        metavar="EPOCH",
+        help="end this invocation after EPOCH (1-based) without changing the --epochs schedule",
+    )
     p.set_defaults(run=_run_train)
 
 
@@ -115,7 +122,7 @@ def _run_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         fraction=args.fraction,
     )
-    summary = train(config, resume=args.resume, resume_from=args.resume_from)
+    summary = train(config, resume=args.resume, resume_from=args.resume_from, stop_after=args.stop_after)
     print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")
     return 0
 
@@ -180,7 +187,9 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1000, help="seed of the --fresh scenarios")
     p.add_argument("--positions", type=int, default=90, help="positions per --fresh scenario")
     p.add_argument("--frame-stride", type=int, default=15, help="window stride of --fresh motions")
-    p.add_argument("--padding", choices=PADDINGS, default="zero", help="padding the model was trained with")
+    p.add_argument(
+        "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
+    )
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
     p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
     p.set_defaults(run=_run_eval)
@@ -209,7 +218,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     if args.data is not None:
         samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
     else:
-        samples = fresh_samples(args.seed, args.fresh, args.positions, args.padding, args.frame_stride)
+        samples = fresh_samples(args.seed, args.fresh, args.positions, detector.padding, args.frame_stride)
         source = f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions}"
     report = evaluate(detector, samples, args.out, source=source)
     print(format_table(report))
@@ -263,6 +272,60 @@ def _run_card(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_up(sub: argparse._SubParsersAction) -> None:
+    from common.transport import add_zenoh_arguments
+
+    p = sub.add_parser(
+        "up", help="the full simulation loop: simulator, encoder, detector, visualizer as four processes"
+    )
+    p.add_argument("--robots", type=int, default=1, help="simulated robots")
+    p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: Ctrl-C)")
+    p.add_argument("--headless", action="store_true", help="no viewer: record an .rrd instead")
+    p.add_argument(
+        "--rrd", type=Path, default=None, help="--headless recording (default: runs/triscan-<time>.rrd)"
+    )
+    p.add_argument(
+        "--viewer", choices=("spawn", "web", "none"), default="spawn", help="viewer when not --headless"
+    )
+    p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
+    p.add_argument("--seed", type=int, default=1, help="simulator seed (training used 0)")
+    p.add_argument(
+        "--max-restarts", type=int, default=5, help="restarts of one service per minute before giving up"
+    )
+    add_zenoh_arguments(p)
+    p.set_defaults(run=_run_up)
+
+
+def _run_up(args: argparse.Namespace) -> int:
+    from common.transport import ZenohSettings, settings_from_args
+    from services.launcher import DEFAULT_LISTEN, UpConfig, up
+    from services.runtime import stop_event_on_signals
+
+    settings = settings_from_args(args)
+    if not settings.listen and settings.config_file is None:
+        settings = ZenohSettings(
+            mode=settings.mode or "peer",
+            connect=settings.connect,
+            listen=(DEFAULT_LISTEN,),
+            multicast_scouting=False if settings.multicast_scouting is None else settings.multicast_scouting,
+        )
+    config = UpConfig(
+        robots=args.robots,
+        rate_hz=args.rate,
+        duration_s=args.duration,
+        headless=args.headless,
+        rrd_path=args.rrd,
+        viewer=args.viewer,
+        model=args.model,
+        seed=args.seed,
+        max_restarts=args.max_restarts,
+        settings=settings,
+        verbose=args.verbose,
+    )
+    return up(config, stop_event_on_signals())
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="triscan", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -273,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_export(sub)
     _add_eval(sub)
     _add_card(sub)
+    _add_up(sub)
     return parser
 
 
