@@ -324,6 +324,7 @@ class StackedTensor(Message):
     padding: Literal["zero", "wrap"]
     scan_seqs: tuple[NonNegInt, NonNegInt, NonNegInt]
     scan_stamps_ns: tuple[NonNegInt, NonNegInt, NonNegInt]
+    encode_ms: NonNegFloat = 0.0  # the encoder's time for the newest scan (raster + stack), for Detections
 
     @model_validator(mode="after")
     def _seq_is_newest(self) -> StackedTensor:

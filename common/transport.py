@@ -1,0 +1,159 @@
+"""Zenoh sessions for every triscan process: one set of flags, one way to open and close.
+
+Every service takes the same Zenoh flags (``--connect``, ``--listen``, ``--mode``, ``--zenoh-config``,
+``--no-multicast``), and falls back to a config file named by ``ZENOH_CONFIG``, as zenoh's own tools
+do. ``open_session`` is a context manager because a session with a callback subscriber keeps the
+interpreter alive at exit unless it is closed explicitly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+ZENOH_CONFIG_ENV = "ZENOH_CONFIG"
+MODES = ("peer", "client", "router")
+HEALTH_PREFIX = "triscan/@health"  # liveliness tokens: triscan/@health/<service>/<instance>
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """What a process needs to join the triscan Zenoh network.
+
+    ``config_file`` is read first (JSON5, zenoh's own format); the explicit fields override it.
+    """
+
+    mode: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool | None = None
+    config_file: Path | None = None
+    extra_json5: dict[str, Any] = field(default_factory=dict)  # dotted key → value, e.g. for TLS
+
+    def __post_init__(self) -> None:
+        if self.mode is not None and self.mode not in MODES:
+            raise ValueError(f"zenoh mode must be one of {MODES}, got {self.mode!r}")
+
+    @classmethod
+    def loopback(cls, listen_port: int | None, connect_ports: Sequence[int] = ()) -> ZenohSettings:
+        """A peer on 127.0.0.1 with explicit endpoints and no multicast: tests and ``triscan up``."""
+        return cls(
+            mode="peer",
+            listen=(f"tcp/127.0.0.1:{listen_port}",) if listen_port is not None else (),
+            connect=tuple(f"tcp/127.0.0.1:{port}" for port in connect_ports),
+            multicast_scouting=False,
+        )
+
+    def to_cli(self) -> list[str]:
+        """The flags that reproduce these settings in a child process."""
+        args: list[str] = []
+        if self.config_file is not None:
+            args += ["--zenoh-config", str(self.config_file)]
+        if self.mode is not None:
+            args += ["--mode", self.mode]
+        for endpoint in self.connect:
+            args += ["--connect", endpoint]
+        for endpoint in self.listen:
+            args += ["--listen", endpoint]
+        if self.multicast_scouting is False:
+            args.append("--no-multicast")
+        return args
+
+    def to_config(self) -> Any:
+        """A ``zenoh.Config``: file (or ``$ZENOH_CONFIG``) first, then the explicit settings."""
+        import zenoh
+
+        config_file = self.config_file
+        if config_file is None and os.environ.get(ZENOH_CONFIG_ENV):
+            config_file = Path(os.environ[ZENOH_CONFIG_ENV])
+        if config_file is not None:
+            if not config_file.is_file():
+                raise FileNotFoundError(f"zenoh config file {config_file} not found")
+            config = zenoh.Config.from_file(str(config_file))
+        else:
+            config = zenoh.Config()
+        if self.mode is not None:
+            config.insert_json5("mode", json.dumps(self.mode))
+        if self.connect:
+            config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        if self.listen:
+            config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        if self.multicast_scouting is not None:
+            config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        for key, value in self.extra_json5.items():
+            config.insert_json5(key, json.dumps(value))
+        return config
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    """The Zenoh flags every triscan service accepts."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--mode", choices=MODES, default=None, help="zenoh session mode (default: peer)")
+    group.add_argument(
+        "--connect", "-e", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/192.168.1.10:7447"
+    )
+    group.add_argument(
+        "--listen", "-l", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447"
+    )
+    group.add_argument(
+        "--no-multicast",
+        action="store_true",
+        help="disable multicast scouting (use explicit --connect endpoints only)",
+    )
+    group.add_argument(
+        "--zenoh-config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help=f"zenoh JSON5 config file (default: ${ZENOH_CONFIG_ENV} if set)",
+    )
+
+
+def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
+    return ZenohSettings(
+        mode=args.mode,
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        multicast_scouting=False if args.no_multicast else None,
+        config_file=args.zenoh_config,
+    )
+
+
+@contextmanager
+def open_session(settings: ZenohSettings) -> Iterator[Any]:
+    """An open ``zenoh.Session`` that is always closed on the way out (even on an exception)."""
+    import zenoh
+
+    session = zenoh.open(settings.to_config())
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def health_key(service: str, instance: str) -> str:
+    """Liveliness token of one running service; the launcher watches ``triscan/@health/**``."""
+    return f"{HEALTH_PREFIX}/{service}/{instance}"
+
+
+def parse_health_key(key: str) -> tuple[str, str]:
+    """``triscan/@health/<service>/<instance>`` → (service, instance)."""
+    prefix = HEALTH_PREFIX + "/"
+    if not key.startswith(prefix) or key.count("/") != HEALTH_PREFIX.count("/") + 2:
+        raise ValueError(f"{key!r} is not a triscan health key")
+    service, instance = key[len(prefix) :].split("/")
+    return service, instance
+
+
+def payload_bytes(sample: Any) -> bytes:
+    """The bytes of a received ``zenoh.Sample``."""
+    return sample.payload.to_bytes()

@@ -1,0 +1,153 @@
+"""The detector's pure core: newest tensor per robot in, ``Detections`` out.
+
+A detector that queues frames falls further behind with every frame it cannot keep up with, and its
+detections describe a world that is gone. :class:`LatestPerRobot` holds at most one pending tensor
+per robot: a newer one replaces the waiting one (counted as dropped), and robots are served in turn,
+so one chatty robot cannot starve the others. Inference itself is :class:`common.inference.OnnxDetector`,
+the code ``triscan eval`` measures.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, OrderedDict
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+from common.inference import OnnxDetector
+from common.messages import Detections, MessageError, StackedTensor, StageTimings, decode_message
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+class LatestPerRobot(Generic[T]):
+    """A mailbox with one slot per robot; ``take`` serves the robot waiting longest.
+
+    Thread-safe: Zenoh callbacks ``put``, the inference thread ``take``s.
+    """
+
+    def __init__(self) -> None:
+        self._slots: OrderedDict[str, T] = OrderedDict()
+        self._cond = threading.Condition()
+        self._closed = False
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._slots)
+
+    def put(self, robot_id: str, item: T) -> bool:
+        """Store ``item`` as the robot's newest; True when it replaced one never taken (dropped)."""
+        with self._cond:
+            replaced = robot_id in self._slots
+            self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
+            if replaced:
+                self.dropped += 1
+            self._cond.notify()
+            return replaced
+
+    def take(self, timeout: float | None = None) -> tuple[str, T] | None:
+        """The oldest-waiting robot's newest item, or None after ``timeout`` or once closed."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._slots or self._closed, timeout):
+                return None
+            if not self._slots:
+                return None
+            return self._slots.popitem(last=False)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+@dataclass
+class DetectorCounters:
+    """What the detector did with every tensor it received; published as its stats."""
+
+    received: int = 0
+    processed: int = 0
+    dropped_stale: int = 0  # replaced by a newer tensor of the same robot before inference
+    rejected: Counter[str] = field(default_factory=Counter)  # reason → count
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "received": self.received,
+            "processed": self.processed,
+            "dropped_stale": self.dropped_stale,
+            "rejected": dict(self.rejected),
+        }
+
+
+class DetectorCore:
+    """Decodes tensor payloads and turns one tensor into one ``Detections`` message."""
+
+    def __init__(self, detector: OnnxDetector) -> None:
+        self.detector = detector
+        self.counters = DetectorCounters()
+        self._lock = threading.Lock()  # counters are bumped from Zenoh and inference threads
+
+    def reject(self, reason: str, detail: str) -> None:
+        with self._lock:
+            self.counters.rejected[reason] += 1
+        log.warning("tensor rejected (%s): %s", reason, detail)
+
+    def decode(self, payload: bytes, key_robot_id: str | None = None) -> StackedTensor | None:
+        """A validated tensor, or None (logged and counted) for anything this model cannot take."""
+        self._count_received()
+        try:
+            tensor = decode_message(payload, StackedTensor)
+        except MessageError as exc:
+            self.reject(exc.reason, str(exc))
+            return None
+        return self._checked(tensor, key_robot_id)
+
+    def accept(self, tensor: StackedTensor, key_robot_id: str | None = None) -> StackedTensor | None:
+        """Same as :meth:`decode` for a tensor built in this process (``--from-scans``)."""
+        self._count_received()
+        return self._checked(tensor, key_robot_id)
+
+    def _count_received(self) -> None:
+        with self._lock:
+            self.counters.received += 1
+
+    def _checked(self, tensor: StackedTensor, key_robot_id: str | None) -> StackedTensor | None:
+        """Checks that need the model or the key: robot id and padding."""
+        if key_robot_id is not None and tensor.robot_id != key_robot_id:
+            self.reject("robot_id_mismatch", f"key says {key_robot_id!r}, payload says {tensor.robot_id!r}")
+            return None
+        if tensor.padding != self.detector.padding:
+            self.reject(
+                "padding_mismatch",
+                f"{tensor.robot_id}: {tensor.padding!r} tensor, model {self.detector.model_id} "
+                f"expects {self.detector.padding!r}",
+            )
+            return None
+        return tensor
+
+    def note_dropped(self) -> None:
+        with self._lock:
+            self.counters.dropped_stale += 1
+
+    def detect(self, tensor: StackedTensor) -> Detections:
+        """Run the model on one tensor; ``encode_ms`` adds the encoder's own time from the tensor."""
+        detections, timings = self.detector.detect(tensor.tensor)
+        with self._lock:
+            self.counters.processed += 1
+        return Detections(
+            robot_id=tensor.robot_id,
+            seq=tensor.seq,
+            stamp_ns=time.time_ns(),
+            detections=detections,
+            timings=StageTimings(
+                encode_ms=timings.encode_ms + tensor.encode_ms,
+                inference_ms=timings.inference_ms,
+                nms_ms=timings.nms_ms,
+            ),
+            model_id=self.detector.model_id,
+            scan_stamp_ns=tensor.scan_stamps_ns[2],
+        )

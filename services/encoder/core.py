@@ -1,0 +1,189 @@
+"""The encoder's pure core: one three-scan FIFO per robot, and the rules for broken streams.
+
+A tensor must show three consecutive scans of one sensor, or the network sees motion that never
+happened. So, per robot (robots never share a FIFO):
+
+* **First two scans** of a stream: rasterised and held, no tensor yet (Algorithm 1 needs three).
+* **Next scan** (``seq == last + 1``): pushed; a tensor of the last three goes out.
+* **Gap** (``seq > last + 1``, scans were lost): the FIFO restarts from this scan, so no tensor ever
+  spans the hole; the next tensor comes two scans later.
+* **Out of order or duplicate** (``seq <= last`` with a stamp no newer than the last one): dropped and
+  counted; Zenoh over TCP keeps order, so this is a misbehaving publisher or a replay.
+* **Publisher restart** (``seq <= last`` with a newer stamp: the simulator or driver came back and
+  counts from 0 again): the FIFO restarts, so old and new frames never mix in one tensor.
+* **Silence**: a robot not heard from for ``forget_after_s`` is forgotten (its FIFO freed), so a fleet
+  that changes over time does not leak memory; if it speaks again it starts a fresh stream.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from common.encoding import Padding, ScanError, ScanStacker
+from common.messages import MessageError, Scan, StackedTensor, decode_message
+
+log = logging.getLogger(__name__)
+
+DEFAULT_FORGET_AFTER_S = 10.0
+DEFAULT_MAX_ROBOTS = 1024  # bounds memory: ~200 kB of FIFO per robot
+
+
+@dataclass
+class EncoderCounters:
+    """What the encoder did with every payload it received; published as its stats."""
+
+    received: int = 0
+    published: int = 0
+    warming_up: int = 0  # scans held without a tensor: the first two of a stream
+    gaps: int = 0
+    restarts: int = 0
+    forgotten_robots: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)  # reason → count
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "received": self.received,
+            "published": self.published,
+            "warming_up": self.warming_up,
+            "gaps": self.gaps,
+            "restarts": self.restarts,
+            "forgotten_robots": self.forgotten_robots,
+            "rejected": dict(self.rejected),
+        }
+
+
+@dataclass
+class _Stream:
+    stacker: ScanStacker
+    seqs: list[int] = field(default_factory=list)  # of the scans in the FIFO, oldest first
+    stamps_ns: list[int] = field(default_factory=list)
+    last_seen_s: float = 0.0
+
+    def restart(self) -> None:
+        self.stacker.reset()
+        self.seqs.clear()
+        self.stamps_ns.clear()
+
+
+class EncoderCore:
+    """Scans in, stacked tensors out; see the module docstring for the stream rules."""
+
+    def __init__(
+        self,
+        padding: Padding = "zero",
+        *,
+        forget_after_s: float = DEFAULT_FORGET_AFTER_S,
+        max_robots: int = DEFAULT_MAX_ROBOTS,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        ScanStacker(padding)  # validates the padding name early, with the encoder's own message
+        self.padding: Padding = padding
+        self.forget_after_s = forget_after_s
+        self.max_robots = max_robots
+        self.clock = clock
+        self.counters = EncoderCounters()
+        self._streams: dict[str, _Stream] = {}
+
+    @property
+    def robot_ids(self) -> list[str]:
+        return list(self._streams)
+
+    def handle_payload(self, payload: bytes, key_robot_id: str | None = None) -> StackedTensor | None:
+        """Decode and push one wire payload; a bad one is logged, counted by reason and dropped.
+
+        ``key_robot_id`` is the robot named by the key it arrived on: a scan claiming another robot
+        is refused, so one publisher cannot feed (or poison) another robot's FIFO.
+        """
+        self.counters.received += 1
+        try:
+            scan = decode_message(payload, Scan)
+        except MessageError as exc:
+            self._reject(exc.reason, str(exc))
+            return None
+        if key_robot_id is not None and scan.robot_id != key_robot_id:
+            self._reject("robot_id_mismatch", f"key says {key_robot_id!r}, payload says {scan.robot_id!r}")
+            return None
+        return self._push(scan)
+
+    def push(self, scan: Scan) -> StackedTensor | None:
+        """Push an already-decoded scan (the ``--from-scans`` detector and tests call this)."""
+        self.counters.received += 1
+        return self._push(scan)
+
+    def forget_silent(self) -> list[str]:
+        """Drop the FIFOs of robots silent for longer than ``forget_after_s``; returns their ids."""
+        now = self.clock()
+        silent = [rid for rid, s in self._streams.items() if now - s.last_seen_s > self.forget_after_s]
+        for robot_id in silent:
+            del self._streams[robot_id]
+            log.info("robot %s silent for %.0f s: forgotten", robot_id, self.forget_after_s)
+        self.counters.forgotten_robots += len(silent)
+        return silent
+
+    def _reject(self, reason: str, detail: str) -> None:
+        self.counters.rejected[reason] += 1
+        log.warning("scan rejected (%s): %s", reason, detail)
+
+    def _stream_of(self, robot_id: str) -> _Stream | None:
+        stream = self._streams.get(robot_id)
+        if stream is None:
+            if len(self._streams) >= self.max_robots:
+                self.forget_silent()
+            if len(self._streams) >= self.max_robots:
+                self._reject("too_many_robots", f"{robot_id}: already tracking {self.max_robots} robots")
+                return None
+            stream = self._streams[robot_id] = _Stream(ScanStacker(self.padding))
+        return stream
+
+    def _push(self, scan: Scan) -> StackedTensor | None:
+        started = time.perf_counter_ns()
+        stream = self._stream_of(scan.robot_id)
+        if stream is None:
+            return None
+        if stream.seqs:
+            last_seq, last_stamp = stream.seqs[-1], stream.stamps_ns[-1]
+            if scan.seq <= last_seq and scan.stamp_ns <= last_stamp:
+                self._reject("out_of_order", f"{scan.robot_id}: seq {scan.seq} after {last_seq}")
+                return None
+            if scan.seq <= last_seq:
+                self.counters.restarts += 1
+                log.info(
+                    "%s: seq %d after %d with a newer stamp: publisher restarted",
+                    scan.robot_id,
+                    scan.seq,
+                    last_seq,
+                )
+                stream.restart()
+            elif scan.seq > last_seq + 1:
+                self.counters.gaps += 1
+                log.debug("%s: gap, seq %d after %d: FIFO restarted", scan.robot_id, scan.seq, last_seq)
+                stream.restart()
+        try:
+            tensor = stream.stacker.push_scan(
+                scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max
+            )
+        except ScanError as exc:
+            # The FIFO is unchanged, but the stream now has a hole: the next scan restarts it as a gap.
+            self._reject("bad_scan", f"{scan.robot_id} seq {scan.seq}: {exc}")
+            return None
+        stream.last_seen_s = self.clock()
+        stream.seqs = [*stream.seqs[-2:], scan.seq]
+        stream.stamps_ns = [*stream.stamps_ns[-2:], scan.stamp_ns]
+        if tensor is None:
+            self.counters.warming_up += 1
+            return None
+        self.counters.published += 1
+        return StackedTensor(
+            robot_id=scan.robot_id,
+            seq=scan.seq,
+            stamp_ns=scan.stamp_ns,
+            tensor=tensor,
+            padding=self.padding,
+            scan_seqs=tuple(stream.seqs),
+            scan_stamps_ns=tuple(stream.stamps_ns),
+            encode_ms=(time.perf_counter_ns() - started) / 1e6,
+        )

@@ -1,0 +1,162 @@
+"""The encoder's stream rules: per-robot FIFOs, first scans, gaps, restarts, reordering, silence."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.encoding import ScanError, ScanStacker, encode_scan
+from common.messages import Scan, StackedTensor, decode_message, encode_message
+from services.encoder.core import EncoderCore
+
+DEG = math.radians(1.0)
+
+
+class FakeClock:
+    """A settable monotonic clock (a real value, not a mock of any project part)."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def scan(robot_id: str, seq: int, stamp_ns: int | None = None, distance: float = 1.0) -> Scan:
+    ranges = np.full(360, distance, dtype=np.float32)
+    ranges[seq % 360] = 0.5  # every scan differs, so tensors show which scans they hold
+    return Scan(
+        robot_id=robot_id,
+        seq=seq,
+        stamp_ns=stamp_ns if stamp_ns is not None else 1_000_000 + seq * 100_000_000,
+        angle_min=0.0,
+        angle_increment=DEG,
+        range_min=0.12,
+        range_max=3.5,
+        ranges=ranges,
+    )
+
+
+def expected_tensor(*scans: Scan) -> np.ndarray:
+    stacker = ScanStacker("zero")
+    out = None
+    for s in scans:
+        out = stacker.push_scan(s.ranges, s.angle_min, s.angle_increment, s.range_min, s.range_max)
+    assert out is not None
+    return out
+
+
+def test_first_two_scans_give_no_tensor_then_one_per_scan() -> None:
+    core = EncoderCore("zero")
+    scans = [scan("r1", i) for i in range(5)]
+    out = [core.push(s) for s in scans]
+    assert out[0] is None and out[1] is None
+    for t in range(2, 5):
+        tensor = out[t]
+        assert isinstance(tensor, StackedTensor)
+        assert tensor.seq == t and tensor.scan_seqs == (t - 2, t - 1, t)
+        assert tensor.scan_stamps_ns == tuple(scans[i].stamp_ns for i in (t - 2, t - 1, t))
+        np.testing.assert_array_equal(tensor.tensor, expected_tensor(*scans[t - 2 : t + 1]))
+        assert tensor.encode_ms >= 0.0
+    assert core.counters.warming_up == 2 and core.counters.published == 3
+
+
+def test_robots_never_share_a_fifo() -> None:
+    core = EncoderCore("zero")
+    a = [scan("a", i, distance=1.0) for i in range(3)]
+    b = [scan("b", i, distance=2.5) for i in range(3)]
+    outputs = [core.push(s) for pair in zip(a, b, strict=True) for s in pair]  # interleaved a0 b0 a1 b1 …
+    ta, tb = outputs[4], outputs[5]
+    assert ta is not None and tb is not None and ta.robot_id == "a" and tb.robot_id == "b"
+    np.testing.assert_array_equal(ta.tensor, expected_tensor(*a))
+    np.testing.assert_array_equal(tb.tensor, expected_tensor(*b))
+
+
+def test_gap_restarts_the_fifo_so_no_tensor_spans_it() -> None:
+    core = EncoderCore("zero")
+    for i in range(3):
+        core.push(scan("r", i))
+    assert core.push(scan("r", 5)) is None  # scans 3 and 4 were lost
+    assert core.push(scan("r", 6)) is None
+    tensor = core.push(scan("r", 7))
+    assert tensor is not None and tensor.scan_seqs == (5, 6, 7)
+    assert core.counters.gaps == 1
+
+
+def test_out_of_order_and_duplicates_are_dropped_and_counted() -> None:
+    core = EncoderCore("zero")
+    for i in range(4):
+        core.push(scan("r", i))
+    assert core.push(scan("r", 2)) is None  # late
+    assert core.push(scan("r", 3)) is None  # duplicate
+    assert core.counters.rejected["out_of_order"] == 2
+    tensor = core.push(scan("r", 4))  # the stream goes on as if nothing happened
+    assert tensor is not None and tensor.scan_seqs == (2, 3, 4)
+
+
+def test_publisher_restart_never_mixes_old_and_new_frames() -> None:
+    core = EncoderCore("zero")
+    for i in range(50, 53):
+        core.push(scan("r", i, stamp_ns=i * 100))
+    # The simulator restarted: seq counts from 0 again, stamps are newer.
+    assert core.push(scan("r", 0, stamp_ns=10_000)) is None
+    assert core.push(scan("r", 1, stamp_ns=10_100)) is None
+    tensor = core.push(scan("r", 2, stamp_ns=10_200))
+    assert tensor is not None and tensor.scan_seqs == (0, 1, 2)
+    assert core.counters.restarts == 1
+
+
+def test_silent_robot_is_forgotten_and_starts_fresh() -> None:
+    clock = FakeClock()
+    core = EncoderCore("zero", forget_after_s=5.0, clock=clock)
+    for i in range(3):
+        core.push(scan("quiet", i))
+    clock.now = 3.0
+    core.push(scan("busy", 0))
+    clock.now = 6.0
+    assert core.forget_silent() == ["quiet"]
+    assert core.robot_ids == ["busy"]
+    assert core.push(scan("quiet", 3)) is None  # a fresh stream: two more scans before a tensor
+    assert core.counters.forgotten_robots == 1
+
+
+def test_bad_payloads_are_counted_by_reason_and_lose_nothing_else() -> None:
+    core = EncoderCore("zero")
+    good = [encode_message(scan("r", i)) for i in range(3)]
+    assert core.handle_payload(good[0], "r") is None
+    assert core.handle_payload(b"\x00garbage", "r") is None
+    assert core.handle_payload(good[1], "r") is None
+    assert core.handle_payload(good[2], "someone_else") is None  # key and payload disagree
+    tensor = core.handle_payload(good[2], "r")
+    assert tensor is not None and tensor.scan_seqs == (0, 1, 2)
+    assert sum(core.counters.rejected.values()) == 2
+    assert core.counters.rejected["robot_id_mismatch"] == 1
+    assert core.counters.received == 5
+    assert decode_message(encode_message(tensor), StackedTensor).scan_seqs == (0, 1, 2)
+
+
+def test_unencodable_scan_is_rejected_and_treated_as_a_gap() -> None:
+    core = EncoderCore("zero")
+    core.push(scan("r", 0))
+    core.push(scan("r", 1))
+    with pytest.raises(ScanError):
+        encode_scan(np.ones(360, np.float32), float("nan"), DEG, 0.12, 3.5)
+    bad = scan("r", 2).model_copy(update={"angle_min": float("nan")})
+    assert core.push(bad) is None
+    assert core.counters.rejected["bad_scan"] == 1
+    assert core.push(scan("r", 3)) is None  # restarts after the hole at seq 2
+    assert core.counters.gaps == 1
+
+
+def test_robot_limit_bounds_memory() -> None:
+    clock = FakeClock()
+    core = EncoderCore("zero", max_robots=2, clock=clock)
+    core.push(scan("a", 0))
+    core.push(scan("b", 0))
+    assert core.push(scan("c", 0)) is None
+    assert core.counters.rejected["too_many_robots"] == 1
+    clock.now = 100.0  # a and b went silent: room for c
+    core.push(scan("c", 1))
+    assert core.robot_ids == ["c"]

@@ -1,0 +1,171 @@
+"""The robot's processes for real: encoder and detector (and ``--from-scans``) over Zenoh on loopback.
+
+A replayer session in the test publishes simulated scans of two robots on their real keys; the
+services run as separate ``python -m`` processes, and the test reads their detections back. No part
+is mocked; multicast is off and every endpoint is explicit.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from common.keys import DETECTIONS, TENSOR, scan_key, wildcard_key
+from common.messages import Detections, StackedTensor, decode_message, encode_message
+from common.transport import ZenohSettings, open_session, payload_bytes
+from services.launcher import free_tcp_ports
+from tests.scan_replay import replay_scans
+
+ROOT = Path(__file__).resolve().parents[1]
+SCANS_PER_ROBOT = 40
+ROBOTS = ("alpha", "bravo")
+
+
+def start_service(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
+    settings = ZenohSettings.loopback(port, connect)
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *extra, *settings.to_cli()],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+
+
+def stop_all(processes: list[subprocess.Popen[bytes]]) -> list[str]:
+    for p in processes:
+        p.terminate()
+    logs = []
+    for p in processes:
+        out, _ = p.communicate(timeout=20)
+        logs.append(out.decode(errors="replace"))
+        assert p.returncode == 0, out.decode(errors="replace")[-3000:]
+    return logs
+
+
+class Collector:
+    """Decoded messages per robot, filled from a Zenoh callback."""
+
+    def __init__(self, kind: type) -> None:
+        self.kind = kind
+        self.by_robot: dict[str, list[Any]] = defaultdict(list)
+        self.lock = threading.Lock()
+
+    def __call__(self, sample: Any) -> None:
+        message = decode_message(payload_bytes(sample), self.kind)
+        with self.lock:
+            self.by_robot[message.robot_id].append(message)
+
+    def has(self, robot_id: str, seq: int) -> bool:
+        with self.lock:
+            return any(m.seq == seq for m in self.by_robot[robot_id])
+
+    def count(self) -> int:
+        with self.lock:
+            return sum(len(v) for v in self.by_robot.values())
+
+
+def wait_for(condition: Any, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.fixture(scope="module")
+def replay() -> dict[str, list]:
+    return {
+        robot: [r.scan for r in replay_scans(robot, SCANS_PER_ROBOT, scenario_index=i)]
+        for i, robot in enumerate(ROBOTS)
+    }
+
+
+def wait_until_subscribed(session: Any, key: str, timeout: float = 30.0) -> None:
+    """Block until some remote subscriber matches ``key`` (the service is connected and listening)."""
+    publisher = session.declare_publisher(key)
+    try:
+        assert wait_for(lambda: publisher.matching_status.matching, timeout), f"no subscriber on {key}"
+    finally:
+        publisher.undeclare()
+
+
+def publish_in_lockstep(session: Any, replay: dict[str, list], detections: Collector) -> None:
+    """Scan t of every robot, then wait for their detections of seq t before scan t+1.
+
+    Lockstep makes the expected output exact on any machine, however slow: every tensor must come
+    back as detections, none dropped as stale (dropping is the core's business, tested there).
+    """
+    publishers = {robot: session.declare_publisher(scan_key(robot)) for robot in replay}
+    for t in range(SCANS_PER_ROBOT):
+        for robot, scans in replay.items():
+            publishers[robot].put(encode_message(scans[t]))
+        if t >= 2:
+            assert wait_for(lambda t=t: all(detections.has(robot, t) for robot in replay), 30), (
+                f"no detections for seq {t}"
+            )
+
+
+@pytest.fixture
+def ports() -> Iterator[list[int]]:
+    yield free_tcp_ports(3)
+
+
+def test_encoder_and_detector_processes_serve_two_robots_without_cross_talk(
+    replay: dict[str, list], ports: list[int]
+) -> None:
+    test_port, encoder_port, detector_port = ports
+    encoder = start_service("services.encoder", encoder_port, [test_port, detector_port])
+    detector = start_service("services.detector", detector_port, [test_port, encoder_port], "--threads", "1")
+    tensors, detections = Collector(StackedTensor), Collector(Detections)
+    try:
+        with open_session(ZenohSettings.loopback(test_port)) as session:
+            subs = [
+                session.declare_subscriber(wildcard_key(TENSOR), tensors),
+                session.declare_subscriber(wildcard_key(DETECTIONS), detections),
+            ]
+            wait_until_subscribed(session, scan_key(ROBOTS[0]))
+            wait_until_subscribed(session, "triscan/anyone/tensor")
+            publish_in_lockstep(session, replay, detections)
+            expected_tensors = len(ROBOTS) * (SCANS_PER_ROBOT - 2)
+            assert wait_for(lambda: tensors.count() >= expected_tensors, 30), tensors.count()
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        stop_all([encoder, detector])
+    for robot in ROBOTS:
+        got = tensors.by_robot[robot]
+        # Every tensor holds three consecutive scans of its own robot, in order: no FIFO is shared.
+        assert [t.scan_seqs for t in got] == [(s - 2, s - 1, s) for s in range(2, SCANS_PER_ROBOT)]
+        stamps = {s.seq: s.stamp_ns for s in replay[robot]}
+        assert all(t.scan_stamps_ns == tuple(stamps[q] for q in t.scan_seqs) for t in got)
+        dets = detections.by_robot[robot]
+        assert [d.seq for d in dets] == list(range(2, SCANS_PER_ROBOT))
+        assert all(d.scan_stamp_ns == stamps[d.seq] for d in dets)
+        assert sum(len(d.detections) for d in dets) > 0
+
+
+def test_detector_from_scans_runs_the_robot_in_one_process(replay: dict[str, list], ports: list[int]) -> None:
+    test_port, detector_port, _ = ports
+    detector = start_service(
+        "services.detector", detector_port, [test_port], "--from-scans", "--threads", "1"
+    )
+    detections = Collector(Detections)
+    try:
+        with open_session(ZenohSettings.loopback(test_port)) as session:
+            sub = session.declare_subscriber(wildcard_key(DETECTIONS), detections)
+            wait_until_subscribed(session, scan_key(ROBOTS[1]))
+            publish_in_lockstep(session, {ROBOTS[1]: replay[ROBOTS[1]]}, detections)
+            sub.undeclare()
+    finally:
+        stop_all([detector])
+    assert [d.seq for d in detections.by_robot[ROBOTS[1]]] == list(range(2, SCANS_PER_ROBOT))
+    assert set(detections.by_robot) == {ROBOTS[1]}
