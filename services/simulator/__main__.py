@@ -1,0 +1,206 @@
+"""``python -m services.simulator``: publish simulated LiDAR scans and ground truth over Zenoh in real time.
+
+The simulation itself lives in :mod:`services.simulator.publisher` and knows no clock and no network;
+this module only adds the two: a tick schedule on the monotonic clock and one Zenoh publisher per robot
+and key (``triscan/<robot_id>/scan``, ``triscan/<robot_id>/truth``). ``run`` takes plain settings and
+a stop event, so it can be called from a test or a launcher; ``main`` is the only place that parses
+flags and installs signal handlers.
+
+Ticks are scheduled at ``start + n/rate`` rather than "sleep one period after the work", so the rate
+does not drift with the time a tick takes. A tick that starts late is published at once; ticks that
+were missed entirely are skipped, not caught up in a burst, because a burst of stale scans is worse
+for a downstream detector than a gap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from common.encoding import PADDINGS, Padding
+from common.keys import scan_key, truth_key, validate_robot_id
+from common.messages import encode_message
+from common.transport import ZenohSettings, add_zenoh_arguments, open_session, settings_from_args
+from services.runtime import configure_logging, declare_health, stop_event_on_signals
+from services.simulator.publisher import SimulatedFleet
+
+log = logging.getLogger("triscan.simulator")
+
+SERVICE_NAME = "simulator"
+SUMMARY_PERIOD_S = 10.0
+DEFAULT_SEED = 1  # the shipped model was trained on seed 0's worlds; seed 1 shows it unseen ones
+
+
+@dataclass(frozen=True)
+class FleetOptions:
+    """What to simulate: independent of Zenoh, so a launcher can build it without argparse."""
+
+    robots: int = 1
+    rate_hz: float = 10.0
+    seed: int = DEFAULT_SEED
+    scenario_period_s: float = 30.0
+    padding: Padding = "zero"
+    robot_id_prefix: str = "robot"
+
+    def build(self) -> SimulatedFleet:
+        return SimulatedFleet(
+            robots=self.robots,
+            seed=self.seed,
+            scenario_period_s=self.scenario_period_s,
+            rate_hz=self.rate_hz,
+            robot_id_prefix=self.robot_id_prefix,
+            padding=self.padding,
+        )
+
+
+class RateSummary:
+    """Counts published scans per robot and logs one line every ``period_s`` (and once at the end)."""
+
+    def __init__(self, robot_ids: Sequence[str], period_s: float = SUMMARY_PERIOD_S) -> None:
+        self.period_s = period_s
+        self.total = dict.fromkeys(robot_ids, 0)
+        self._since_last = dict.fromkeys(robot_ids, 0)
+        self.skipped_ticks = 0
+        self._last_log = time.monotonic()
+
+    def count(self, robot_id: str) -> None:
+        self.total[robot_id] += 1
+        self._since_last[robot_id] += 1
+
+    def maybe_log(self, *, force: bool = False) -> None:
+        now = time.monotonic()
+        elapsed = now - self._last_log
+        if not force and elapsed < self.period_s:
+            return
+        rates = ", ".join(
+            f"{robot_id} {count} ({count / max(elapsed, 1e-9):.1f} Hz)"
+            for robot_id, count in self._since_last.items()
+        )
+        log.info(
+            "last %.1f s: scans published %s; skipped ticks so far %d", elapsed, rates, self.skipped_ticks
+        )
+        self._since_last = dict.fromkeys(self._since_last, 0)
+        self._last_log = now
+
+
+def run(
+    settings: ZenohSettings, options: FleetOptions, stop: threading.Event, duration_s: float = 0.0
+) -> int:
+    """Simulate and publish until ``stop`` is set or ``duration_s`` (> 0) has passed; returns 0."""
+    period_s = 1.0 / options.rate_hz
+    with options.build() as fleet, open_session(settings) as session:
+        publishers = {
+            robot_id: (
+                session.declare_publisher(scan_key(robot_id)),
+                session.declare_publisher(truth_key(robot_id)),
+            )
+            for robot_id in fleet.robot_ids
+        }
+        health_token = declare_health(session, SERVICE_NAME)
+        summary = RateSummary(fleet.robot_ids)
+        log.info(
+            "publishing %d robot(s) at %.1f Hz (seed %d, new world every %.0f s, padding %s): %s",
+            len(publishers),
+            options.rate_hz,
+            options.seed,
+            options.scenario_period_s,
+            options.padding,
+            ", ".join(scan_key(robot_id) for robot_id in publishers),
+        )
+        start = time.monotonic()
+        tick = 0  # index of the next tick; it is due at start + tick * period_s
+        try:
+            while not stop.is_set():
+                now = time.monotonic()
+                if duration_s > 0.0 and now - start >= duration_s:
+                    break
+                due = start + tick * period_s
+                if now < due:
+                    stop.wait(min(due - now, SUMMARY_PERIOD_S))
+                    continue
+                missed = math.floor((now - due) / period_s)
+                if missed > 0:
+                    log.debug("%d tick(s) late: skipping them", missed)
+                    summary.skipped_ticks += missed
+                    tick += missed
+                for scan, truth in fleet.step(time.time_ns()):
+                    scan_publisher, truth_publisher = publishers[scan.robot_id]
+                    scan_publisher.put(encode_message(scan))
+                    truth_publisher.put(encode_message(truth))
+                    summary.count(scan.robot_id)
+                tick += 1
+                summary.maybe_log()
+        finally:
+            summary.maybe_log(force=True)
+            health_token.undeclare()
+            for scan_publisher, truth_publisher in publishers.values():
+                scan_publisher.undeclare()
+                truth_publisher.undeclare()
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m services.simulator",
+        description="Publish simulated LiDAR scans and ground truth over Zenoh in real time.",
+    )
+    parser.add_argument("--robots", type=int, default=1, help="number of simulated robots (default: 1)")
+    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot")
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of worlds, motion and noise")
+    parser.add_argument(
+        "--scenario-period",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="seconds of simulated time per world (0: never change)",
+    )
+    parser.add_argument(
+        "--padding", choices=PADDINGS, default="zero", help="padding the ground-truth boxes are given for"
+    )
+    parser.add_argument(
+        "--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run forever)"
+    )
+    parser.add_argument("--robot-prefix", default="robot", help="robot ids are PREFIX0, PREFIX1, ...")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.robots < 1:
+        parser.error("--robots must be >= 1")
+    if not (args.rate > 0.0 and math.isfinite(args.rate)):
+        parser.error("--rate must be a positive number")
+    if args.duration < 0.0 or args.scenario_period < 0.0:
+        parser.error("--duration and --scenario-period must be >= 0")
+    try:
+        validate_robot_id(f"{args.robot_prefix}0")
+    except ValueError as exc:
+        parser.error(f"--robot-prefix: {exc}")
+    configure_logging(args.verbose)
+    options = FleetOptions(
+        robots=args.robots,
+        rate_hz=args.rate,
+        seed=args.seed,
+        scenario_period_s=args.scenario_period,
+        padding=args.padding,
+        robot_id_prefix=args.robot_prefix,
+    )
+    try:
+        settings = settings_from_args(args)
+        return run(settings, options, stop_event_on_signals(), duration_s=args.duration)
+    except (ValueError, FileNotFoundError) as exc:
+        log.error("%s", exc)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
