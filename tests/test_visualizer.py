@@ -1,0 +1,406 @@
+"""Tests for the visualizer: real Rerun recordings read back from disk, real Zenoh, no mocks.
+
+What a person sees in the viewer is only as good as what is in the recording, so every test reads the
+``.rrd`` back with ``rerun.chunk.RrdReader`` and checks entity paths, component kinds and counts.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+
+from common.keys import detections_key, scan_key, tensor_key, truth_key  # noqa: E402
+from common.messages import (  # noqa: E402
+    CLASS_NAMES,
+    TENSOR_SHAPE,
+    Detection,
+    Detections,
+    GroundTruth,
+    Scan,
+    StackedTensor,
+    StageTimings,
+    TruthObject,
+    encode_message,
+)
+from common.transport import ZenohSettings, health_key, open_session  # noqa: E402
+from services.visualizer.core import (  # noqa: E402
+    CLASS_COLORS,
+    TIMING_NAMES,
+    RerunVisualizer,
+    RobotPaths,
+    blueprint,
+    sector_outline,
+    world_to_sensor,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+DEG = math.pi / 180.0
+BEAMS = 360
+INVALID_BEAMS = (5, 6, 7, 200)  # inf, NaN, below range_min, above range_max
+
+# --------------------------------------------------------------------------------------------------
+# Hand-made messages
+# --------------------------------------------------------------------------------------------------
+
+
+def make_scan(robot_id: str, seq: int) -> Scan:
+    ranges = np.full(BEAMS, 1.5, dtype=np.float32)
+    ranges[5], ranges[6], ranges[7], ranges[200] = np.inf, np.nan, 0.05, 3.9
+    return Scan(
+        robot_id=robot_id,
+        seq=seq,
+        stamp_ns=1_700_000_000_000_000_000 + seq * 100_000_000,
+        angle_min=0.0,
+        angle_increment=DEG,
+        range_min=0.12,
+        range_max=3.5,
+        ranges=ranges,
+    )
+
+
+def make_tensor(robot_id: str, seq: int) -> StackedTensor:
+    tensor = np.zeros(TENSOR_SHAPE, dtype=np.uint8)
+    tensor[23, :360, :] = 255
+    return StackedTensor(
+        robot_id=robot_id,
+        seq=seq,
+        stamp_ns=1_700_000_000_000_000_000 + seq * 100_000_000,
+        tensor=tensor,
+        padding="zero",
+        scan_seqs=(seq - 2, seq - 1, seq),
+        scan_stamps_ns=(1, 2, 3),
+    )
+
+
+def make_detection(class_id: int, score: float, bearing_deg: float) -> Detection:
+    return Detection(
+        class_id=class_id,
+        class_name=CLASS_NAMES[class_id],
+        score=score,
+        box_px=(bearing_deg + 0.5 - 5, 18.0, bearing_deg + 0.5 + 5, 30.0),
+        bearing_deg=bearing_deg,
+        bearing_min_deg=bearing_deg - 5,
+        bearing_max_deg=bearing_deg + 5,
+        range_min_m=18 * 4 / 63,
+        range_max_m=30 * 4 / 63,
+        x_m=1.5 * math.cos(math.radians(bearing_deg)),
+        y_m=1.5 * math.sin(math.radians(bearing_deg)),
+    )
+
+
+def make_detections(robot_id: str, seq: int) -> Detections:
+    return Detections(
+        robot_id=robot_id,
+        seq=seq,
+        stamp_ns=1_700_000_000_000_000_000 + seq * 100_000_000 + 30_000_000,
+        detections=[make_detection(0, 0.91, 30.0), make_detection(2, 0.74, 120.0)],
+        timings=StageTimings(encode_ms=0.4, inference_ms=12.5, nms_ms=0.3),
+        model_id="test-model",
+        scan_stamp_ns=1_700_000_000_000_000_000 + seq * 100_000_000,
+    )
+
+
+def make_truth(robot_id: str, seq: int) -> GroundTruth:
+    def box(class_id: int, visible: bool) -> TruthObject:
+        return TruthObject(
+            class_id=class_id,
+            class_name=CLASS_NAMES[class_id],
+            corners_xy=np.array([[1.0, 0.0], [1.4, 0.0], [1.4, 0.6], [1.0, 0.6]], dtype=np.float32),
+            center_xy=(1.2, 0.3),
+            yaw_rad=0.0,
+            visible=visible,
+            box_px=(0.0, 15.0, 30.0, 25.0) if visible else None,
+        )
+
+    return GroundTruth(
+        robot_id=robot_id,
+        seq=seq,
+        stamp_ns=1_700_000_000_000_000_000 + seq * 100_000_000,
+        scenario_id=3,
+        robot_pose=(0.1, -0.2, 1.0),
+        lidar_pose=(0.07, -0.2, 1.0),
+        objects=[box(1, True), box(3, False)],
+    )
+
+
+def frame_samples(robot_id: str, seq: int) -> list[tuple[str, bytes]]:
+    """One frame of every topic as (key, payload), exactly as the services publish them."""
+    return [
+        (scan_key(robot_id), encode_message(make_scan(robot_id, seq))),
+        (tensor_key(robot_id), encode_message(make_tensor(robot_id, seq))),
+        (detections_key(robot_id), encode_message(make_detections(robot_id, seq))),
+        (truth_key(robot_id), encode_message(make_truth(robot_id, seq))),
+    ]
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading recordings back
+# --------------------------------------------------------------------------------------------------
+
+
+def read_components(path: Path) -> dict[str, dict[str, list[int]]]:
+    """entity path → component (e.g. ``Points2D:positions``) → instance count of each logged row."""
+    out: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            metadata = batch.schema.field(name).metadata or {}
+            if metadata.get(b"rerun:kind") != b"data":
+                continue
+            out[chunk.entity_path][name].extend(len(row) for row in batch.column(name).to_pylist())
+    return out
+
+
+def image_sizes(path: Path, entity: str) -> list[tuple[int, int, int]]:
+    """(width, height, bytes per pixel) of every image logged at ``entity``."""
+    sizes = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path != entity:
+            continue
+        batch = chunk.to_record_batch()
+        for (fmt,), (buffer,) in zip(
+            batch.column("Image:format").to_pylist(), batch.column("Image:buffer").to_pylist(), strict=True
+        ):
+            sizes.append((fmt["width"], fmt["height"], len(buffer) // (fmt["width"] * fmt["height"])))
+    return sizes
+
+
+def timelines_of(path: Path, entity: str) -> set[str]:
+    return {
+        t for chunk in RrdReader(path).stream() if chunk.entity_path == entity for t in chunk.timeline_names
+    }
+
+
+def new_recording(path: Path) -> rr.RecordingStream:
+    rec = rr.RecordingStream("triscan_visualizer_test", recording_id=uuid.uuid4())
+    rec.save(path)
+    return rec
+
+
+def close(rec: rr.RecordingStream) -> None:
+    rec.flush()
+    rec.disconnect()
+
+
+# --------------------------------------------------------------------------------------------------
+# Core
+# --------------------------------------------------------------------------------------------------
+
+
+def test_core_logs_every_view(tmp_path: Path) -> None:
+    path = tmp_path / "core.rrd"
+    rec = new_recording(path)
+    viz = RerunVisualizer(rec, ["r1"])
+    for seq in (10, 11):
+        for key, payload in frame_samples("r1", seq):
+            assert viz.handle(key, payload), key
+    close(rec)
+
+    assert viz.stats().accepted == {"scan": 2, "tensor": 2, "detections": 2, "truth": 2}
+    assert viz.stats().rejected == {}
+    got = read_components(path)
+    p = RobotPaths("r1")
+    entity = "/" + p.scan
+    assert got[entity]["Points2D:positions"] == [BEAMS - len(INVALID_BEAMS)] * 2
+    assert got["/" + p.raster]["Image:buffer"] == [1, 1]  # one 64×384×3 blob per frame
+    assert image_sizes(path, "/" + p.raster) == [(384, 64, len(b"RGB"))] * 2
+    assert got["/" + p.raster_detections]["Boxes2D:half_sizes"] == [2, 2]
+    assert got["/" + p.raster_detections]["Boxes2D:labels"] == [2, 2]
+    assert got["/" + p.raster_truth]["Boxes2D:half_sizes"] == [1, 1]  # only the visible object
+    assert got["/" + p.map_detections]["Points2D:positions"] == [2, 2]
+    assert got["/" + p.map_detection_extents]["LineStrips2D:strips"] == [2, 2]
+    assert got["/" + p.map_truth]["LineStrips2D:strips"] == [2, 2]  # visible and unseen alike
+    for name in TIMING_NAMES:
+        assert got["/" + p.timing(name)]["Scalars:scalars"] == [1, 1]
+    # Static display transforms put the metric view forward-up without touching the logged numbers.
+    assert "Transform3D:mat3x3" in got["/" + p.scan]
+    assert "Transform3D:mat3x3" in got["/" + p.map]
+    assert {"seq", "stamp"} <= timelines_of(path, entity)
+    assert len(RrdReader(path).blueprints()) == 1
+    RrdReader(path).store()  # the footer (manifest) was written: the file is complete
+
+
+def test_detection_labels_carry_class_and_score(tmp_path: Path) -> None:
+    path = tmp_path / "labels.rrd"
+    rec = new_recording(path)
+    RerunVisualizer(rec, send_blueprints=False).log_message(make_detections("r1", 3))
+    close(rec)
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == "/" + RobotPaths("r1").raster_detections:
+            batch = chunk.to_record_batch()
+            labels = batch.column("Boxes2D:labels").to_pylist()[0]
+            colors = batch.column("Boxes2D:colors").to_pylist()[0]
+            break
+    else:
+        pytest.fail("no raster detections logged")
+    assert labels == ["chair 0.91", "desk 0.74"]
+    assert len(set(colors)) == 2  # one fixed colour per class
+    assert len(set(CLASS_COLORS.values())) == len(CLASS_NAMES) == len(CLASS_COLORS)
+
+
+def test_bad_payloads_are_counted_by_reason_and_never_raise(tmp_path: Path) -> None:
+    rec = new_recording(tmp_path / "bad.rrd")
+    viz = RerunVisualizer(rec, send_blueprints=False)
+    scan = encode_message(make_scan("r1", 1))
+    bad: list[tuple[str, Any]] = [
+        (scan_key("r1"), b"\xc1 not msgpack"),
+        (scan_key("r1"), encode_message(make_tensor("r1", 5))),  # a tensor on the scan key
+        (scan_key("r1"), scan[:-7]),  # truncated
+        (scan_key("r2"), scan),  # r1's payload on r2's key
+        ("triscan/r1/unknown", scan),
+        ("elsewhere/r1/scan", scan),
+        (scan_key("r1"), "not bytes"),
+    ]
+    for key, payload in bad:
+        assert viz.handle(key, payload) is False
+    assert viz.handle(scan_key("r1"), scan) is True  # and it keeps serving
+    close(rec)
+    stats = viz.stats()
+    assert sum(stats.rejected.values()) == len(bad)
+    assert stats.rejected["bad_key"] == 2
+    assert stats.rejected["robot_id_mismatch"] == 1
+    assert stats.rejected["wrong_kind"] == 1
+    assert stats.rejected["not_bytes"] == 1
+    assert stats.accepted == {"scan": 1}
+    assert stats.robots == ("r1",)
+
+
+def test_truth_corners_are_moved_into_the_sensor_frame() -> None:
+    # A sensor at (1, 2) facing +y (yaw 90°): a world point 1 m further along +y is 1 m ahead (x),
+    # a world point 1 m along −x is 1 m to its left (y).
+    pose = (1.0, 2.0, math.pi / 2)
+    got = world_to_sensor(np.array([[1.0, 3.0], [0.0, 2.0]]), pose)
+    np.testing.assert_allclose(got, [[1.0, 0.0], [0.0, 1.0]], atol=1e-12)
+
+
+def test_detection_extent_follows_the_arc_across_the_seam() -> None:
+    det = make_detection(1, 0.5, 180.0).model_copy(
+        update={"bearing_min_deg": 175.0, "bearing_max_deg": -175.0}
+    )
+    outline = sector_outline(det)
+    bearings = np.degrees(np.arctan2(outline[:, 1], outline[:, 0]))
+    assert np.all(np.abs(np.abs(bearings) - 180.0) <= 5.0 + 1e-9)  # the 10° arc behind, not the 350° one
+    np.testing.assert_allclose(outline[0], outline[-1])  # closed
+
+
+def test_blueprint_has_a_tab_per_robot() -> None:
+    assert isinstance(blueprint([]), rr.blueprint.Blueprint)
+    assert isinstance(blueprint(["a"]), rr.blueprint.Blueprint)
+    two = blueprint(["b", "a", "b"])
+    tabs = two.root_container
+    assert isinstance(tabs, rr.blueprint.Tabs)
+    assert [c.name for c in tabs.contents] == ["a", "b"]
+
+
+# --------------------------------------------------------------------------------------------------
+# The service, end to end over Zenoh
+# --------------------------------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def start_service(port: int, rrd: Path, duration_s: float) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.visualizer",
+            "--save",
+            str(rrd),
+            "--duration",
+            str(duration_s),
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+            "--no-multicast",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def wait_for_health(session: Any, proc: subprocess.Popen[str], timeout_s: float = 20.0) -> None:
+    """The service's liveliness token appears once its subscribers are declared."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()[0]
+        replies = session.liveliness().get(health_key("visualizer", str(proc.pid)), timeout=1.0)
+        if any(reply.ok is not None for reply in replies):
+            return
+        time.sleep(0.2)
+    proc.kill()
+    pytest.fail("visualizer never announced itself:\n" + proc.communicate()[0])
+
+
+def publish_frames(session: Any, robot_ids: list[str]) -> None:
+    for seq in (2, 3):
+        for robot_id in robot_ids:
+            for key, payload in frame_samples(robot_id, seq):
+                session.put(key, payload)
+
+
+def test_service_records_two_robots_and_exits_after_duration(tmp_path: Path) -> None:
+    port, rrd = free_port(), tmp_path / "e2e.rrd"
+    proc = start_service(port, rrd, duration_s=4.0)
+    try:
+        with open_session(ZenohSettings.loopback(None, [port])) as session:
+            wait_for_health(session, proc)
+            publish_frames(session, ["alpha", "beta"])
+            session.put(scan_key("alpha"), b"garbage")
+            output, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, output
+    assert "rejected payload (not_msgpack" in output
+    got = read_components(rrd)
+    for robot_id in ("alpha", "beta"):
+        p = RobotPaths(robot_id)
+        assert got["/" + p.scan]["Points2D:positions"] == [BEAMS - len(INVALID_BEAMS)] * 2, output
+        assert got["/" + p.raster]["Image:buffer"], output
+        assert got["/" + p.raster_detections]["Boxes2D:half_sizes"] == [2, 2], output
+        assert got["/" + p.map_truth]["LineStrips2D:strips"] == [2, 2], output
+        assert got["/" + p.timing("inference_ms")]["Scalars:scalars"] == [1, 1], output
+    assert RrdReader(rrd).blueprints(), output
+
+
+def test_service_leaves_a_complete_recording_after_sigterm(tmp_path: Path) -> None:
+    port, rrd = free_port(), tmp_path / "sigterm.rrd"
+    proc = start_service(port, rrd, duration_s=120.0)
+    try:
+        with open_session(ZenohSettings.loopback(None, [port])) as session:
+            wait_for_health(session, proc)
+            publish_frames(session, ["gamma"])
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGTERM)
+            output, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, output
+    RrdReader(rrd).store()  # footer written: the file is complete, not just a prefix
+    got = read_components(rrd)
+    assert got["/" + RobotPaths("gamma").scan]["Points2D:positions"] == [BEAMS - len(INVALID_BEAMS)] * 2, (
+        output
+    )
