@@ -1,0 +1,262 @@
+"""``triscan up``: the whole simulation loop as four separate processes on this machine.
+
+simulator → encoder → detector → visualizer, each its own Python process talking Zenoh peer to peer
+over loopback: every child listens on its own 127.0.0.1 port and is given every other child's port
+(and the launcher's) as explicit ``--connect`` endpoints, with multicast scouting off, so nothing
+depends on the local network or an external router. The launcher is one more peer: it watches the
+children's liveliness tokens (``triscan/@health/<service>/<pid>``), restarts a child that dies (with a
+clear log line and a cap on restarts), and stops them all on Ctrl-C or after ``--duration``. Its own
+session takes the user's Zenoh flags, so other apps (``examples/subscribe_detections.py``, ROS 2
+bridges) join through it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from common.transport import HEALTH_PREFIX, ZenohSettings, open_session, parse_health_key
+from services.runtime import EXIT_WITH_PARENT_ENV
+
+log = logging.getLogger("triscan.up")
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # where other apps on this machine join the loop
+SERVICES = ("simulator", "encoder", "detector", "visualizer")
+STOP_GRACE_S = 5.0
+READY_TIMEOUT_S = 60.0
+RESTART_WINDOW_S = 60.0
+
+
+@dataclass(frozen=True)
+class UpConfig:
+    """Everything ``triscan up`` starts; ``service_args`` are extra flags per service."""
+
+    robots: int = 1
+    rate_hz: float = 10.0
+    duration_s: float = 0.0  # 0: until Ctrl-C
+    headless: bool = False
+    rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
+    viewer: str = "spawn"  # spawn | web | none, when not headless
+    model: Path | None = None
+    seed: int = 1  # the shipped model trained on seed 0's worlds: show it unseen ones
+    max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
+    settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
+    verbose: bool = False
+
+
+def free_tcp_ports(count: int) -> list[int]:
+    """Distinct ports free on 127.0.0.1 right now (held open together so none is handed out twice)."""
+    sockets = []
+    try:
+        for _ in range(count):
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.bind(("127.0.0.1", 0))
+            sockets.append(s)
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
+def _endpoint_port(endpoint: str) -> int | None:
+    host_port = endpoint.split("/", 1)[-1]
+    try:
+        return int(host_port.rsplit(":", 1)[1].split("#", 1)[0])
+    except (IndexError, ValueError):
+        return None
+
+
+def service_commands(
+    config: UpConfig, ports: dict[str, int], launcher_port: int | None
+) -> dict[str, list[str]]:
+    """The command line of each child: its service flags plus its loopback Zenoh wiring."""
+    python = [sys.executable, "-m"]
+    verbose = ["--verbose"] if config.verbose else []
+    if config.headless:
+        rrd = config.rrd_path or Path("runs") / f"triscan-{time.strftime('%Y%m%d-%H%M%S')}.rrd"
+        sink = ["--save", str(rrd)]
+    elif config.viewer == "web":
+        sink = ["--serve-web"]
+    elif config.viewer == "spawn":
+        sink = ["--spawn"]
+    else:
+        sink = []
+    service_args = {
+        "simulator": [
+            "--robots",
+            str(config.robots),
+            "--rate",
+            str(config.rate_hz),
+            "--seed",
+            str(config.seed),
+        ],
+        "encoder": [],
+        "detector": ["--model", str(config.model)] if config.model else [],
+        "visualizer": sink,
+    }
+    commands = {}
+    for name in SERVICES:
+        if name == "visualizer" and not sink:
+            continue
+        others = [port for other, port in ports.items() if other != name]
+        if launcher_port is not None:
+            others.append(launcher_port)
+        zenoh = ZenohSettings(
+            mode="peer",
+            listen=(f"tcp/127.0.0.1:{ports[name]}",),
+            connect=tuple(f"tcp/127.0.0.1:{port}" for port in others),
+            multicast_scouting=False,
+            config_file=config.settings.config_file,
+        )
+        commands[name] = [*python, f"services.{name}", *service_args[name], *verbose, *zenoh.to_cli()]
+    return commands
+
+
+@dataclass
+class _Child:
+    name: str
+    command: list[str]
+    process: subprocess.Popen[bytes] | None = None
+    restarts: deque[float] = field(default_factory=deque)
+
+    def start(self) -> None:
+        # Own process group: a terminal's Ctrl-C reaches the launcher only, which then stops the
+        # children in order instead of all of them racing each other down.
+        self.process = subprocess.Popen(self.command, start_new_session=True, env=child_environment())
+        log.info("started %s (pid %d)", self.name, self.process.pid)
+
+    def exit_code(self) -> int | None:
+        return None if self.process is None else self.process.poll()
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+
+    def wait_or_kill(self, deadline: float) -> None:
+        if self.process is None:
+            return
+        try:
+            self.process.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning("%s did not stop in %.0f s: killing it", self.name, STOP_GRACE_S)
+            self.process.kill()
+            self.process.wait()
+
+
+class HealthBoard:
+    """Which services currently hold a liveliness token, fed by a Zenoh liveliness subscriber."""
+
+    def __init__(self) -> None:
+        self._alive: dict[str, set[str]] = {}
+        self._lock = threading.Lock()
+
+    def on_sample(self, sample: Any) -> None:
+        try:
+            service, instance = parse_health_key(str(sample.key_expr))
+        except ValueError:
+            return
+        import zenoh
+
+        with self._lock:
+            instances = self._alive.setdefault(service, set())
+            if sample.kind == zenoh.SampleKind.PUT:
+                instances.add(instance)
+            else:
+                instances.discard(instance)
+
+    def alive(self) -> set[str]:
+        with self._lock:
+            return {service for service, instances in self._alive.items() if instances}
+
+
+def up(config: UpConfig, stop: threading.Event) -> int:
+    """Start, watch and stop the services; 0 on a clean stop, 1 if a service kept dying or never came up."""
+    if config.robots < 1:
+        raise ValueError(f"--robots must be >= 1, got {config.robots}")
+    launcher_ports = [p for p in (_endpoint_port(e) for e in config.settings.listen) if p is not None]
+    ports = dict(zip(SERVICES, free_tcp_ports(len(SERVICES)), strict=True))
+    commands = service_commands(config, ports, launcher_ports[0] if launcher_ports else None)
+    children = {name: _Child(name, command) for name, command in commands.items()}
+    health = HealthBoard()
+    exit_code = 0
+    with open_session(config.settings) as session:
+        watcher = session.liveliness().declare_subscriber(
+            f"{HEALTH_PREFIX}/**", health.on_sample, history=True
+        )
+        for child in children.values():
+            child.start()
+        started = time.monotonic()
+        ready = False
+        try:
+            while not stop.wait(0.2):
+                now = time.monotonic()
+                if not ready:
+                    missing = set(children) - health.alive()
+                    if not missing:
+                        ready = True
+                        log.info("all services up after %.1f s: %s", now - started, ", ".join(children))
+                    elif now - started > READY_TIMEOUT_S:
+                        log.error(
+                            "services not up after %.0f s: %s", READY_TIMEOUT_S, ", ".join(sorted(missing))
+                        )
+                        exit_code = 1
+                        break
+                if not _restart_dead(children, config.max_restarts):
+                    exit_code = 1
+                    break
+                if config.duration_s and now - started >= config.duration_s:
+                    log.info("duration %.0f s reached: stopping", config.duration_s)
+                    break
+        finally:
+            deadline = time.monotonic() + STOP_GRACE_S
+            for child in children.values():
+                child.stop()
+            for child in children.values():
+                child.wait_or_kill(deadline)
+            watcher.undeclare()
+    return exit_code
+
+
+def _restart_dead(children: dict[str, _Child], max_restarts: int) -> bool:
+    """Restart children that exited; False once one has died more than ``max_restarts`` times lately."""
+    now = time.monotonic()
+    for child in children.values():
+        code = child.exit_code()
+        if code is None:
+            continue
+        while child.restarts and now - child.restarts[0] > RESTART_WINDOW_S:
+            child.restarts.popleft()
+        if len(child.restarts) >= max_restarts:
+            log.error(
+                "%s exited with code %d and has died %d times in %.0f s: giving up",
+                child.name,
+                code,
+                len(child.restarts) + 1,
+                RESTART_WINDOW_S,
+            )
+            return False
+        child.restarts.append(now)
+        log.error(
+            "%s exited with code %d: restarting (%d/%d)", child.name, code, len(child.restarts), max_restarts
+        )
+        child.start()
+    return True
+
+
+def child_environment() -> dict[str, str]:
+    """The children import ``services``/``common`` from this checkout even when it is not installed."""
+    env = dict(os.environ)
+    env[EXIT_WITH_PARENT_ENV] = "1"  # a child whose launcher was killed -9 stops instead of lingering
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+    return env

@@ -1,0 +1,112 @@
+"""``triscan up --headless``: four real processes, real Zenoh on loopback, read back like a user would.
+
+The test joins the loop as one more peer through the launcher's own endpoint (as
+``examples/subscribe_detections.py`` does), counts scans and detections by robot and seq, and reads
+the recorded ``.rrd`` back with rerun's own reader.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from common.keys import DETECTIONS, SCAN, parse_key, wildcard_key
+from common.messages import Detections, Scan, decode_message
+from common.transport import ZenohSettings, open_session, payload_bytes
+from services.launcher import free_tcp_ports
+
+rerun_chunk = pytest.importorskip("rerun.chunk")
+
+ROOT = Path(__file__).resolve().parents[1]
+DURATION_S = 24
+WARM_UP_S = 6.0  # model load, peers connecting, first two scans of each FIFO
+ROBOTS = 2
+
+
+class SeqLog:
+    """(robot, seq) → monotonic arrival time of scans and of detections."""
+
+    def __init__(self) -> None:
+        self.scans: dict[tuple[str, int], float] = {}
+        self.detections: dict[tuple[str, int], Detections] = {}
+        self.lock = threading.Lock()
+
+    def on_scan(self, sample: Any) -> None:
+        scan = decode_message(payload_bytes(sample), Scan)
+        with self.lock:
+            self.scans[(scan.robot_id, scan.seq)] = time.monotonic()
+
+    def on_detections(self, sample: Any) -> None:
+        message = decode_message(payload_bytes(sample), Detections)
+        assert parse_key(str(sample.key_expr))[0] == message.robot_id
+        with self.lock:
+            self.detections[(message.robot_id, message.seq)] = message
+
+
+def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
+    (port,) = free_tcp_ports(1)
+    rrd = tmp_path / "loop.rrd"
+    command = [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "up",
+        "--headless",
+        "--duration",
+        str(DURATION_S),
+        "--robots",
+        str(ROBOTS),
+        "--rrd",
+        str(rrd),
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+    ]
+    launcher = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    log = SeqLog()
+    try:
+        with open_session(ZenohSettings.loopback(None, [port])) as session:
+            subs = [
+                session.declare_subscriber(wildcard_key(SCAN), log.on_scan),
+                session.declare_subscriber(wildcard_key(DETECTIONS), log.on_detections),
+            ]
+            output, _ = launcher.communicate(timeout=DURATION_S + 60)
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    text = output.decode(errors="replace")
+    assert launcher.returncode == 0, text[-4000:]
+    assert "all services up" in text, text[-4000:]
+
+    first = min(log.scans.values())
+    last = max(log.scans.values())
+    # Scans published after warm-up and early enough that their detections had time to come back.
+    judged = [key for key, t in log.scans.items() if first + WARM_UP_S <= t <= last - 1.0]
+    assert {robot for robot, _ in judged} == {f"robot{i}" for i in range(ROBOTS)}
+    assert len(judged) >= ROBOTS * 10 * (DURATION_S - WARM_UP_S - 8)  # ~10 Hz per robot got through
+    answered = [key for key in judged if key in log.detections]
+    assert len(answered) >= 0.9 * len(judged), f"{len(answered)}/{len(judged)} scans got detections"
+    for (robot, seq), message in log.detections.items():
+        assert message.robot_id == robot and message.seq == seq
+    assert sum(len(m.detections) for m in log.detections.values()) > 0
+
+    per_robot: dict[str, set[str]] = defaultdict(set)
+    reader = rerun_chunk.RrdReader(rrd)
+    reader.store()  # a complete file (footer written at the clean stop)
+    for chunk in reader.stream():
+        parts = chunk.entity_path.strip("/").split("/")
+        if len(parts) >= 3 and parts[0] == "robots":
+            per_robot[parts[1]].add("/".join(parts[2:]))
+    for i in range(ROBOTS):
+        entities = per_robot[f"robot{i}"]
+        for expected in ("scan", "raster", "raster/detections", "raster/truth", "map/detections"):
+            assert expected in entities, (expected, sorted(entities))
+        assert any(e.startswith("timings/") for e in entities), sorted(entities)
