@@ -7,6 +7,9 @@ the recorded ``.rrd`` back with rerun's own reader.
 
 from __future__ import annotations
 
+import os
+import re
+import signal
 import subprocess
 import sys
 import threading
@@ -69,6 +72,18 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
         f"tcp/127.0.0.1:{port}",
     ]
     launcher = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    example = subprocess.Popen(
+        [
+            sys.executable,
+            str(ROOT / "examples" / "subscribe_detections.py"),
+            "-e",
+            f"tcp/127.0.0.1:{port}",
+            "--count",
+            "5",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     log = SeqLog()
     try:
         with open_session(ZenohSettings.loopback(None, [port])) as session:
@@ -79,12 +94,17 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
             output, _ = launcher.communicate(timeout=DURATION_S + 60)
             for sub in subs:
                 sub.undeclare()
+        example_output, _ = example.communicate(timeout=10)
     finally:
-        if launcher.poll() is None:
-            launcher.kill()
+        for process in (launcher, example):
+            if process.poll() is None:
+                process.kill()
     text = output.decode(errors="replace")
     assert launcher.returncode == 0, text[-4000:]
     assert "all services up" in text, text[-4000:]
+    # The example app (zenoh + msgpack only) joined through the launcher's endpoint and printed 5.
+    printed = [line for line in example_output.decode().splitlines() if "after the scan" in line]
+    assert example.returncode == 0 and len(printed) == 5, example_output.decode()[-2000:]
 
     first = min(log.scans.values())
     last = max(log.scans.values())
@@ -110,3 +130,47 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
         for expected in ("scan", "raster", "raster/detections", "raster/truth", "map/detections"):
             assert expected in entities, (expected, sorted(entities))
         assert any(e.startswith("timings/") for e in entities), sorted(entities)
+
+
+def test_up_restarts_a_killed_service_and_detections_flow_again(tmp_path: Path) -> None:
+    (port,) = free_tcp_ports(1)
+    command = [
+        sys.executable, "-m", "services.cli", "up", "--headless", "--duration", "30",
+        "--rrd", str(tmp_path / "x.rrd"), "--listen", f"tcp/127.0.0.1:{port}",
+    ]  # fmt: skip
+    launcher = subprocess.Popen(
+        command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(launcher.stdout.readline, "")), daemon=True)
+    reader.start()
+    log = SeqLog()
+    try:
+        with open_session(ZenohSettings.loopback(None, [port])) as session:
+            sub = session.declare_subscriber(wildcard_key(DETECTIONS), log.on_detections)
+            assert wait_for(lambda: len(log.detections) >= 20, 60), "no detections before the kill"
+            pid = next(
+                int(m.group(1)) for line in lines if (m := re.search(r"started encoder \(pid (\d+)\)", line))
+            )
+            os.kill(pid, signal.SIGKILL)
+            before = len(log.detections)
+            assert wait_for(lambda: len(log.detections) >= before + 10, 20), "detections did not resume"
+            sub.undeclare()
+        launcher.terminate()
+        launcher.wait(30)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    reader.join(5)
+    text = "".join(lines)
+    assert "encoder exited with code -9: restarting (1/5)" in text, text[-4000:]
+    assert launcher.returncode == 0, text[-4000:]
+
+
+def wait_for(condition: Any, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
