@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.keys import DETECTIONS, SCAN, wildcard_key
 from common.transport import HEALTH_PREFIX, ZenohSettings, open_session, parse_health_key
 from services.runtime import EXIT_WITH_PARENT_ENV
 
@@ -179,6 +180,29 @@ class HealthBoard:
             return {service for service, instances in self._alive.items() if instances}
 
 
+class TrafficCounter:
+    """Messages seen per topic, so the launcher can say what the loop did when it stops."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.robots: set[str] = set()
+        self._lock = threading.Lock()
+
+    def counter(self, topic: str) -> Any:
+        def count(sample: Any) -> None:
+            robot = str(sample.key_expr).split("/")[-2]
+            with self._lock:
+                self.counts[topic] = self.counts.get(topic, 0) + 1
+                self.robots.add(robot)
+
+        return count
+
+    def summary(self) -> str:
+        with self._lock:
+            parts = [f"{count} {topic} messages" for topic, count in sorted(self.counts.items())]
+            return f"seen: {', '.join(parts) or 'no messages'} from {len(self.robots)} robot(s)"
+
+
 def up(config: UpConfig, stop: threading.Event) -> int:
     """Start, watch and stop the services; 0 on a clean stop, 1 if a service kept dying or never came up."""
     if config.robots < 1:
@@ -188,11 +212,16 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     commands = service_commands(config, ports, launcher_ports[0] if launcher_ports else None)
     children = {name: _Child(name, command) for name, command in commands.items()}
     health = HealthBoard()
+    traffic = TrafficCounter()
     exit_code = 0
     with open_session(config.settings) as session:
         watcher = session.liveliness().declare_subscriber(
             f"{HEALTH_PREFIX}/**", health.on_sample, history=True
         )
+        counters = [
+            session.declare_subscriber(wildcard_key(topic), traffic.counter(topic))
+            for topic in (SCAN, DETECTIONS)
+        ]
         for child in children.values():
             child.start()
         started = time.monotonic()
@@ -224,6 +253,13 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             for child in children.values():
                 child.wait_or_kill(deadline)
             watcher.undeclare()
+            for counter in counters:
+                counter.undeclare()
+    log.info("%s", traffic.summary())
+    rrd = commands.get("visualizer", [])
+    if "--save" in rrd:
+        path = rrd[rrd.index("--save") + 1]
+        log.info("recording: %s (view it with `rerun %s`)", path, path)
     return exit_code
 
 

@@ -1,0 +1,194 @@
+"""Scan published → detections received, across separate processes over Zenoh on loopback.
+
+Three processes, as on a robot: this one simulates the robots (PyBullet, real scans) and publishes
+their scans at ``--rate`` Hz; ``python -m services.encoder`` and ``python -m services.detector`` run
+as children (or one ``--from-scans`` detector). Each scan is stamped when it is published; the latency
+of a scan is the wall time at which its detections arrive back here minus that stamp (same clock, one
+machine). The per-stage split comes from the timings the detector puts in every message; the rest
+(``transport_ms``) is Zenoh, serialisation and waiting. Peak RSS of the children is their ``VmHWM``.
+
+    python -m bench.pipeline_latency --duration 60                # 3 processes: sim, encoder, detector
+    python -m bench.pipeline_latency --duration 60 --from-scans   # encoder + detector in one process
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import platform
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.keys import DETECTIONS, scan_key, wildcard_key
+from common.messages import Detections, decode_message, encode_message
+from common.transport import ZenohSettings, open_session, payload_bytes
+from services.launcher import free_tcp_ports
+from services.simulator.publisher import SimulatedFleet
+
+ROOT = Path(__file__).resolve().parents[1]
+
+log = logging.getLogger("bench.pipeline_latency")
+
+WARM_UP_S = 3.0
+
+
+@dataclass
+class LatencyReport:
+    """What the run measured; ``latency_ms`` quantiles are over scans published after warm-up."""
+
+    mode: str
+    robots: int
+    rate_hz: float
+    duration_s: float
+    scans_published: int = 0
+    scans_answered: int = 0
+    answered_share: float = 0.0
+    latency_ms: dict[str, float] = field(default_factory=dict)  # p50, p95, p99, max, mean
+    stage_ms_mean: dict[str, float] = field(default_factory=dict)  # encode, inference, nms, transport
+    peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
+    machine: str = field(default_factory=lambda: f"{platform.machine()}, {platform.processor() or '?'}")
+
+
+def peak_rss_mb(pid: int) -> float:
+    """``VmHWM`` (peak resident set) of a live process, from /proc."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"no VmHWM for pid {pid}")
+
+
+def start_child(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
+    settings = ZenohSettings.loopback(port, connect)
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *extra, *settings.to_cli()], cwd=ROOT, stderr=subprocess.DEVNULL
+    )
+
+
+def wait_for_subscriber(session: Any, key: str, timeout_s: float = 60.0) -> None:
+    publisher = session.declare_publisher(key)
+    deadline = time.monotonic() + timeout_s
+    while not publisher.matching_status.matching:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no service subscribed to {key} within {timeout_s:.0f} s")
+        time.sleep(0.05)
+    publisher.undeclare()
+
+
+def run(
+    robots: int, rate_hz: float, duration_s: float, from_scans: bool, threads: int | None
+) -> LatencyReport:
+    report = LatencyReport(
+        "from-scans (2 processes)" if from_scans else "3 processes", robots, rate_hz, duration_s
+    )
+    bench_port, encoder_port, detector_port = free_tcp_ports(3)
+    detector_args = ["--threads", str(threads)] if threads else []
+    if from_scans:
+        children = {
+            "detector": start_child(
+                "services.detector", detector_port, [bench_port], "--from-scans", *detector_args
+            )
+        }
+    else:
+        children = {
+            "encoder": start_child("services.encoder", encoder_port, [bench_port, detector_port]),
+            "detector": start_child(
+                "services.detector", detector_port, [bench_port, encoder_port], *detector_args
+            ),
+        }
+    published: dict[tuple[str, int], int] = {}
+    received: dict[tuple[str, int], tuple[int, Detections]] = {}
+    lock = threading.Lock()
+
+    def on_detections(sample: Any) -> None:
+        arrived_ns = time.time_ns()
+        message = decode_message(payload_bytes(sample), Detections)
+        with lock:
+            received[(message.robot_id, message.seq)] = (arrived_ns, message)
+
+    try:
+        with (
+            open_session(ZenohSettings.loopback(bench_port)) as session,
+            SimulatedFleet(robots, rate_hz=rate_hz) as fleet,
+        ):
+            sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
+            publishers = {rid: session.declare_publisher(scan_key(rid)) for rid in fleet.robot_ids}
+            wait_for_subscriber(session, scan_key(fleet.robot_ids[0]))
+            if not from_scans:
+                wait_for_subscriber(session, f"triscan/{fleet.robot_ids[0]}/tensor")
+            period = 1.0 / rate_hz
+            start = time.monotonic()
+            tick = 0
+            while (now := time.monotonic()) - start < duration_s + WARM_UP_S:
+                due = start + tick * period
+                if now < due:
+                    time.sleep(due - now)
+                for scan, _truth in fleet.step(time.time_ns()):
+                    scan = scan.model_copy(update={"stamp_ns": time.time_ns()})
+                    publishers[scan.robot_id].put(encode_message(scan))
+                    if time.monotonic() - start >= WARM_UP_S:
+                        published[(scan.robot_id, scan.seq)] = scan.stamp_ns
+                tick += 1
+            time.sleep(1.0)  # let the last detections arrive
+            report.peak_rss_mb = {name: round(peak_rss_mb(p.pid), 1) for name, p in children.items()}
+            sub.undeclare()
+    finally:
+        for p in children.values():
+            p.terminate()
+        for p in children.values():
+            p.wait(20)
+    latencies, stages = [], {"encode": [], "inference": [], "nms": [], "transport": []}
+    for key, stamp in published.items():
+        if key not in received:
+            continue
+        arrived, message = received[key]
+        total = (arrived - stamp) / 1e6
+        latencies.append(total)
+        t = message.timings
+        stages["encode"].append(t.encode_ms)
+        stages["inference"].append(t.inference_ms)
+        stages["nms"].append(t.nms_ms)
+        stages["transport"].append(total - t.encode_ms - t.inference_ms - t.nms_ms)
+    report.scans_published, report.scans_answered = len(published), len(latencies)
+    report.answered_share = round(len(latencies) / max(1, len(published)), 4)
+    if latencies:
+        values = np.array(latencies)
+        report.latency_ms = {
+            "p50": round(float(np.percentile(values, 50)), 2),
+            "p95": round(float(np.percentile(values, 95)), 2),
+            "p99": round(float(np.percentile(values, 99)), 2),
+            "max": round(float(values.max()), 2),
+            "mean": round(float(values.mean()), 2),
+        }
+        report.stage_ms_mean = {k: round(float(np.mean(v)), 3) for k, v in stages.items()}
+    return report
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0, help="measured seconds (after warm-up)")
+    parser.add_argument("--robots", type=int, default=1)
+    parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    parser.add_argument("--from-scans", action="store_true", help="encoder + detector in one process")
+    parser.add_argument("--threads", type=int, default=None, help="detector ONNX Runtime threads")
+    parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    report = run(args.robots, args.rate, args.duration, args.from_scans, args.threads)
+    text = json.dumps(asdict(report), indent=2)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0 if report.scans_answered else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,99 @@
+"""Zenoh settings: flags, config files and ``$ZENOH_CONFIG`` reach a real ``zenoh.Config`` the same way."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from common.transport import (
+    ZenohSettings,
+    add_zenoh_arguments,
+    health_key,
+    open_session,
+    parse_health_key,
+    settings_from_args,
+)
+from services.launcher import free_tcp_ports
+
+
+def parse(*argv: str) -> ZenohSettings:
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    return settings_from_args(parser.parse_args(list(argv)))
+
+
+def config_value(settings: ZenohSettings, key: str) -> object:
+    return json.loads(settings.to_config().get_json(key))
+
+
+def test_flags_reach_the_zenoh_config() -> None:
+    settings = parse(
+        "--mode", "client", "-e", "tcp/10.0.0.2:7447", "-l", "tcp/0.0.0.0:7448", "--no-multicast"
+    )
+    assert config_value(settings, "mode") == "client"
+    assert config_value(settings, "connect/endpoints") == ["tcp/10.0.0.2:7447"]
+    assert config_value(settings, "listen/endpoints") == ["tcp/0.0.0.0:7448"]
+    assert config_value(settings, "scouting/multicast/enabled") is False
+
+
+def test_to_cli_round_trips_through_the_flags(tmp_path: Path) -> None:
+    config_file = tmp_path / "z.json5"
+    config_file.write_text("{}")
+    original = ZenohSettings(
+        mode="peer",
+        connect=("tcp/127.0.0.1:1", "tcp/127.0.0.1:2"),
+        listen=("tcp/127.0.0.1:3",),
+        multicast_scouting=False,
+        config_file=config_file,
+    )
+    assert parse(*original.to_cli()) == original
+
+
+def test_config_file_and_env_are_read_and_flags_override_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config_file = tmp_path / "zenoh.json5"
+    config_file.write_text('{ mode: "client", connect: { endpoints: ["tcp/192.168.7.7:7447"] } }')
+    assert config_value(parse("--zenoh-config", str(config_file)), "mode") == "client"
+    monkeypatch.setenv("ZENOH_CONFIG", str(config_file))
+    from_env = parse()
+    assert config_value(from_env, "connect/endpoints") == ["tcp/192.168.7.7:7447"]
+    assert config_value(parse("--mode", "peer"), "mode") == "peer"  # the flag wins over the file
+    monkeypatch.setenv("ZENOH_CONFIG", str(tmp_path / "missing.json5"))
+    with pytest.raises(FileNotFoundError, match=r"missing\.json5"):
+        parse().to_config()
+
+
+def test_bad_mode_is_refused() -> None:
+    with pytest.raises(ValueError, match="mode"):
+        ZenohSettings(mode="satellite")
+
+
+def test_health_keys_round_trip_and_reject_others() -> None:
+    assert parse_health_key(health_key("detector", "123")) == ("detector", "123")
+    for key in ("triscan/robot0/scan", "triscan/@health/detector", "triscan/@health/a/b/c"):
+        with pytest.raises(ValueError):
+            parse_health_key(key)
+
+
+def test_two_loopback_sessions_exchange_a_sample() -> None:
+    (port,) = free_tcp_ports(1)
+    got: list[bytes] = []
+    with (
+        open_session(ZenohSettings.loopback(port)) as a,
+        open_session(ZenohSettings.loopback(None, [port])) as b,
+    ):
+        sub = a.declare_subscriber("triscan/t/scan", lambda s: got.append(s.payload.to_bytes()))
+        publisher = b.declare_publisher("triscan/t/scan")
+        deadline = time.monotonic() + 10
+        while not publisher.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.02)
+        publisher.put(b"hello")
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.02)
+        sub.undeclare()
+    assert got == [b"hello"]
