@@ -53,8 +53,21 @@ def test_mailbox_serves_robots_in_turn() -> None:
     box.put("a", 1)
     box.put("b", 1)
     assert box.take(0) == ("a", 1)
+    box.release("a")
     box.put("a", 2)  # a is back, behind b
     assert [box.take(0), box.take(0)] == [("b", 1), ("a", 2)]
+
+
+def test_mailbox_never_hands_one_robot_to_two_workers_at_once() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot()
+    box.put("a", 1)
+    assert box.take(0) == ("a", 1)  # worker 1 is busy with a
+    box.put("a", 2)
+    box.put("b", 1)
+    assert box.take(0) == ("b", 1)  # worker 2 skips a: its frames must come out in order
+    assert box.take(0.01) is None
+    box.release("a")
+    assert box.take(0) == ("a", 2)
 
 
 def test_mailbox_close_wakes_a_waiting_taker() -> None:

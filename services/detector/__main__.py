@@ -14,6 +14,7 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,18 +48,27 @@ def default_model_path() -> Path:
 def run(
     settings: ZenohSettings,
     stop: threading.Event,
-    detector: OnnxDetector,
+    detectors: Sequence[OnnxDetector],
     *,
     from_scans: bool = False,
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
 ) -> DetectorCore:
-    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
+    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
+
+    One inference thread per detector in ``detectors`` (sessions of the same model): ONNX Runtime
+    releases the GIL, so on a multi-core robot with many robots to serve, several single-threaded
+    sessions in parallel beat one session spreading a batch-1 frame over all cores.
+    """
+    if not detectors:
+        raise ValueError("need at least one detector")
+    detector = detectors[0]
     core = DetectorCore(detector)
     encoder = EncoderCore(detector.padding, forget_after_s=forget_after_s) if from_scans else None
     encoder_lock = threading.Lock()
     mailbox: LatestPerRobot[StackedTensor] = LatestPerRobot()
-    detector.warmup()
+    for worker_detector in detectors:
+        worker_detector.warmup()
 
     def robot_of(sample: Any) -> str | None:
         try:
@@ -84,37 +94,56 @@ def run(
             core.note_dropped()
 
     with open_session(settings) as session:
-        publishers: dict[str, Any] = {}
         key = wildcard_key(SCAN if from_scans else TENSOR)
         subscriber = session.declare_subscriber(key, on_scan if from_scans else on_tensor)
         token = declare_health(session, "detector")
         log.info(
             "detector ready: %s (%s padding) on %s → detections", detector.model_id, detector.padding, key
         )
-        started = last_summary = last_housekeeping = time.monotonic()
-        try:
+        publishers: dict[str, Any] = {}
+        publishers_lock = threading.Lock()
+
+        def serve(worker_detector: OnnxDetector) -> None:
             while not stop.is_set():
                 item = mailbox.take(TAKE_TIMEOUT_S)
-                if item is not None:
-                    robot_id, tensor = item
-                    detections = core.detect(tensor)
-                    publisher = publishers.get(robot_id)
-                    if publisher is None:
-                        publisher = publishers[robot_id] = session.declare_publisher(detections_key(robot_id))
+                if item is None:
+                    continue
+                robot_id, tensor = item
+                try:
+                    detections = core.detect(tensor, worker_detector)
+                    with publishers_lock:
+                        publisher = publishers.get(robot_id)
+                        if publisher is None:
+                            publisher = publishers[robot_id] = session.declare_publisher(
+                                detections_key(robot_id)
+                            )
                     publisher.put(encode_message(detections))
+                finally:
+                    mailbox.release(robot_id)
+
+        workers = [
+            threading.Thread(target=serve, args=(d,), name=f"inference-{i}", daemon=True)
+            for i, d in enumerate(detectors)
+        ]
+        for worker in workers:
+            worker.start()
+        started = last_summary = time.monotonic()
+        try:
+            while not stop.wait(1.0):
                 now = time.monotonic()
-                if now - last_housekeeping >= 1.0:
-                    last_housekeeping = now
-                    if encoder is not None:
-                        with encoder_lock:
-                            encoder.forget_silent()
+                if encoder is not None:
+                    with encoder_lock:
+                        encoder.forget_silent()
                 if now - last_summary >= SUMMARY_EVERY_S:
                     last_summary = now
                     log.info("robots %d, %s", len(publishers), core.counters.to_dict())
                 if duration_s and now - started >= duration_s:
                     break
         finally:
+            stop.set()
             mailbox.close()
+            for worker in workers:
+                worker.join(10)
             token.undeclare()
             subscriber.undeclare()
     return core
@@ -128,7 +157,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--conf", type=float, default=DEFAULT_CONF, help="score threshold")
     parser.add_argument("--iou", type=float, default=DEFAULT_IOU, help="NMS IoU threshold")
     parser.add_argument(
-        "--threads", type=int, default=None, help="ONNX Runtime intra-op threads (default: all)"
+        "--threads",
+        type=int,
+        default=None,
+        help="ONNX Runtime threads per worker (default: all cores / workers)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="parallel inference threads, each with its own session (fleets)",
     )
     parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
@@ -144,20 +182,26 @@ def main(argv: list[str] | None = None) -> int:
     add_zenoh_arguments(parser)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
+    if args.workers < 1:
+        parser.error(f"--workers must be >= 1, got {args.workers}")
+    threads = args.threads or (max(1, (os.cpu_count() or 1) // args.workers) if args.workers > 1 else None)
     try:
-        detector = OnnxDetector(
-            args.model or default_model_path(),
-            conf_threshold=args.conf,
-            iou_threshold=args.iou,
-            intra_op_threads=args.threads,
-        )
+        detectors = [
+            OnnxDetector(
+                args.model or default_model_path(),
+                conf_threshold=args.conf,
+                iou_threshold=args.iou,
+                intra_op_threads=threads,
+            )
+            for _ in range(args.workers)
+        ]
     except (FileNotFoundError, ValueError) as exc:
         log.error("cannot load the model: %s", exc)
         return 2
     run(
         settings_from_args(args),
         stop_event_on_signals(),
-        detector,
+        detectors,
         from_scans=args.from_scans,
         forget_after_s=args.forget_after,
         duration_s=args.duration,

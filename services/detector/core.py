@@ -27,11 +27,14 @@ T = TypeVar("T")
 class LatestPerRobot(Generic[T]):
     """A mailbox with one slot per robot; ``take`` serves the robot waiting longest.
 
-    Thread-safe: Zenoh callbacks ``put``, the inference thread ``take``s.
+    Thread-safe: Zenoh callbacks ``put``, inference threads ``take`` and ``release``. A robot whose
+    previous item is still being processed is not handed out again until ``release``, so with several
+    inference workers one robot's detections still come out in order.
     """
 
     def __init__(self) -> None:
         self._slots: OrderedDict[str, T] = OrderedDict()
+        self._busy: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
         self.dropped = 0
@@ -50,14 +53,27 @@ class LatestPerRobot(Generic[T]):
             self._cond.notify()
             return replaced
 
+    def _first_ready(self) -> str | None:
+        return next((robot_id for robot_id in self._slots if robot_id not in self._busy), None)
+
     def take(self, timeout: float | None = None) -> tuple[str, T] | None:
-        """The oldest-waiting robot's newest item, or None after ``timeout`` or once closed."""
+        """The oldest-waiting free robot's newest item, or None after ``timeout`` or once closed.
+
+        The robot stays busy until :meth:`release`.
+        """
         with self._cond:
-            if not self._cond.wait_for(lambda: self._slots or self._closed, timeout):
+            self._cond.wait_for(lambda: self._closed or self._first_ready() is not None, timeout)
+            robot_id = None if self._closed else self._first_ready()
+            if robot_id is None:
                 return None
-            if not self._slots:
-                return None
-            return self._slots.popitem(last=False)
+            self._busy.add(robot_id)
+            return robot_id, self._slots.pop(robot_id)
+
+    def release(self, robot_id: str) -> None:
+        """The robot's last taken item is done: its next one may be taken."""
+        with self._cond:
+            self._busy.discard(robot_id)
+            self._cond.notify_all()
 
     def close(self) -> None:
         with self._cond:
@@ -133,9 +149,12 @@ class DetectorCore:
         with self._lock:
             self.counters.dropped_stale += 1
 
-    def detect(self, tensor: StackedTensor) -> Detections:
-        """Run the model on one tensor; ``encode_ms`` adds the encoder's own time from the tensor."""
-        detections, timings = self.detector.detect(tensor.tensor)
+    def detect(self, tensor: StackedTensor, detector: OnnxDetector | None = None) -> Detections:
+        """Run the model on one tensor; ``encode_ms`` adds the encoder's own time from the tensor.
+
+        ``detector`` is a worker's own session of the same model (``--workers``); default: the core's.
+        """
+        detections, timings = (detector or self.detector).detect(tensor.tensor)
         with self._lock:
             self.counters.processed += 1
         return Detections(
