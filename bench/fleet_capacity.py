@@ -1,0 +1,231 @@
+"""How many robots one encoder + detector pair serves: N robots at 10 Hz, N growing until it breaks.
+
+For each N of a ladder, this process publishes N robots' scans at ``--rate`` Hz (real simulated scans,
+recorded once and replayed with fresh ids, seqs and stamps, so the publisher costs almost nothing),
+into one ``services.encoder`` and one ``services.detector`` process (``--workers`` inference threads)
+over Zenoh on loopback. A step passes when, over its measured window:
+
+* p99 scan→detection latency < ``--p99-limit-ms`` (100 ms), and
+* at least ``--min-answered`` (95 %) of scans got their detections (the detector keeps only the newest
+  tensor per robot, so overload shows up as unanswered scans, not as a queue), and
+* the children's resident memory did not grow by more than ``--rss-growth-mb`` over the window.
+
+The capacity is the largest passing N. Every step's figures are printed and written as JSON.
+
+    python -m bench.fleet_capacity --ladder 10,20,30,40,50 --seconds 20 --workers 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.keys import DETECTIONS, scan_key, wildcard_key
+from common.messages import Detections, Scan, decode_message, encode_message
+from common.transport import ZenohSettings, open_session, payload_bytes
+from services.launcher import free_tcp_ports
+from services.simulator.publisher import SimulatedFleet
+
+log = logging.getLogger("bench.fleet_capacity")
+
+ROOT = Path(__file__).resolve().parents[1]
+WARM_UP_S = 3.0
+RECORDED_SCANS = 200
+
+
+@dataclass
+class FleetStep:
+    robots: int
+    scans_published: int = 0
+    scans_answered: int = 0
+    answered_share: float = 0.0
+    latency_ms: dict[str, float] = field(default_factory=dict)
+    rss_mb_start: dict[str, float] = field(default_factory=dict)
+    rss_mb_end: dict[str, float] = field(default_factory=dict)
+    publish_lag_ms_max: float = 0.0  # how late this process itself published (a bench limit, not triscan's)
+    passed: bool = False
+    why_not: str = ""
+
+
+def rss_mb(pid: int, field_name: str = "VmRSS:") -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field_name):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"no {field_name} for pid {pid}")
+
+
+def recorded_scans(count: int) -> list[Scan]:
+    """One robot's real simulated scans, replayed for every robot of the fleet."""
+    with SimulatedFleet(1, seed=7) as fleet:
+        return [fleet.step(i * 100_000_000)[0][0] for i in range(count)]
+
+
+def start_child(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
+    settings = ZenohSettings.loopback(port, connect)
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *extra, *settings.to_cli()], cwd=ROOT, stderr=subprocess.DEVNULL
+    )
+
+
+def wait_for_subscriber(session: Any, key: str, timeout_s: float = 60.0) -> None:
+    publisher = session.declare_publisher(key)
+    deadline = time.monotonic() + timeout_s
+    while not publisher.matching_status.matching:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no service subscribed to {key} within {timeout_s:.0f} s")
+        time.sleep(0.05)
+    publisher.undeclare()
+
+
+def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetStep:
+    step = FleetStep(robots)
+    bench_port, encoder_port, detector_port = free_tcp_ports(3)
+    children = {
+        "encoder": start_child("services.encoder", encoder_port, [bench_port, detector_port]),
+        "detector": start_child(
+            "services.detector", detector_port, [bench_port, encoder_port], "--workers", str(args.workers)
+        ),
+    }
+    robot_ids = [f"fleet{i:03d}" for i in range(robots)]
+    published: dict[tuple[str, int], int] = {}
+    received: dict[tuple[str, int], int] = {}
+    lock = threading.Lock()
+
+    def on_detections(sample: Any) -> None:
+        arrived = time.time_ns()
+        message = decode_message(payload_bytes(sample), Detections)
+        with lock:
+            received[(message.robot_id, message.seq)] = arrived
+
+    try:
+        with open_session(ZenohSettings.loopback(bench_port)) as session:
+            sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
+            publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
+            wait_for_subscriber(session, scan_key(robot_ids[0]))
+            wait_for_subscriber(session, f"triscan/{robot_ids[0]}/tensor")
+            period = 1.0 / args.rate
+            start = time.monotonic()
+            tick = 0
+            measuring = False
+            while (now := time.monotonic()) - start < WARM_UP_S + args.seconds:
+                due = start + tick * period
+                if now < due:
+                    time.sleep(due - now)
+                step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
+                if not measuring and now - start >= WARM_UP_S:
+                    measuring = True
+                    step.rss_mb_start = {n: round(rss_mb(p.pid), 1) for n, p in children.items()}
+                base = scans[tick % len(scans)]
+                # Robots publish spread over the tick, as independent robots would, not in one burst.
+                for index, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
+                    stamp = time.time_ns()
+                    scan = base.model_copy(update={"robot_id": rid, "seq": tick, "stamp_ns": stamp})
+                    publisher.put(encode_message(scan))
+                    if measuring:
+                        published[(rid, tick)] = stamp
+                    slot = due + (index + 1) * period / robots
+                    if (wait := slot - time.monotonic()) > 0:
+                        time.sleep(wait)
+                tick += 1
+            time.sleep(1.0)
+            step.rss_mb_end = {n: round(rss_mb(p.pid), 1) for n, p in children.items()}
+            sub.undeclare()
+    finally:
+        for p in children.values():
+            p.terminate()
+        for p in children.values():
+            p.wait(30)
+    latencies = np.array([(received[k] - t) / 1e6 for k, t in published.items() if k in received])
+    step.scans_published, step.scans_answered = len(published), len(latencies)
+    step.answered_share = round(len(latencies) / max(1, len(published)), 4)
+    if len(latencies):
+        step.latency_ms = {
+            q: round(float(np.percentile(latencies, p)), 2)
+            for q, p in (("p50", 50), ("p95", 95), ("p99", 99))
+        }
+        step.latency_ms["max"] = round(float(latencies.max()), 2)
+    growth = max(step.rss_mb_end[n] - step.rss_mb_start.get(n, step.rss_mb_end[n]) for n in step.rss_mb_end)
+    reasons = []
+    if not len(latencies) or step.latency_ms["p99"] >= args.p99_limit_ms:
+        reasons.append(f"p99 {step.latency_ms.get('p99', float('inf'))} ms >= {args.p99_limit_ms}")
+    if step.answered_share < args.min_answered:
+        reasons.append(f"answered {step.answered_share:.3f} < {args.min_answered}")
+    if growth > args.rss_growth_mb:
+        reasons.append(f"RSS grew {growth:.1f} MB")
+    step.passed, step.why_not = not reasons, "; ".join(reasons)
+    return step
+
+
+def cpu_model() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ladder", default="5,10,20,30,40,50,60", help="robot counts to try, ascending")
+    parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per step")
+    parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="detector inference threads")
+    parser.add_argument("--p99-limit-ms", type=float, default=100.0)
+    parser.add_argument("--min-answered", type=float, default=0.95)
+    parser.add_argument("--rss-growth-mb", type=float, default=20.0)
+    parser.add_argument("--keep-going", action="store_true", help="try every step even after one fails")
+    parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_capacity.json"))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    ladder = [int(n) for n in args.ladder.split(",")]
+    scans = recorded_scans(RECORDED_SCANS)
+    steps: list[FleetStep] = []
+    for robots in ladder:
+        step = run_step(robots, scans, args)
+        steps.append(step)
+        log.info(
+            "%3d robots: p99 %s ms, answered %.1f %%, RSS %s → %s MB: %s",
+            robots,
+            step.latency_ms.get("p99"),
+            100 * step.answered_share,
+            step.rss_mb_start,
+            step.rss_mb_end,
+            "pass" if step.passed else f"FAIL ({step.why_not})",
+        )
+        if not step.passed and not args.keep_going:
+            break
+    capacity = max((s.robots for s in steps if s.passed), default=0)
+    report = {
+        "capacity_robots": capacity,
+        "criteria": {
+            "p99_limit_ms": args.p99_limit_ms,
+            "min_answered": args.min_answered,
+            "rss_growth_mb": args.rss_growth_mb,
+        },
+        "rate_hz": args.rate,
+        "workers": args.workers,
+        "seconds_per_step": args.seconds,
+        "machine": {"cpu": cpu_model(), "cores": os.cpu_count()},
+        "steps": [asdict(s) for s in steps],
+    }
+    text = json.dumps(report, indent=2)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text + "\n")
+    log.info("capacity: %d robots at %.0f Hz", capacity, args.rate)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,43 @@
+"""The pipeline benchmarks run end to end at a tiny size and report every field (no timing thresholds)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bench import fleet_capacity, pipeline_latency
+
+
+def test_pipeline_latency_reports_every_field() -> None:
+    report = pipeline_latency.run(robots=1, rate_hz=10.0, duration_s=2.0, from_scans=False, threads=1)
+    assert report.scans_published > 0 and report.scans_answered > 0
+    assert set(report.latency_ms) == {"p50", "p95", "p99", "max", "mean"}
+    assert all(v > 0 for v in report.latency_ms.values())
+    assert set(report.stage_ms_mean) == {"encode", "inference", "nms", "transport"}
+    assert set(report.peak_rss_mb) == {"encoder", "detector"} and all(
+        v > 0 for v in report.peak_rss_mb.values()
+    )
+
+
+def test_fleet_capacity_runs_a_step_and_writes_json(tmp_path: Path) -> None:
+    out = tmp_path / "fleet.json"
+    # Two robots for two seconds with generous criteria: the point is that every field is produced.
+    argv = [
+        "--ladder",
+        "2",
+        "--seconds",
+        "2",
+        "--workers",
+        "1",
+        "--p99-limit-ms",
+        "1e9",
+        "--min-answered",
+        "0",
+    ]
+    assert fleet_capacity.main([*argv, "--rss-growth-mb", "1e9", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["capacity_robots"] == 2
+    (step,) = report["steps"]
+    assert step["robots"] == 2 and step["scans_published"] > 0 and step["scans_answered"] > 0
+    assert set(step["latency_ms"]) == {"p50", "p95", "p99", "max"}
+    assert set(step["rss_mb_end"]) == {"encoder", "detector"}
