@@ -414,6 +414,16 @@ def file_model_id(path: Path) -> str:
     return f"{path.stem}@{digest[:12]}"
 
 
+def model_padding(path: Path | str) -> Padding:
+    """The padding a triscan ONNX model was trained with (its ``triscan.padding`` metadata; ``zero``
+    for a model without it), so the launcher can start the encoder to match the detector's model."""
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    padding = session.get_modelmeta().custom_metadata_map.get("triscan.padding", "zero")
+    if padding not in PADDINGS:
+        raise ValueError(f"{path} declares an unknown triscan.padding {padding!r}")
+    return padding  # type: ignore[return-value]
+
+
 def default_providers() -> list[str]:
     """CUDA when this onnxruntime build has it (CPU stays as fallback for unsupported nodes), else CPU."""
     if "CUDAExecutionProvider" in ort.get_available_providers():

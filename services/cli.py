@@ -244,6 +244,14 @@ def _add_card(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gate-frame-stride", type=int, default=15)
     p.add_argument("--train-command", required=True, help="the exact training command, quoted in the card")
     p.add_argument("--notes", type=Path, default=None, help="markdown file with known limits and status")
+    p.add_argument(
+        "--ablation-zero", type=Path, default=None, help="metrics.json of the zero-padding model's test eval"
+    )
+    p.add_argument(
+        "--ablation-wrap", type=Path, default=None, help="metrics.json of the wrap-padding model's test eval"
+    )
+    p.add_argument("--ablation-command", default="", help="the wrap model's training command")
+    p.add_argument("--ablation-notes", type=Path, default=None, help="markdown: what the ablation shows")
     p.add_argument("--out", type=Path, default=Path("models"))
     p.set_defaults(run=_run_card)
 
@@ -267,6 +275,13 @@ def _run_card(args: argparse.Namespace) -> int:
         },
         train_command=args.train_command,
         notes=args.notes.read_text() if args.notes else "",
+        ablation=(
+            {"zero": args.ablation_zero, "wrap": args.ablation_wrap}
+            if args.ablation_zero and args.ablation_wrap
+            else None
+        ),
+        ablation_command=args.ablation_command,
+        ablation_notes=args.ablation_notes.read_text() if args.ablation_notes else "",
     )
     print(f"wrote {args.out}/MODEL_CARD.md (recommended: {card['recommended']})")
     return 0

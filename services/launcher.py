@@ -25,8 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.inference import model_padding
 from common.keys import DETECTIONS, SCAN, wildcard_key
 from common.transport import HEALTH_PREFIX, ZenohSettings, open_session, parse_health_key
+from services.detector.__main__ import default_model_path
 from services.runtime import EXIT_WITH_PARENT_ENV
 
 log = logging.getLogger("triscan.up")
@@ -92,16 +94,13 @@ def service_commands(
         sink = ["--spawn"]
     else:
         sink = []
+    padding = model_padding(config.model or default_model_path())  # the encoder must match the model
     service_args = {
         "simulator": [
-            "--robots",
-            str(config.robots),
-            "--rate",
-            str(config.rate_hz),
-            "--seed",
-            str(config.seed),
+            *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
+            *("--padding", padding),
         ],
-        "encoder": [],
+        "encoder": ["--padding", padding],
         "detector": ["--model", str(config.model)] if config.model else [],
         "visualizer": sink,
     }

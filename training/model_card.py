@@ -65,6 +65,44 @@ def _metrics_rows(metrics: dict[str, Any]) -> list[str]:
     return rows
 
 
+def _ablation_lines(ablation: dict[str, Path], command: str) -> tuple[list[str], dict[str, Any]]:
+    """The zero vs wrap section: each model on its own padding's test split, overall and on the seam."""
+    results = {padding: _read_json(path) for padding, path in ablation.items()}
+    rows = [
+        "| padding | model | test P | R | mAP@0.5 | mAP@0.5:0.95 | seam objects | seam R | seam mAP@0.5 "
+        "| seam mAP@0.5:0.95 |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    summary: dict[str, Any] = {}
+    for padding, m in results.items():
+        o, seam = m["overall"], m.get("seam_crossing") or {}
+        if not seam:
+            raise ValueError(f"{ablation[padding]} has no seam_crossing figures: rerun `triscan eval` on it")
+        rows.append(
+            f"| `{padding}` | `{m['model_id']}` | {o['precision']:.3f} | {o['recall']:.3f} "
+            f"| {o['mAP50']:.3f} | {o['mAP50-95']:.3f} | {int(seam['instances'])} | {seam['recall']:.3f} "
+            f"| {seam['mAP50']:.3f} | {seam['mAP50-95']:.3f} |"
+        )
+        summary[padding] = {"model_id": m["model_id"], "test": o, "seam_crossing": seam}
+    lines = [
+        "## Ablation: `zero` vs `wrap` padding",
+        "",
+        "Two models, one per padding mode, trained with the same recipe, seed and scenarios for the same "
+        "epochs, each evaluated on the test split of its own data set (the same scenarios and scans; the "
+        "tensors differ in columns 360–383 and the labels at the seam). With `wrap`, an object near 0° "
+        "can be labelled twice (whole across the seam and as the copy in columns 0–23 or 360–383); the "
+        "detector merges such copies, so the evaluation merges the labels the same way and compares boxes "
+        "on the circle (IoU over ±360-column shifts). *Seam objects* are those whose footprint spans the "
+        "0°/360° column boundary, found from the scene geometry: `zero` labels them with the clipped "
+        "box on their centre's side (the paper's rule), `wrap` with the whole box.",
+        "",
+        f"`wrap` run: `{command}`",
+        "",
+        *rows,
+    ]
+    return lines, summary
+
+
 def write_card(
     *,
     dataset_dir: Path,
@@ -77,8 +115,14 @@ def write_card(
     out_dir: Path,
     train_command: str,
     notes: str = "",
+    ablation: dict[str, Path] | None = None,
+    ablation_command: str = "",
+    ablation_notes: str = "",
 ) -> dict[str, Any]:
-    """Write the card pair into ``out_dir`` and return the JSON half."""
+    """Write the card pair into ``out_dir`` and return the JSON half.
+
+    ``ablation`` maps each padding mode to the ``metrics.json`` of its model's test-split evaluation.
+    """
     data = _read_json(dataset_dir / "summary.json")
     export = _read_json(export_json)
     test32, test8, gate_metrics = (_read_json(p) for p in (eval_test_fp32, eval_test_int8, eval_gate))
@@ -183,6 +227,11 @@ def write_card(
         f"on that exact, deterministic set when the card was written, less {GATE_MARGIN:.2f}. A larger "
         "drop means the model file, encoder, simulator or decoding changed behaviour.",
     ]
+    if ablation:
+        ablation_lines, card["ablation"] = _ablation_lines(ablation, ablation_command)
+        lines += ["", *ablation_lines]
+        if ablation_notes.strip():
+            lines += ["", ablation_notes.strip()]
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "MODEL_CARD.md").write_text("\n".join(lines) + "\n")
     (out_dir / "MODEL_CARD.json").write_text(json.dumps(card, indent=2) + "\n")

@@ -1,0 +1,59 @@
+"""How ``triscan up`` wires its children (the running loop itself is tested in test_up.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.launcher import SERVICES, UpConfig, free_tcp_ports, service_commands
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+
+
+def flag_values(command: list[str], flag: str) -> list[str]:
+    return [command[i + 1] for i, arg in enumerate(command) if arg == flag]
+
+
+def test_free_ports_are_distinct() -> None:
+    ports = free_tcp_ports(8)
+    assert len(set(ports)) == 8 and all(1024 <= p < 65536 for p in ports)
+
+
+def test_every_child_listens_on_its_own_port_and_connects_to_all_others() -> None:
+    ports = dict(zip(SERVICES, (7001, 7002, 7003, 7004), strict=True))
+    commands = service_commands(UpConfig(headless=True, rrd_path=Path("x.rrd")), ports, 7447)
+    assert set(commands) == set(SERVICES)
+    for name, command in commands.items():
+        assert command[1:3] == ["-m", f"services.{name}"]
+        assert flag_values(command, "--listen") == [f"tcp/127.0.0.1:{ports[name]}"]
+        expected = {f"tcp/127.0.0.1:{p}" for other, p in ports.items() if other != name} | {
+            "tcp/127.0.0.1:7447"
+        }
+        assert set(flag_values(command, "--connect")) == expected
+        assert "--no-multicast" in command and flag_values(command, "--mode") == ["peer"]
+    assert flag_values(commands["visualizer"], "--save") == ["x.rrd"]
+    assert flag_values(commands["simulator"], "--robots") == ["1"]
+
+
+def test_viewer_choices() -> None:
+    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    assert "--serve-web" in service_commands(UpConfig(viewer="web"), ports, None)["visualizer"]
+    assert "--spawn" in service_commands(UpConfig(viewer="spawn"), ports, None)["visualizer"]
+    assert "visualizer" not in service_commands(UpConfig(viewer="none"), ports, None)
+
+
+def test_encoder_padding_follows_the_model(tmp_path: Path) -> None:
+    onnx = pytest.importorskip("onnx")
+    model = onnx.load(str(MODELS / "triscan-yolov8n-zero.onnx"))
+    for prop in model.metadata_props:
+        if prop.key == "triscan.padding":
+            prop.value = "wrap"
+    wrap_model = tmp_path / "wrap.onnx"
+    onnx.save(model, str(wrap_model))
+    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    commands = service_commands(UpConfig(model=wrap_model, viewer="none"), ports, None)
+    assert flag_values(commands["encoder"], "--padding") == ["wrap"]
+    assert flag_values(commands["detector"], "--model") == [str(wrap_model)]
+    default = service_commands(UpConfig(viewer="none"), ports, None)
+    assert flag_values(default["encoder"], "--padding") == ["zero"]
