@@ -35,6 +35,8 @@ def main(config: zenoh.Config, key: str, count: int, stop: threading.Event) -> N
 
     def on_detections(sample: zenoh.Sample) -> None:
         nonlocal received
+        if stop.is_set():
+            return
         message = msgpack.unpackb(sample.payload.to_bytes())
         if not isinstance(message, dict) or message.get("kind") != "detections":
             log.warning("skipping %s: not a detections message", sample.key_expr)

@@ -341,6 +341,28 @@ def _run_up(args: argparse.Namespace) -> int:
     return up(config, stop_event_on_signals())
 
 
+def _add_status(sub: argparse._SubParsersAction) -> None:
+    from common.transport import add_zenoh_arguments
+
+    p = sub.add_parser("status", help="which triscan services are up, and their counters")
+    p.add_argument("--wait", type=float, default=2.5, help="seconds to listen for counters")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    add_zenoh_arguments(p)
+    p.set_defaults(run=_run_status)
+
+
+def _run_status(args: argparse.Namespace) -> int:
+    import json
+    from dataclasses import asdict
+
+    from common.transport import settings_from_args
+    from services.status import collect_status, format_status
+
+    statuses = collect_status(settings_from_args(args), args.wait)
+    print(json.dumps([asdict(s) for s in statuses], indent=2) if args.json else format_status(statuses))
+    return 0 if statuses else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="triscan", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -352,6 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_eval(sub)
     _add_card(sub)
     _add_up(sub)
+    _add_status(sub)
     return parser
 
 

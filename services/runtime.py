@@ -7,13 +7,19 @@ else) notices a dead peer without polling.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
 import threading
+import time
+from collections.abc import Mapping
 from typing import Any
 
 from common.transport import health_key
+
+STATS_PREFIX = "triscan/@stats"  # triscan/@stats/<service>/<pid>: JSON counters, once a second
+STATS_PERIOD_S = 1.0
 
 EXIT_WITH_PARENT_ENV = "TRISCAN_EXIT_WITH_PARENT"
 PARENT_POLL_S = 0.5
@@ -54,3 +60,32 @@ def _stop_when_orphaned(stop: threading.Event, parent_pid: int) -> None:
 def declare_health(session: Any, service: str) -> Any:
     """Declare this process's liveliness token; keep the returned object alive while serving."""
     return session.liveliness().declare_token(health_key(service, str(os.getpid())))
+
+
+def stats_key(service: str, instance: str) -> str:
+    return f"{STATS_PREFIX}/{service}/{instance}"
+
+
+class StatsPublisher:
+    """Publishes a service's counters as JSON on ``triscan/@stats/<service>/<pid>``.
+
+    JSON rather than msgpack so that ``z_sub`` or any dashboard can read them as they are; ``triscan
+    status`` collects them from every running service.
+    """
+
+    def __init__(self, session: Any, service: str) -> None:
+        self.service = service
+        self._publisher = session.declare_publisher(stats_key(service, str(os.getpid())))
+        self._last = 0.0
+
+    def publish(self, counters: Mapping[str, object], *, force: bool = False) -> None:
+        """Publish at most once per ``STATS_PERIOD_S`` (always with ``force``)."""
+        now = time.monotonic()
+        if not force and now - self._last < STATS_PERIOD_S:
+            return
+        self._last = now
+        body = {"service": self.service, "pid": os.getpid(), "stamp_ns": time.time_ns(), **counters}
+        self._publisher.put(json.dumps(body, sort_keys=True))
+
+    def close(self) -> None:
+        self._publisher.undeclare()

@@ -30,7 +30,7 @@ from common.transport import (
 )
 from services.detector.core import DetectorCore, LatestPerRobot
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
-from services.runtime import configure_logging, declare_health, stop_event_on_signals
+from services.runtime import StatsPublisher, configure_logging, declare_health, stop_event_on_signals
 
 log = logging.getLogger("triscan.detector")
 
@@ -97,6 +97,7 @@ def run(
         key = wildcard_key(SCAN if from_scans else TENSOR)
         subscriber = session.declare_subscriber(key, on_scan if from_scans else on_tensor)
         token = declare_health(session, "detector")
+        stats = StatsPublisher(session, "detector")
         log.info(
             "detector ready: %s (%s padding) on %s → detections", detector.model_id, detector.padding, key
         )
@@ -131,9 +132,12 @@ def run(
         try:
             while not stop.wait(1.0):
                 now = time.monotonic()
+                counters: dict[str, object] = {**core.counters.to_dict(), "robots": len(publishers)}
                 if encoder is not None:
                     with encoder_lock:
                         encoder.forget_silent()
+                        counters["encoder"] = encoder.counters.to_dict()
+                stats.publish(counters)
                 if now - last_summary >= SUMMARY_EVERY_S:
                     last_summary = now
                     log.info("robots %d, %s", len(publishers), core.counters.to_dict())
@@ -144,6 +148,7 @@ def run(
             mailbox.close()
             for worker in workers:
                 worker.join(10)
+            stats.close()
             token.undeclare()
             subscriber.undeclare()
     return core

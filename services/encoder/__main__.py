@@ -23,7 +23,7 @@ from common.transport import (
     settings_from_args,
 )
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
-from services.runtime import configure_logging, declare_health, stop_event_on_signals
+from services.runtime import StatsPublisher, configure_logging, declare_health, stop_event_on_signals
 
 log = logging.getLogger("triscan.encoder")
 
@@ -65,6 +65,7 @@ def run(
 
         subscriber = session.declare_subscriber(wildcard_key(SCAN), on_scan)
         token = declare_health(session, "encoder")
+        stats = StatsPublisher(session, "encoder")
         log.info("encoder ready (padding %s): %s → tensor", padding, wildcard_key(SCAN))
         started = last_summary = time.monotonic()
         while not stop.wait(HOUSEKEEPING_S):
@@ -75,11 +76,14 @@ def run(
                     if publisher is not None:
                         publisher.undeclare()
                 counters = core.counters.to_dict()
+                robots = len(core.robot_ids)
+            stats.publish({**counters, "robots": robots})
             if now - last_summary >= SUMMARY_EVERY_S:
                 log.info("robots %d, %s", len(publishers), counters)
                 last_summary = now
             if duration_s and now - started >= duration_s:
                 break
+        stats.close()
         token.undeclare()
         subscriber.undeclare()
     return core

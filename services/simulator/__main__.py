@@ -27,7 +27,7 @@ from common.encoding import PADDINGS, Padding
 from common.keys import scan_key, truth_key, validate_robot_id
 from common.messages import encode_message
 from common.transport import ZenohSettings, add_zenoh_arguments, open_session, settings_from_args
-from services.runtime import configure_logging, declare_health, stop_event_on_signals
+from services.runtime import StatsPublisher, configure_logging, declare_health, stop_event_on_signals
 from services.simulator.publisher import SimulatedFleet
 
 log = logging.getLogger("triscan.simulator")
@@ -103,6 +103,7 @@ def run(
             for robot_id in fleet.robot_ids
         }
         health_token = declare_health(session, SERVICE_NAME)
+        stats = StatsPublisher(session, SERVICE_NAME)
         summary = RateSummary(fleet.robot_ids)
         log.info(
             "publishing %d robot(s) at %.1f Hz (seed %d, new world every %.0f s, padding %s): %s",
@@ -136,8 +137,16 @@ def run(
                     summary.count(scan.robot_id)
                 tick += 1
                 summary.maybe_log()
+                stats.publish(
+                    {
+                        "published": sum(summary.total.values()),
+                        "skipped_ticks": summary.skipped_ticks,
+                        "robots": len(publishers),
+                    }
+                )
         finally:
             summary.maybe_log(force=True)
+            stats.close()
             health_token.undeclare()
             for scan_publisher, truth_publisher in publishers.values():
                 scan_publisher.undeclare()

@@ -33,7 +33,13 @@ from common.transport import (
     payload_bytes,
     settings_from_args,
 )
-from services.runtime import configure_logging, declare_health, stop_event_on_signals
+from services.runtime import (
+    STATS_PERIOD_S,
+    StatsPublisher,
+    configure_logging,
+    declare_health,
+    stop_event_on_signals,
+)
 from services.visualizer.core import APPLICATION_ID, RerunVisualizer, VisualizerStats
 
 log = logging.getLogger("services.visualizer")
@@ -124,9 +130,22 @@ def run(
             ]
             health = declare_health(session, SERVICE_NAME)
             log.info("subscribed to %s", ", ".join(wildcard_key(t) for t in SUBSCRIBED_TOPICS))
+            stats_publisher = StatsPublisher(session, SERVICE_NAME)
             started = time.monotonic()
-            stop.wait(timeout=duration_s)
+            while not stop.wait(STATS_PERIOD_S):
+                if duration_s is not None and time.monotonic() - started >= duration_s:
+                    break
+                snapshot = visualizer.stats()
+                stats_publisher.publish(
+                    {
+                        "received": sum(snapshot.accepted.values()) + sum(snapshot.rejected.values()),
+                        "processed": sum(snapshot.accepted.values()),
+                        "rejected": snapshot.rejected,
+                        "robots": len(snapshot.robots),
+                    }
+                )
             log.info("stopping after %.1f s", time.monotonic() - started)
+            stats_publisher.close()
             health.undeclare()
             for subscriber in subscribers:
                 subscriber.undeclare()
