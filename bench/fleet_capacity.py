@@ -22,8 +22,6 @@ import json
 import logging
 import os
 import platform
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -34,14 +32,15 @@ import numpy as np
 
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
-from common.transport import ZenohSettings, open_session, payload_bytes
-from services.launcher import free_tcp_ports
+from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service
 from services.simulator.publisher import SimulatedFleet
 
 log = logging.getLogger("bench.fleet_capacity")
 
 ROOT = Path(__file__).resolve().parents[1]
-WARM_UP_S = 3.0
+WARM_UP_S = 3.0  # at least this, and until every robot has been answered (peers connect on retry)
+MAX_WARM_UP_S = 60.0
 RECORDED_SCANS = 200
 
 
@@ -59,42 +58,18 @@ class FleetStep:
     why_not: str = ""
 
 
-def rss_mb(pid: int, field_name: str = "VmRSS:") -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(field_name):
-            return int(line.split()[1]) / 1024.0
-    raise RuntimeError(f"no {field_name} for pid {pid}")
-
-
 def recorded_scans(count: int) -> list[Scan]:
     """One robot's real simulated scans, replayed for every robot of the fleet."""
     with SimulatedFleet(1, seed=7) as fleet:
         return [fleet.step(i * 100_000_000)[0][0] for i in range(count)]
 
 
-def start_child(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
-    settings = ZenohSettings.loopback(port, connect)
-    return subprocess.Popen(
-        [sys.executable, "-m", module, *extra, *settings.to_cli()], cwd=ROOT, stderr=subprocess.DEVNULL
-    )
-
-
-def wait_for_subscriber(session: Any, key: str, timeout_s: float = 60.0) -> None:
-    publisher = session.declare_publisher(key)
-    deadline = time.monotonic() + timeout_s
-    while not publisher.matching_status.matching:
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"no service subscribed to {key} within {timeout_s:.0f} s")
-        time.sleep(0.05)
-    publisher.undeclare()
-
-
 def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetStep:
     step = FleetStep(robots)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
     children = {
-        "encoder": start_child("services.encoder", encoder_port, [bench_port, detector_port]),
-        "detector": start_child(
+        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
+        "detector": start_loopback_service(
             "services.detector", detector_port, [bench_port, encoder_port], "--workers", str(args.workers)
         ),
     }
@@ -118,15 +93,25 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
             period = 1.0 / args.rate
             start = time.monotonic()
             tick = 0
-            measuring = False
-            while (now := time.monotonic()) - start < WARM_UP_S + args.seconds:
+            measure_from: float | None = None  # once every robot has been answered and warm-up is over
+            while measure_from is None or time.monotonic() - measure_from < args.seconds:
                 due = start + tick * period
-                if now < due:
+                if (now := time.monotonic()) < due:
                     time.sleep(due - now)
-                step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
-                if not measuring and now - start >= WARM_UP_S:
-                    measuring = True
-                    step.rss_mb_start = {n: round(rss_mb(p.pid), 1) for n, p in children.items()}
+                if measure_from is None and time.monotonic() - start >= WARM_UP_S:
+                    with lock:
+                        answered = {rid for rid, _ in received}
+                    if len(answered) == robots:
+                        measure_from = time.monotonic()
+                        step.rss_mb_start = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+                    elif time.monotonic() - start > MAX_WARM_UP_S:
+                        step.why_not = (
+                            f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
+                        )
+                        break
+                if measure_from is not None:
+                    step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
+                measuring = measure_from is not None
                 base = scans[tick % len(scans)]
                 # Robots publish spread over the tick, as independent robots would, not in one burst.
                 for index, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
@@ -140,7 +125,7 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
                         time.sleep(wait)
                 tick += 1
             time.sleep(1.0)
-            step.rss_mb_end = {n: round(rss_mb(p.pid), 1) for n, p in children.items()}
+            step.rss_mb_end = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
             sub.undeclare()
     finally:
         for p in children.values():
@@ -157,7 +142,7 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
         }
         step.latency_ms["max"] = round(float(latencies.max()), 2)
     growth = max(step.rss_mb_end[n] - step.rss_mb_start.get(n, step.rss_mb_end[n]) for n in step.rss_mb_end)
-    reasons = []
+    reasons = [step.why_not] if step.why_not else []
     if not len(latencies) or step.latency_ms["p99"] >= args.p99_limit_ms:
         reasons.append(f"p99 {step.latency_ms.get('p99', float('inf'))} ms >= {args.p99_limit_ms}")
     if step.answered_share < args.min_answered:

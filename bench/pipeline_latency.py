@@ -17,8 +17,6 @@ import argparse
 import json
 import logging
 import platform
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -29,15 +27,16 @@ import numpy as np
 
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
-from common.transport import ZenohSettings, open_session, payload_bytes
-from services.launcher import free_tcp_ports
+from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service
 from services.simulator.publisher import SimulatedFleet
 
 ROOT = Path(__file__).resolve().parents[1]
 
 log = logging.getLogger("bench.pipeline_latency")
 
-WARM_UP_S = 3.0
+WARM_UP_S = 3.0  # at least this, and until the first detections came back (peers connect on retry)
+MAX_WARM_UP_S = 60.0
 
 
 @dataclass
@@ -57,31 +56,6 @@ class LatencyReport:
     machine: str = field(default_factory=lambda: f"{platform.machine()}, {platform.processor() or '?'}")
 
 
-def peak_rss_mb(pid: int) -> float:
-    """``VmHWM`` (peak resident set) of a live process, from /proc."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0
-    raise RuntimeError(f"no VmHWM for pid {pid}")
-
-
-def start_child(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
-    settings = ZenohSettings.loopback(port, connect)
-    return subprocess.Popen(
-        [sys.executable, "-m", module, *extra, *settings.to_cli()], cwd=ROOT, stderr=subprocess.DEVNULL
-    )
-
-
-def wait_for_subscriber(session: Any, key: str, timeout_s: float = 60.0) -> None:
-    publisher = session.declare_publisher(key)
-    deadline = time.monotonic() + timeout_s
-    while not publisher.matching_status.matching:
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"no service subscribed to {key} within {timeout_s:.0f} s")
-        time.sleep(0.05)
-    publisher.undeclare()
-
-
 def run(
     robots: int, rate_hz: float, duration_s: float, from_scans: bool, threads: int | None
 ) -> LatencyReport:
@@ -92,14 +66,14 @@ def run(
     detector_args = ["--threads", str(threads)] if threads else []
     if from_scans:
         children = {
-            "detector": start_child(
+            "detector": start_loopback_service(
                 "services.detector", detector_port, [bench_port], "--from-scans", *detector_args
             )
         }
     else:
         children = {
-            "encoder": start_child("services.encoder", encoder_port, [bench_port, detector_port]),
-            "detector": start_child(
+            "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
+            "detector": start_loopback_service(
                 "services.detector", detector_port, [bench_port, encoder_port], *detector_args
             ),
         }
@@ -125,19 +99,26 @@ def run(
                 wait_for_subscriber(session, f"triscan/{fleet.robot_ids[0]}/tensor")
             period = 1.0 / rate_hz
             start = time.monotonic()
+            measure_from: float | None = None  # set once the pipeline has answered and warmed up
             tick = 0
-            while (now := time.monotonic()) - start < duration_s + WARM_UP_S:
+            while measure_from is None or time.monotonic() - measure_from < duration_s:
                 due = start + tick * period
-                if now < due:
+                if (now := time.monotonic()) < due:
                     time.sleep(due - now)
+                if measure_from is None and received and time.monotonic() - start >= WARM_UP_S:
+                    measure_from = time.monotonic()
+                if measure_from is None and time.monotonic() - start > MAX_WARM_UP_S:
+                    raise TimeoutError(f"no detections within {MAX_WARM_UP_S:.0f} s: is the pipeline up?")
                 for scan, _truth in fleet.step(time.time_ns()):
                     scan = scan.model_copy(update={"stamp_ns": time.time_ns()})
                     publishers[scan.robot_id].put(encode_message(scan))
-                    if time.monotonic() - start >= WARM_UP_S:
+                    if measure_from is not None:
                         published[(scan.robot_id, scan.seq)] = scan.stamp_ns
                 tick += 1
             time.sleep(1.0)  # let the last detections arrive
-            report.peak_rss_mb = {name: round(peak_rss_mb(p.pid), 1) for name, p in children.items()}
+            report.peak_rss_mb = {
+                name: round(proc_status_mb(p.pid, "VmHWM"), 1) for name, p in children.items()
+            }
             sub.undeclare()
     finally:
         for p in children.values():

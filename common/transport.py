@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 import os
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -157,3 +158,20 @@ def parse_health_key(key: str) -> tuple[str, str]:
 def payload_bytes(sample: Any) -> bytes:
     """The bytes of a received ``zenoh.Sample``."""
     return sample.payload.to_bytes()
+
+
+def wait_for_subscriber(session: Any, key: str, timeout_s: float = 30.0) -> None:
+    """Block until some remote subscriber matches ``key``, so nothing published next is lost.
+
+    Zenoh drops a put nobody subscribes to; a replayer or benchmark that starts publishing before its
+    peers have connected loses its first messages. Raises ``TimeoutError`` after ``timeout_s``.
+    """
+    publisher = session.declare_publisher(key)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not publisher.matching_status.matching:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no subscriber matched {key} within {timeout_s:.0f} s")
+            time.sleep(0.02)
+    finally:
+        publisher.undeclare()

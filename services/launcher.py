@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,28 @@ def free_tcp_ports(count: int) -> list[int]:
     finally:
         for s in sockets:
             s.close()
+
+
+def start_loopback_service(
+    module: str, port: int, connect: Sequence[int], *extra: str, **popen_kwargs: Any
+) -> subprocess.Popen[bytes]:
+    """``python -m <module>`` as a loopback peer listening on ``port`` and connecting to ``connect``.
+
+    For benchmarks and tests that wire a few services by hand rather than through :func:`up`.
+    """
+    settings = ZenohSettings.loopback(port, list(connect))
+    command = [sys.executable, "-m", module, *extra, *settings.to_cli()]
+    return subprocess.Popen(
+        command, cwd=Path(__file__).resolve().parents[1], env=child_environment(), **popen_kwargs
+    )
+
+
+def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:
+    """A memory figure of a live process from /proc (``VmRSS`` now, ``VmHWM`` its peak), in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(f"{field_name}:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
 
 
 def _endpoint_port(endpoint: str) -> int | None:

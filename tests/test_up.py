@@ -25,6 +25,7 @@ from common.keys import DETECTIONS, SCAN, parse_key, wildcard_key
 from common.messages import Detections, Scan, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
+from tests.waiting import wait_for
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
 
@@ -181,12 +182,3 @@ def test_up_restarts_a_killed_service_and_detections_flow_again(tmp_path: Path) 
     text = "".join(lines)
     assert "encoder exited with code -9: restarting (1/5)" in text, text[-4000:]
     assert launcher.returncode == 0, text[-4000:]
-
-
-def wait_for(condition: Any, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.05)
-    return False
