@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench import fleet_capacity, pipeline_latency
+from bench import dataset_rate, fleet_capacity, pipeline_latency, robot_footprint
 
 
 def test_pipeline_latency_reports_every_field() -> None:
@@ -41,3 +41,23 @@ def test_fleet_capacity_runs_a_step_and_writes_json(tmp_path: Path) -> None:
     assert step["robots"] == 2 and step["scans_published"] > 0 and step["scans_answered"] > 0
     assert set(step["latency_ms"]) == {"p50", "p95", "p99", "max"}
     assert set(step["rss_mb_end"]) == {"encoder", "detector"}
+
+
+def test_dataset_rate_reports_rate_and_paper_scale(tmp_path: Path) -> None:
+    out = tmp_path / "rate.json"
+    assert (
+        dataset_rate.main(["--scenarios", "1", "--positions", "2", "--workers", "1", "--out", str(out)]) == 0
+    )
+    report = json.loads(out.read_text())
+    assert report["samples"] > 0 and report["samples_per_s"] > 0 and report["bytes_per_sample"] > 0
+    assert report["paper_scale"]["scenarios"] == 160 and report["paper_scale"]["minutes"] > 0
+    assert report["paper_scale"]["measured"] is False
+
+
+def test_robot_footprint_reports_both_deployments(tmp_path: Path) -> None:
+    out = tmp_path / "footprint.json"
+    assert robot_footprint.main(["--seconds", "1", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert set(report["peak_rss_mb"]["encoder + detector (2 processes)"]) == {"encoder", "detector"}
+    assert set(report["peak_rss_mb"]["detector --from-scans (1 process)"]) == {"detector"}
+    assert "triscan-yolov8n-zero.onnx" in report["model_files_mb"]
