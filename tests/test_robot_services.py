@@ -7,6 +7,7 @@ is mocked; multicast is off and every endpoint is explicit.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import threading
 import time
@@ -21,6 +22,7 @@ from common.keys import DETECTIONS, TENSOR, scan_key, wildcard_key
 from common.messages import Detections, StackedTensor, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports, start_loopback_service
+from services.runtime import STATS_PREFIX
 from tests.scan_replay import replay_scans
 from tests.waiting import wait_for
 
@@ -156,19 +158,35 @@ def test_encoder_and_detector_processes_serve_two_robots_without_cross_talk(
         assert sum(len(d.detections) for d in dets) > 0
 
 
-def test_detector_from_scans_runs_the_robot_in_one_process(replay: dict[str, list], ports: list[int]) -> None:
+def test_detector_from_scans_with_two_workers_serves_in_order_and_forgets_silent_robots(
+    replay: dict[str, list], ports: list[int]
+) -> None:
     test_port, detector_port, _ = ports
-    detector = start_service(
-        "services.detector", detector_port, [test_port], "--from-scans", "--threads", "1"
-    )
+    extra = ("--from-scans", "--threads", "1", "--workers", "2", "--forget-after", "2")
+    detector = start_service("services.detector", detector_port, [test_port], *extra)
     detections = Collector(Detections)
+    stats: list[dict[str, Any]] = []
     try:
         with open_session(ZenohSettings.loopback(test_port)) as session:
-            sub = session.declare_subscriber(wildcard_key(DETECTIONS), detections)
+            subs = [
+                session.declare_subscriber(wildcard_key(DETECTIONS), detections),
+                session.declare_subscriber(
+                    f"{STATS_PREFIX}/detector/*", lambda s: stats.append(json.loads(payload_bytes(s)))
+                ),
+            ]
             wait_for_subscriber(session, scan_key(ROBOTS[1]))
             prime_pipeline(session, replay[ROBOTS[1]], detections)
             publish_in_lockstep(session, {ROBOTS[1]: replay[ROBOTS[1]]}, detections)
-            sub.undeclare()
+
+            # Silent for longer than --forget-after: its FIFO and its publisher are gone, nothing leaks.
+            def forgotten() -> bool:  # the probe robot and the one under test
+                last = stats[-1] if stats else {}
+                return last.get("robots") == 0 and last["encoder"]["forgotten_robots"] >= 2
+
+            assert wait_for(forgotten, 30), stats[-1:]
+            for sub in subs:
+                sub.undeclare()
     finally:
         stop_all([detector])
+    # Two inference workers, yet one robot's detections come out in order, one per tensor.
     assert [d.seq for d in detections.by_robot[ROBOTS[1]]] == list(range(2, SCANS_PER_ROBOT))

@@ -102,7 +102,15 @@ def run(
             "detector ready: %s (%s padding) on %s → detections", detector.model_id, detector.padding, key
         )
         publishers: dict[str, Any] = {}
+        last_served: dict[str, float] = {}
         publishers_lock = threading.Lock()
+
+        def forget_silent_robots(now: float) -> None:
+            """Undeclare publishers of robots not served for ``forget_after_s``: no leak as fleets change."""
+            with publishers_lock:
+                for robot_id in [r for r, t in last_served.items() if now - t > forget_after_s]:
+                    publishers.pop(robot_id).undeclare()
+                    del last_served[robot_id]
 
         def serve(worker_detector: OnnxDetector) -> None:
             while not stop.is_set():
@@ -118,6 +126,7 @@ def run(
                             publisher = publishers[robot_id] = session.declare_publisher(
                                 detections_key(robot_id)
                             )
+                        last_served[robot_id] = time.monotonic()
                     publisher.put(encode_message(detections))
                 finally:
                     mailbox.release(robot_id)
@@ -132,6 +141,7 @@ def run(
         try:
             while not stop.wait(1.0):
                 now = time.monotonic()
+                forget_silent_robots(now)
                 counters: dict[str, object] = {**core.counters.to_dict(), "robots": len(publishers)}
                 if encoder is not None:
                     with encoder_lock:
@@ -180,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         "--forget-after",
         type=float,
         default=DEFAULT_FORGET_AFTER_S,
-        help="--from-scans: seconds to forget a robot",
+        help="seconds of silence to forget a robot",
     )
     parser.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: never)")
     parser.add_argument("--verbose", "-v", action="store_true")
