@@ -17,14 +17,16 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import zenoh  # noqa: E402
+import zenoh
 
-from common.keys import ALL_DETECTIONS, parse_key  # noqa: E402
-from common.messages import Detections, decode_message  # noqa: E402
+from common.keys import ALL_DETECTIONS, parse_key
+from common.messages import Detections, decode_message
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--connect", default="tcp/127.0.0.1:7447")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds to listen")
     parser.add_argument("--robots", type=int, default=1, help="robots that must all deliver detections")
@@ -72,15 +74,19 @@ def main() -> int:
             print(f"first detections after {first_at[0] - start:.1f} s")
         for robot_id in sorted(messages):
             rate = messages[robot_id] / elapsed
-            print(f"  {robot_id}: {messages[robot_id]} Detections messages ({rate:.1f}/s), "
-                  f"{objects[robot_id]} objects")
+            print(
+                f"  {robot_id}: {messages[robot_id]} Detections messages ({rate:.1f}/s), "
+                f"{objects[robot_id]} objects"
+            )
         if classes:
             print("  classes: " + ", ".join(f"{name} {n}" for name, n in classes.most_common()))
         if latency_ms:
             latency_ms.sort()
             print(f"  scan-to-host latency: median {latency_ms[len(latency_ms) // 2]:.0f} ms")
-        print(f"TOTAL detections_messages={sum(messages.values())} objects={sum(objects.values())} "
-              f"robots={len(messages)} errors={len(errors)}")
+        print(
+            f"TOTAL detections_messages={sum(messages.values())} objects={sum(objects.values())} "
+            f"robots={len(messages)} errors={len(errors)}"
+        )
         for err in errors[:5]:
             print("  error:", err)
         short = [r for r in messages if messages[r] < args.min_per_robot]

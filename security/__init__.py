@@ -1,0 +1,1 @@
+"""Secure mode of triscan: Zenoh mutual TLS plus access control (see ``security/zenoh_config.py``)."""
