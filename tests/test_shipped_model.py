@@ -56,6 +56,16 @@ def test_card_files_exist_and_ids_match() -> None:
     assert OnnxDetector(INT8).model_id == CARD["model_ids"]["int8"]
 
 
+def test_the_wrap_ablation_model_ships_with_its_padding() -> None:
+    wrap = CARD["ablation"]["wrap"]
+    path = MODELS / f"{wrap['model_id'].split('@')[0]}.onnx"
+    detector = OnnxDetector(path)
+    assert detector.model_id == wrap["model_id"] and detector.padding == "wrap"
+    with pytest.raises(ValueError, match="padding"):
+        OnnxDetector(path, padding="zero")  # a wrap model is never fed zero-padded tensors
+    assert OnnxDetector(FP32).padding == "zero"
+
+
 def test_onnx_gives_the_checkpoints_boxes_within_one_pixel(offline: None) -> None:
     import torch
     from ultralytics import YOLO

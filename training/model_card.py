@@ -94,7 +94,8 @@ def _ablation_lines(ablation: dict[str, Path], command: str) -> tuple[list[str],
         "detector merges such copies, so the evaluation merges the labels the same way and compares boxes "
         "on the circle (IoU over ±360-column shifts). *Seam objects* are those whose footprint spans the "
         "0°/360° column boundary, found from the scene geometry: `zero` labels them with the clipped "
-        "box on their centre's side (the paper's rule), `wrap` with the whole box.",
+        "box on their centre's side (the paper's rule), `wrap` with the whole box when it fits within the "
+        "24 padding columns and otherwise with the two pieces the image shows.",
         "",
         f"`wrap` run: `{command}`",
         "",
