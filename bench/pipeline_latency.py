@@ -28,6 +28,7 @@ import numpy as np
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.detector.__main__ import default_model_path
 from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service
 from services.simulator.publisher import SimulatedFleet
 
@@ -44,6 +45,7 @@ class LatencyReport:
     """What the run measured; ``latency_ms`` quantiles are over scans published after warm-up."""
 
     mode: str
+    model: str
     robots: int
     rate_hz: float
     duration_s: float
@@ -57,13 +59,24 @@ class LatencyReport:
 
 
 def run(
-    robots: int, rate_hz: float, duration_s: float, from_scans: bool, threads: int | None
+    robots: int,
+    rate_hz: float,
+    duration_s: float,
+    from_scans: bool,
+    threads: int | None,
+    model: Path | None = None,
 ) -> LatencyReport:
     report = LatencyReport(
-        "from-scans (2 processes)" if from_scans else "3 processes", robots, rate_hz, duration_s
+        "from-scans (2 processes)" if from_scans else "3 processes",
+        (model or default_model_path()).name,
+        robots,
+        rate_hz,
+        duration_s,
     )
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
     detector_args = ["--threads", str(threads)] if threads else []
+    if model is not None:
+        detector_args += ["--model", str(model)]
     if from_scans:
         children = {
             "detector": start_loopback_service(
@@ -159,10 +172,11 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--from-scans", action="store_true", help="encoder + detector in one process")
     parser.add_argument("--threads", type=int, default=None, help="detector ONNX Runtime threads")
+    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    report = run(args.robots, args.rate, args.duration, args.from_scans, args.threads)
+    report = run(args.robots, args.rate, args.duration, args.from_scans, args.threads, args.model)
     text = json.dumps(asdict(report), indent=2)
     print(text)
     if args.out:
