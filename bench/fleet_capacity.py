@@ -70,7 +70,11 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
     children = {
         "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
         "detector": start_loopback_service(
-            "services.detector", detector_port, [bench_port, encoder_port], "--workers", str(args.workers)
+            "services.detector",
+            detector_port,
+            [bench_port, encoder_port],
+            *("--workers", str(args.workers)),
+            *(("--model", str(args.model)) if args.model else ()),
         ),
     }
     robot_ids = [f"fleet{i:03d}" for i in range(robots)]
@@ -166,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per step")
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="detector inference threads")
+    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)
     parser.add_argument("--rss-growth-mb", type=float, default=20.0)
@@ -200,6 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "rate_hz": args.rate,
         "workers": args.workers,
+        "model": str(args.model or "default (fp32)"),
         "seconds_per_step": args.seconds,
         "machine": {"cpu": cpu_model(), "cores": os.cpu_count()},
         "steps": [asdict(s) for s in steps],
