@@ -1,0 +1,614 @@
+"""Per-frame latency, batch 1, of triscan and the runtimes it is compared with — side by side, one run.
+
+What one *frame* is (SPEC §6, Algorithm 1): a new scan arrives → it is encoded and pushed into the
+three-scan FIFO (``ScanStacker.push_scan``) → the model input is built → the model runs → its raw
+output is decoded and NMS'd into boxes. Every pipeline is timed over exactly that, wall clock, one
+frame at a time, on the same pre-generated real simulated scans (``SimulatedFleet``, PyBullet);
+generating the scans is never timed.
+
+Pipelines:
+
+* ``triscan_fp32`` / ``triscan_int8``: the shipped ONNX models in ONNX Runtime through
+  :class:`common.inference.OnnxDetector` — exactly what the detector service runs.
+* ``ultralytics_pt``: the paper's deployed runtime, Ultralytics ``YOLO(pt).predict`` on the ``.pt``
+  checkpoint of the same model, fed the same stacked tensor (timing includes its own pre- and
+  post-processing, as deployed). Ultralytics reads a numpy image as BGR and flips it to RGB, so it is
+  given ``tensor[..., ::-1]``: the network then sees scan t−2 in channel 0, as the ONNX model does.
+  Its letterbox is a no-op here: the tensor is already 64×384 = ``imgsz``. torch threads are set
+  with ``torch.set_num_threads``.
+* ``occupancy_grid``: the baseline (:mod:`bench.occupancy_grid`): the same scans drawn into a
+  robot-centred 640×640 image, an untrained YOLOv8n (weights for timing only) in ONNX Runtime with
+  the same session options, and this project's decode + NMS. Its encode step is its own rasteriser
+  (the grid replaces the three-scan raster); the three other pipelines share ``ScanStacker``.
+
+Protocol, for every pipeline at 1 thread and at all cores (``os.cpu_count()``): prime the FIFO with
+two scans (untimed), run **one warm-up frame**, then time **100 consecutive frames** and report their
+mean — the paper's protocol — and then, continuing on the following scans, time ``--frames`` more
+(default 1,000) for p50 and p99: a mean of 100 hides the tail a robot's control loop has to live with.
+Per-stage means (encode, preprocess, inference, postprocess, other = frame − stages) come from the
+long run. Ratios are baseline ÷ triscan fp32 (and INT8 ÷ fp32) at each thread count.
+
+Nothing here asserts a time: the numbers depend on the machine, and a quiet machine is the caller's
+job (load averages at start and end are recorded in the JSON to show whether it was).
+
+    python -m bench.frame_latency                     # full run → bench/results/frame_latency.json
+    python -m bench.frame_latency --frames 200 --skip-grid --skip-ultralytics
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import logging
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Final, NamedTuple, Protocol
+
+import numpy as np
+
+from bench.occupancy_grid import (
+    GRID_PX,
+    GRID_RADIUS_M,
+    GridDetector,
+    grid_model_onnx,
+    rasterise_occupancy_grid,
+)
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
+from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector
+
+ROOT: Final[Path] = Path(__file__).resolve().parents[1]
+DEFAULT_OUT: Final[Path] = ROOT / "bench" / "results" / "frame_latency.json"
+DEFAULT_CACHE: Final[Path] = ROOT / "runs" / "bench_cache"
+MODELS: Final[Path] = ROOT / "models"
+
+log = logging.getLogger("bench.frame_latency")
+
+TRISCAN_FP32: Final[str] = "triscan_fp32"
+TRISCAN_INT8: Final[str] = "triscan_int8"
+ULTRALYTICS: Final[str] = "ultralytics_pt"
+GRID: Final[str] = "occupancy_grid"
+LABELS: Final[dict[str, str]] = {
+    TRISCAN_FP32: "triscan 64×384, ONNX Runtime fp32",
+    TRISCAN_INT8: "triscan 64×384, ONNX Runtime INT8 (shipped)",
+    ULTRALYTICS: "triscan 64×384, Ultralytics predict on .pt (paper's runtime)",
+}
+
+
+def label(name: str, grid_px: int = GRID_PX) -> str:
+    """The row label of a pipeline (the grid's carries its image size)."""
+    if name == GRID:
+        return f"occupancy grid {grid_px}×{grid_px} (YOLOv8n, untrained weights: timing only)"
+    return LABELS[name]
+
+
+STAGES: Final[tuple[str, ...]] = ("encode", "preprocess", "inference", "postprocess", "other")
+GOAL_P50_MS: Final[float] = 1.5
+GOAL_ULTRALYTICS_RATIO: Final[float] = 6.0
+GOAL_GRID_RATIO: Final[float] = 30.0
+PRIME_SCANS: Final[int] = 2  # the FIFO needs two scans before the first frame yields a tensor
+ISA_FLAGS: Final[tuple[str, ...]] = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8")
+_NS_PER_MS: Final[float] = 1e6
+
+
+# --------------------------------------------------------------------------------------------------
+# Records
+# --------------------------------------------------------------------------------------------------
+
+
+class ScanArgs(NamedTuple):
+    """One scan's ``push_scan`` arguments, unpacked ahead of time so no pydantic access is timed."""
+
+    ranges: np.ndarray
+    angle_min: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+
+
+@dataclass
+class BenchConfig:
+    frames: int = 1000
+    paper_frames: int = 100
+    paper_warmup: int = 1
+    threads: tuple[int, ...] = (1, os.cpu_count() or 1)
+    seed: int = 1
+    fp32_model: Path = MODELS / "triscan-yolov8n-zero.onnx"
+    int8_model: Path = MODELS / "triscan-yolov8n-zero-int8.onnx"
+    pt_model: Path = MODELS / "triscan-yolov8n-zero.pt"
+    grid_px: int = GRID_PX
+    cache_dir: Path = DEFAULT_CACHE
+    skip_int8: bool = False
+    skip_ultralytics: bool = False
+    skip_grid: bool = False
+
+    @property
+    def scans_needed(self) -> int:
+        return PRIME_SCANS + self.paper_warmup + self.paper_frames + self.frames
+
+
+@dataclass
+class LatencyRow:
+    """One pipeline at one thread count. Times in ms; ``stage_mean_ms`` over the ``frames`` run."""
+
+    pipeline: str
+    label: str
+    threads: int
+    paper_warmup_frames: int
+    paper_frames: int
+    paper_mean_ms: float
+    frames: int
+    p50_ms: float
+    p99_ms: float
+    mean_ms: float
+    max_ms: float
+    stage_mean_ms: dict[str, float]
+    detections_per_frame: float
+
+
+@dataclass
+class RatioRow:
+    """``numerator ÷ denominator`` of two pipelines' latencies at one thread count."""
+
+    threads: int
+    numerator: str
+    denominator: str
+    paper_mean: float
+    p50: float
+    p99: float
+
+
+@dataclass
+class MachineInfo:
+    cpu_model: str
+    isa_flags: list[str]
+    logical_cpus: int
+    usable_cpus: int
+    platform: str
+    python: str
+    versions: dict[str, str]
+    process_nice: int
+    loadavg_start: list[float]
+    loadavg_end: list[float] = field(default_factory=list)
+
+
+@dataclass
+class BenchReport:
+    config: dict[str, Any]
+    machine: MachineInfo
+    scans: dict[str, Any]
+    rows: list[LatencyRow]
+    ratios: list[RatioRow]
+    goals: dict[str, dict[str, Any]]
+    notes: list[str]
+    wall_s: float = 0.0
+
+
+# --------------------------------------------------------------------------------------------------
+# Pipelines
+# --------------------------------------------------------------------------------------------------
+
+Stages = tuple[float, float, float, float]  # encode, preprocess, inference, postprocess (ms)
+
+
+class Pipeline(Protocol):
+    def prime(self, scan: ScanArgs) -> None: ...
+
+    def frame(self, scan: ScanArgs) -> tuple[Stages, int]: ...
+
+
+class TriscanPipeline:
+    """ScanStacker + OnnxDetector: the detector service's per-frame path."""
+
+    def __init__(self, model_path: Path, threads: int) -> None:
+        self.stacker = ScanStacker()
+        self.detector = OnnxDetector(model_path, intra_op_threads=threads, providers=["CPUExecutionProvider"])
+
+    def prime(self, scan: ScanArgs) -> None:
+        self.stacker.push_scan(*scan)
+
+    def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
+        t0 = time.perf_counter_ns()
+        tensor = self.stacker.push_scan(*scan)
+        t1 = time.perf_counter_ns()
+        boxes, _scores, _classes, timings = self.detector.detect_boxes(tensor)
+        encode_ms = (t1 - t0) / _NS_PER_MS
+        return (encode_ms, timings.encode_ms, timings.inference_ms, timings.nms_ms), len(boxes)
+
+
+class UltralyticsPipeline:
+    """ScanStacker + Ultralytics ``predict`` on the ``.pt`` checkpoint (torch, CPU)."""
+
+    def __init__(self, pt_path: Path, threads: int) -> None:
+        from training.offline import configure_offline
+
+        configure_offline()
+        import torch
+        from ultralytics import YOLO
+
+        torch.set_num_threads(threads)
+        if torch.get_num_threads() != threads:
+            raise RuntimeError(f"torch refused {threads} threads (has {torch.get_num_threads()})")
+        self.stacker = ScanStacker()
+        self.model = YOLO(str(pt_path), task="detect")
+
+    def prime(self, scan: ScanArgs) -> None:
+        self.stacker.push_scan(*scan)
+
+    def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
+        t0 = time.perf_counter_ns()
+        tensor = self.stacker.push_scan(*scan)
+        bgr = np.ascontiguousarray(tensor[..., ::-1])  # Ultralytics flips "BGR" back: net sees t−2 first
+        t1 = time.perf_counter_ns()
+        result = self.model.predict(
+            source=bgr,
+            imgsz=(RANGE_ROWS, IMAGE_WIDTH),
+            device="cpu",
+            verbose=False,
+            conf=DEFAULT_CONF,
+            iou=DEFAULT_IOU,
+        )[0]
+        boxes = result.boxes.xyxy.numpy()  # what a consumer would read; part of the deployed cost
+        speed = result.speed  # ms, measured by Ultralytics inside predict
+        encode_ms = (t1 - t0) / _NS_PER_MS
+        return (encode_ms, speed["preprocess"], speed["inference"], speed["postprocess"]), len(boxes)
+
+
+class GridPipeline:
+    """Occupancy-grid rasteriser + untrained YOLOv8n at 640 in ONNX Runtime + our decode and NMS."""
+
+    def __init__(self, model_path: Path, threads: int) -> None:
+        self.detector = GridDetector(model_path, intra_op_threads=threads)
+
+    def prime(self, scan: ScanArgs) -> None:
+        pass  # the grid is drawn from one scan; nothing to fill
+
+    def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
+        t0 = time.perf_counter_ns()
+        image = rasterise_occupancy_grid(*scan, size=self.detector.size)
+        t1 = time.perf_counter_ns()
+        boxes, _scores, _classes, (pre_ms, inference_ms, post_ms) = self.detector.detect_boxes(image)
+        return ((t1 - t0) / _NS_PER_MS, pre_ms, inference_ms, post_ms), len(boxes)
+
+
+# --------------------------------------------------------------------------------------------------
+# Measurement
+# --------------------------------------------------------------------------------------------------
+
+
+def simulated_scans(count: int, seed: int) -> list[ScanArgs]:
+    """``count`` consecutive scans of one simulated robot (10 Hz, a new world every 30 s of sim time)."""
+    from services.simulator.publisher import SimulatedFleet
+
+    scans = []
+    with SimulatedFleet(robots=1, seed=seed, rate_hz=10.0) as fleet:
+        for tick in range(count):
+            scan = fleet.step(tick * 100_000_000)[0][0]
+            ranges = np.ascontiguousarray(scan.ranges, dtype=np.float32)
+            scans.append(
+                ScanArgs(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max)
+            )
+    return scans
+
+
+def time_frames(pipeline: Pipeline, scans: Sequence[ScanArgs]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wall time of each frame (ms), its stage split ``[n, 4]`` (ms) and its detection count."""
+    totals = np.empty(len(scans))
+    stages = np.empty((len(scans), 4))
+    detections = np.empty(len(scans), dtype=np.int64)
+    for i, scan in enumerate(scans):
+        t0 = time.perf_counter_ns()
+        split, count = pipeline.frame(scan)
+        totals[i] = (time.perf_counter_ns() - t0) / _NS_PER_MS
+        stages[i] = split
+        detections[i] = count
+    return totals, stages, detections
+
+
+def measure(
+    name: str, pipeline: Pipeline, threads: int, scans: Sequence[ScanArgs], config: BenchConfig
+) -> LatencyRow:
+    """The protocol of the module docstring for one pipeline at one thread count."""
+    for scan in scans[:PRIME_SCANS]:
+        pipeline.prime(scan)
+    start = PRIME_SCANS
+    for scan in scans[start : start + config.paper_warmup]:
+        pipeline.frame(scan)
+    start += config.paper_warmup
+    gc.collect()
+    paper, _, _ = time_frames(pipeline, scans[start : start + config.paper_frames])
+    start += config.paper_frames
+    gc.collect()
+    totals, stages, detections = time_frames(pipeline, scans[start : start + config.frames])
+    stage_means = stages.mean(axis=0)
+    other = float(np.mean(totals - stages.sum(axis=1)))
+    return LatencyRow(
+        pipeline=name,
+        label=label(name, config.grid_px),
+        threads=threads,
+        paper_warmup_frames=config.paper_warmup,
+        paper_frames=len(paper),
+        paper_mean_ms=round(float(paper.mean()), 4),
+        frames=len(totals),
+        p50_ms=round(float(np.percentile(totals, 50)), 4),
+        p99_ms=round(float(np.percentile(totals, 99)), 4),
+        mean_ms=round(float(totals.mean()), 4),
+        max_ms=round(float(totals.max()), 4),
+        stage_mean_ms={
+            stage: round(value, 4)
+            for stage, value in zip(STAGES, [*stage_means.tolist(), other], strict=True)
+        },
+        detections_per_frame=round(float(detections.mean()), 3),
+    )
+
+
+def ratios(rows: Sequence[LatencyRow]) -> list[RatioRow]:
+    """Baseline ÷ triscan fp32 (and INT8 ÷ fp32) for every thread count that has both rows."""
+    by_key = {(row.pipeline, row.threads): row for row in rows}
+    out = []
+    for threads in sorted({row.threads for row in rows}):
+        base = by_key.get((TRISCAN_FP32, threads))
+        if base is None:
+            continue
+        for name in (ULTRALYTICS, GRID, TRISCAN_INT8):
+            row = by_key.get((name, threads))
+            if row is None:
+                continue
+            out.append(
+                RatioRow(
+                    threads=threads,
+                    numerator=name,
+                    denominator=TRISCAN_FP32,
+                    paper_mean=round(row.paper_mean_ms / base.paper_mean_ms, 3),
+                    p50=round(row.p50_ms / base.p50_ms, 3),
+                    p99=round(row.p99_ms / base.p99_ms, 3),
+                )
+            )
+    return out
+
+
+def goals(rows: Sequence[LatencyRow], ratio_rows: Sequence[RatioRow]) -> dict[str, dict[str, Any]]:
+    """Issue 5's targets, evaluated (never asserted) on the 1-thread rows: medians."""
+    out: dict[str, dict[str, Any]] = {}
+    fp32 = next((r for r in rows if r.pipeline == TRISCAN_FP32 and r.threads == 1), None)
+    if fp32 is not None:
+        out["triscan_fp32_p50_ms_at_1_thread"] = {
+            "value": fp32.p50_ms,
+            "target": f"<= {GOAL_P50_MS}",
+            "met": fp32.p50_ms <= GOAL_P50_MS,
+        }
+    for name, target in ((ULTRALYTICS, GOAL_ULTRALYTICS_RATIO), (GRID, GOAL_GRID_RATIO)):
+        ratio = next((r for r in ratio_rows if r.numerator == name and r.threads == 1), None)
+        if ratio is not None:
+            out[f"{name}_over_triscan_fp32_p50_at_1_thread"] = {
+                "value": ratio.p50,
+                "target": f">= {target}",
+                "met": ratio.p50 >= target,
+            }
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Machine
+# --------------------------------------------------------------------------------------------------
+
+
+def _cpuinfo() -> tuple[str, list[str]]:
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or "?", []
+    model, flags = "?", set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and model == "?":
+            model = value.strip()
+        elif key.strip() == "flags" and not flags:
+            flags = set(value.split())
+    return model, [flag for flag in ISA_FLAGS if flag in flags]
+
+
+def _version(module: str) -> str:
+    try:
+        return str(__import__(module).__version__)
+    except ImportError:
+        return "not installed"
+
+
+def machine_info() -> MachineInfo:
+    cpu_model, isa = _cpuinfo()
+    return MachineInfo(
+        cpu_model=cpu_model,
+        isa_flags=isa,
+        logical_cpus=os.cpu_count() or 1,
+        usable_cpus=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
+        platform=platform.platform(),
+        python=platform.python_version(),
+        versions={m: _version(m) for m in ("numpy", "onnxruntime", "torch", "ultralytics")},
+        process_nice=os.nice(0),
+        loadavg_start=[round(x, 2) for x in os.getloadavg()],
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Run, print, CLI
+# --------------------------------------------------------------------------------------------------
+
+
+def _shown(path: Path) -> str:
+    """A path as the report shows it: relative to the repository when inside it (no home directories)."""
+    resolved = Path(path).resolve()
+    return str(resolved.relative_to(ROOT)) if resolved.is_relative_to(ROOT) else str(path)
+
+
+def _factories(config: BenchConfig, grid_model: Path | None) -> list[tuple[str, Callable[[int], Pipeline]]]:
+    factories: list[tuple[str, Callable[[int], Pipeline]]] = [
+        (TRISCAN_FP32, lambda t: TriscanPipeline(config.fp32_model, t))
+    ]
+    if not config.skip_int8:
+        factories.append((TRISCAN_INT8, lambda t: TriscanPipeline(config.int8_model, t)))
+    if not config.skip_ultralytics:
+        factories.append((ULTRALYTICS, lambda t: UltralyticsPipeline(config.pt_model, t)))
+    if grid_model is not None:
+        factories.append((GRID, lambda t: GridPipeline(grid_model, t)))
+    return factories
+
+
+def run(config: BenchConfig) -> BenchReport:
+    """Generate the scans, then measure every pipeline at every thread count, one after the other."""
+    if config.frames < 1 or config.paper_frames < 1 or config.paper_warmup < 0:
+        raise ValueError("need frames >= 1, paper_frames >= 1 and paper_warmup >= 0")
+    started = time.perf_counter()
+    machine = machine_info()
+    if machine.loadavg_start[0] > 0.5 * machine.usable_cpus:
+        log.warning(
+            "load average %.2f on %d cpus: the machine is not quiet, figures will be noisy",
+            machine.loadavg_start[0],
+            machine.usable_cpus,
+        )
+    log.info("simulating %d scans (seed %d)…", config.scans_needed, config.seed)
+    scans = simulated_scans(config.scans_needed, config.seed)
+    # Exported (once, then cached) before anything is timed.
+    grid_model = None if config.skip_grid else grid_model_onnx(config.cache_dir, config.grid_px)
+    factories = _factories(config, grid_model)
+    rows = []
+    for threads in dict.fromkeys(config.threads):  # ordered, without duplicates (1 core: one row)
+        for name, factory in factories:
+            pipeline = factory(threads)
+            row = measure(name, pipeline, threads, scans, config)
+            del pipeline
+            gc.collect()
+            log.info("%-15s %d thread(s): p50 %.3f ms, p99 %.3f ms", name, threads, row.p50_ms, row.p99_ms)
+            rows.append(row)
+    machine.loadavg_end = [round(x, 2) for x in os.getloadavg()]
+    ratio_rows = ratios(rows)
+    config_dict = {k: (_shown(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()}
+    return BenchReport(
+        config=config_dict,
+        machine=machine,
+        scans={
+            "source": "services.simulator.publisher.SimulatedFleet(robots=1, rate_hz=10), PyBullet",
+            "seed": config.seed,
+            "count": len(scans),
+            "grid_model": _shown(grid_model) if grid_model else None,
+            "beams": int(scans[0].ranges.size),
+        },
+        rows=rows,
+        ratios=ratio_rows,
+        goals=goals(rows, ratio_rows),
+        notes=[
+            "frame = encode (+ FIFO) + model-input conversion + inference + decode/NMS, batch 1, wall clock",
+            "paper_mean_ms: mean of paper_frames consecutive frames after paper_warmup_frames warm-up",
+            "p50/p99/mean/max and stage means: the following `frames` frames",
+            "ultralytics_pt is given tensor[..., ::-1] (it reads numpy as BGR); its letterbox is a no-op "
+            "at 64×384; its stage split is its own Results.speed",
+            f"occupancy_grid: untrained YOLOv8n weights, timing only; encode = scan → "
+            f"{config.grid_px}×{config.grid_px} occupancy image ({GRID_RADIUS_M:g} m centre to edge)",
+            "ratios: numerator ÷ triscan_fp32 (int8 < 1 means INT8 is faster)",
+        ],
+        wall_s=round(time.perf_counter() - started, 1),
+    )
+
+
+def format_table(report: BenchReport) -> str:
+    header = (
+        f"{'pipeline':<64} {'thr':>3} {'paper':>9} {'p50':>9} {'p99':>9} {'mean':>9} │ "
+        + " ".join(f"{s[:6]:>7}" for s in STAGES)
+        + f" {'det/fr':>6}"
+    )
+    lines = [
+        f"per-frame latency in ms, batch 1 — {report.machine.cpu_model}, {report.machine.logical_cpus} "
+        f"cpus; paper = mean of {report.config['paper_frames']} after {report.config['paper_warmup']} "
+        f"warm-up; p50/p99 over {report.config['frames']} frames",
+        header,
+        "─" * len(header),
+    ]
+    for row in report.rows:
+        lines.append(
+            f"{row.label:<64} {row.threads:>3} {row.paper_mean_ms:>9.3f} {row.p50_ms:>9.3f} "
+            f"{row.p99_ms:>9.3f} {row.mean_ms:>9.3f} │ "
+            + " ".join(f"{row.stage_mean_ms[s]:>7.3f}" for s in STAGES)
+            + f" {row.detections_per_frame:>6.2f}"
+        )
+    lines.append("")
+    lines.append("ratios (÷ triscan fp32):        paper     p50     p99")
+    for ratio in report.ratios:
+        lines.append(
+            f"  {ratio.numerator:<15} {ratio.threads} thread(s) {ratio.paper_mean:>8.2f} {ratio.p50:>7.2f} "
+            f"{ratio.p99:>7.2f}"
+        )
+    lines.append("")
+    for name, goal in report.goals.items():
+        lines.append(
+            f"goal {name}: {goal['value']} (target {goal['target']}) → {'met' if goal['met'] else 'NOT met'}"
+        )
+    lines.append(f"load average start {report.machine.loadavg_start}, end {report.machine.loadavg_end}")
+    return "\n".join(lines)
+
+
+def _parse_threads(text: str) -> tuple[int, ...]:
+    values = []
+    for part in text.split(","):
+        part = part.strip()
+        values.append((os.cpu_count() or 1) if part == "all" else int(part))
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"threads must be positive integers or 'all', got {text!r}")
+    return tuple(values)
+
+
+def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
+    assert __doc__ is not None
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--frames", type=int, default=1000, help="frames for p50/p99 (default 1000)")
+    parser.add_argument("--paper-frames", type=int, default=100, help="frames in the paper's mean (100)")
+    parser.add_argument("--paper-warmup", type=int, default=1, help="warm-up frames before them (1)")
+    parser.add_argument("--threads", type=_parse_threads, default="1,all", help="e.g. '1,all' or '1,2,4'")
+    parser.add_argument("--seed", type=int, default=1, help="simulator seed of the scans")
+    parser.add_argument("--fp32-model", type=Path, default=BenchConfig.fp32_model)
+    parser.add_argument("--int8-model", type=Path, default=BenchConfig.int8_model)
+    parser.add_argument("--pt-model", type=Path, default=BenchConfig.pt_model)
+    parser.add_argument("--grid-px", type=int, default=GRID_PX, help="grid image side (640)")
+    parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help="exported grid model cache")
+    parser.add_argument("--skip-int8", action="store_true")
+    parser.add_argument("--skip-ultralytics", action="store_true")
+    parser.add_argument("--skip-grid", action="store_true")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON report path")
+    args = parser.parse_args(argv)
+    config = BenchConfig(
+        frames=args.frames,
+        paper_frames=args.paper_frames,
+        paper_warmup=args.paper_warmup,
+        threads=args.threads,
+        seed=args.seed,
+        fp32_model=args.fp32_model,
+        int8_model=args.int8_model,
+        pt_model=args.pt_model,
+        grid_px=args.grid_px,
+        cache_dir=args.cache_dir,
+        skip_int8=args.skip_int8,
+        skip_ultralytics=args.skip_ultralytics,
+        skip_grid=args.skip_grid,
+    )
+    return config, args.out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    config, out = parse_args(argv)
+    report = run(config)
+    print(format_table(report))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(asdict(report), indent=2, ensure_ascii=False) + "\n")
+    log.info("wrote %s (%.0f s)", out, report.wall_s)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

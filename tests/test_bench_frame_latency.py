@@ -1,0 +1,101 @@
+"""The frame-latency benchmark keeps running: every pipeline, a handful of frames, every field reported.
+
+No timing thresholds here: a test asserting milliseconds would fail on a busy CI runner and say nothing
+about the code. The figures come from ``python -m bench.frame_latency`` on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+
+import numpy as np
+import pytest
+
+pytest.importorskip("ultralytics")
+pytest.importorskip("pybullet")
+
+from bench.frame_latency import (
+    GRID,
+    STAGES,
+    TRISCAN_FP32,
+    TRISCAN_INT8,
+    ULTRALYTICS,
+    LatencyRow,
+    MachineInfo,
+    RatioRow,
+    main,
+)
+from bench.occupancy_grid import rasterise_occupancy_grid
+
+PIPELINES = (TRISCAN_FP32, TRISCAN_INT8, ULTRALYTICS, GRID)
+THREADS = (1, 2)
+FRAMES, PAPER_FRAMES = 5, 3
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One tiny run of the real benchmark (grid at 320 px: the same export and code path, cheaper)."""
+    tmp = tmp_path_factory.mktemp("frame_latency")
+    out = tmp / "frame_latency.json"
+    argv = ["--frames", str(FRAMES), "--paper-frames", str(PAPER_FRAMES), "--threads", "1,2"]
+    argv += ["--grid-px", "320", "--cache-dir", str(tmp / "cache"), "--out", str(out)]
+    assert main(argv) == 0
+    return json.loads(out.read_text())
+
+
+def test_every_pipeline_runs_at_every_thread_count(report: dict) -> None:
+    got = [(row["pipeline"], row["threads"]) for row in report["rows"]]
+    assert sorted(got) == sorted((p, t) for p in PIPELINES for t in THREADS)
+
+
+def test_every_row_has_every_field_and_positive_times(report: dict) -> None:
+    for row in report["rows"]:
+        assert set(row) == {f.name for f in fields(LatencyRow)}
+        assert row["frames"] == FRAMES
+        assert row["paper_frames"] == PAPER_FRAMES
+        assert row["paper_warmup_frames"] == 1
+        for key in ("paper_mean_ms", "p50_ms", "p99_ms", "mean_ms", "max_ms"):
+            assert row[key] > 0, (row["pipeline"], key)
+        assert row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+        assert set(row["stage_mean_ms"]) == set(STAGES)
+        for stage in STAGES[:-1]:
+            assert row["stage_mean_ms"][stage] > 0, (row["pipeline"], stage)
+        assert row["stage_mean_ms"]["other"] >= 0  # frame minus its stages: measured around them
+        assert row["detections_per_frame"] >= 0
+    assert "untrained weights: timing only" in next(
+        r["label"] for r in report["rows"] if r["pipeline"] == GRID
+    )
+
+
+def test_ratios_goals_and_machine_are_reported(report: dict) -> None:
+    ratios = {(r["numerator"], r["threads"]) for r in report["ratios"]}
+    assert ratios == {(p, t) for p in (ULTRALYTICS, GRID, TRISCAN_INT8) for t in THREADS}
+    for ratio in report["ratios"]:
+        assert set(ratio) == {f.name for f in fields(RatioRow)}
+        assert ratio["denominator"] == TRISCAN_FP32
+        assert min(ratio["paper_mean"], ratio["p50"], ratio["p99"]) > 0
+    assert len(report["goals"]) == 3
+    assert all(isinstance(goal["met"], bool) and goal["value"] > 0 for goal in report["goals"].values())
+    machine = report["machine"]
+    assert set(machine) == {f.name for f in fields(MachineInfo)}
+    assert machine["cpu_model"] and machine["logical_cpus"] >= 1 and len(machine["loadavg_end"]) == 3
+    assert all(machine["versions"][m] != "not installed" for m in ("onnxruntime", "torch", "ultralytics"))
+    assert report["scans"]["count"] == 2 + 1 + PAPER_FRAMES + FRAMES
+
+
+def test_ultralytics_sees_the_same_objects_as_onnx_runtime(report: dict) -> None:
+    """A sanity check that it is fed the right tensor (the exact comparison lives in test_export)."""
+    per_frame = {(r["pipeline"], r["threads"]): r["detections_per_frame"] for r in report["rows"]}
+    assert per_frame[(ULTRALYTICS, 1)] == pytest.approx(per_frame[(TRISCAN_FP32, 1)], abs=0.5)
+
+
+def test_occupancy_grid_is_robot_centred_forward_up_left_left() -> None:
+    ranges = np.full(360, np.inf, dtype=np.float32)
+    ranges[0] = 2.0  # straight ahead, 2 m
+    ranges[90] = 1.0  # to the left, 1 m
+    image = rasterise_occupancy_grid(ranges, 0.0, np.deg2rad(1.0), 0.12, 3.5, size=640, radius_m=4.0)
+    assert image.shape == (640, 640, 3) and image.dtype == np.uint8
+    rows, cols = np.nonzero(image[..., 0])
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(160, 320), (320, 240)]
+    assert (image[rows, cols] == 255).all() and int((image > 0).sum()) == 2 * 3
