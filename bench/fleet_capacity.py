@@ -21,7 +21,6 @@ import argparse
 import json
 import logging
 import os
-import platform
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -30,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.machine import machine_info
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
@@ -157,13 +157,6 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
     return step
 
 
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ladder", default="5,10,20,30,40,50,60", help="robot counts to try, ascending")
@@ -207,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         "workers": args.workers,
         "model": str(args.model or "default (fp32)"),
         "seconds_per_step": args.seconds,
-        "machine": {"cpu": cpu_model(), "cores": os.cpu_count()},
+        "machine": asdict(machine_info()),
         "steps": [asdict(s) for s in steps],
     }
     text = json.dumps(report, indent=2)

@@ -42,16 +42,16 @@ import gc
 import json
 import logging
 import os
-import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Final, NamedTuple, Protocol
 
 import numpy as np
 
+from bench.machine import MachineInfo, machine_info
 from bench.occupancy_grid import (
     GRID_PX,
     GRID_RADIUS_M,
@@ -92,7 +92,6 @@ GOAL_P50_MS: Final[float] = 1.5
 GOAL_ULTRALYTICS_RATIO: Final[float] = 6.0
 GOAL_GRID_RATIO: Final[float] = 30.0
 PRIME_SCANS: Final[int] = 2  # the FIFO needs two scans before the first frame yields a tensor
-ISA_FLAGS: Final[tuple[str, ...]] = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8")
 _NS_PER_MS: Final[float] = 1e6
 
 
@@ -161,20 +160,6 @@ class RatioRow:
     paper_mean: float
     p50: float
     p99: float
-
-
-@dataclass
-class MachineInfo:
-    cpu_model: str
-    isa_flags: list[str]
-    logical_cpus: int
-    usable_cpus: int
-    platform: str
-    python: str
-    versions: dict[str, str]
-    process_nice: int
-    loadavg_start: list[float]
-    loadavg_end: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -391,48 +376,6 @@ def goals(rows: Sequence[LatencyRow], ratio_rows: Sequence[RatioRow]) -> dict[st
                 "met": ratio.p50 >= target,
             }
     return out
-
-
-# --------------------------------------------------------------------------------------------------
-# Machine
-# --------------------------------------------------------------------------------------------------
-
-
-def _cpuinfo() -> tuple[str, list[str]]:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return platform.processor() or "?", []
-    model, flags = "?", set()
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "model name" and model == "?":
-            model = value.strip()
-        elif key.strip() == "flags" and not flags:
-            flags = set(value.split())
-    return model, [flag for flag in ISA_FLAGS if flag in flags]
-
-
-def _version(module: str) -> str:
-    try:
-        return str(__import__(module).__version__)
-    except ImportError:
-        return "not installed"
-
-
-def machine_info() -> MachineInfo:
-    cpu_model, isa = _cpuinfo()
-    return MachineInfo(
-        cpu_model=cpu_model,
-        isa_flags=isa,
-        logical_cpus=os.cpu_count() or 1,
-        usable_cpus=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
-        platform=platform.platform(),
-        python=platform.python_version(),
-        versions={m: _version(m) for m in ("numpy", "onnxruntime", "torch", "ultralytics")},
-        process_nice=os.nice(0),
-        loadavg_start=[round(x, 2) for x in os.getloadavg()],
-    )
 
 
 # --------------------------------------------------------------------------------------------------

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import platform
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -25,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.machine import MachineInfo, machine_info
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
@@ -55,7 +55,7 @@ class LatencyReport:
     latency_ms: dict[str, float] = field(default_factory=dict)  # p50, p95, p99, max, mean
     stage_ms_mean: dict[str, float] = field(default_factory=dict)  # encode, inference, nms, transport
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
-    machine: str = field(default_factory=lambda: f"{platform.machine()}, {platform.processor() or '?'}")
+    machine: MachineInfo = field(default_factory=machine_info)
 
 
 def run(
