@@ -73,6 +73,7 @@ class FuzzReport:
     expected_rejected: dict[str, int] = field(default_factory=dict)  # per service
     counted_rejected: dict[str, int] = field(default_factory=dict)
     rejected_by_reason: dict[str, dict[str, int]] = field(default_factory=dict)
+    expected_by_reason: dict[str, dict[str, int]] = field(default_factory=dict)
     alive_at_end: dict[str, bool] = field(default_factory=dict)
     passed: bool = False
 
@@ -97,6 +98,15 @@ def mutations(scan: Scan, tensor: StackedTensor, rng: random.Random) -> list[tup
         return {"dtype": dtype, "shape": shape, "data": data}
 
     nan_ranges = np.full(360, np.nan, dtype="<f4").tobytes()
+    blind_seq = iter(range(1, 1 << 62))
+
+    def blind_scan() -> bytes:
+        """Valid by design: a blind sensor (all NaN) with fresh seqs, so the stream stays alive and
+        counts nothing (a repeated seq would be rejected as out of order, and a robot that only sends
+        rejects is forgotten after its silence timeout, which would make counts depend on timing)."""
+        seq = next(blind_seq)
+        return _pack({**scan_raw, "seq": seq, "stamp_ns": seq, "ranges": array("<f4", [360], nan_ranges)})
+
     return [
         ("random_bytes", lambda: rng.randbytes(rng.randint(0, 2048))),
         ("empty", lambda: b""),
@@ -112,7 +122,7 @@ def mutations(scan: Scan, tensor: StackedTensor, rng: random.Random) -> list[tup
         ("angle_nan", with_field(scan_raw, "angle_increment", math.nan)),
         ("angle_inf", with_field(scan_raw, "angle_min", math.inf)),
         ("range_max_nan", with_field(scan_raw, "range_max", math.nan)),
-        ("ranges_all_nan", with_field(scan_raw, "ranges", array("<f4", [360], nan_ranges))),
+        ("ranges_all_nan", blind_scan),
         ("ranges_wrong_dtype", with_field(scan_raw, "ranges", array("<f8", [360], bytes(360 * 8)))),
         ("ranges_shape_lies", with_field(scan_raw, "ranges", array("<f4", [720], bytes(360 * 4)))),
         ("ranges_2d", with_field(scan_raw, "ranges", array("<f4", [18, 20], bytes(360 * 4)))),
@@ -282,6 +292,7 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
     report.good_scans = len(good_range)
     report.good_answered = sum(1 for s in good_range if s in answered)
     expected = {"encoder": dict(expected_encoder.counters.rejected), "detector": dict(expected_detector)}
+    report.expected_by_reason = expected
     for service in ("encoder", "detector"):
         counted = stats.get(service, {}).get("rejected", {})
         report.rejected_by_reason[service] = counted
