@@ -34,6 +34,7 @@ from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service
+from services.runtime import STATS_PREFIX
 from services.simulator.publisher import SimulatedFleet
 
 log = logging.getLogger("bench.fleet_capacity")
@@ -54,6 +55,8 @@ class FleetStep:
     rss_mb_start: dict[str, float] = field(default_factory=dict)
     rss_mb_end: dict[str, float] = field(default_factory=dict)
     publish_lag_ms_max: float = 0.0  # how late this process itself published (a bench limit, not triscan's)
+    rss_mb_timeline: list[dict[str, float]] = field(default_factory=list)  # {"t_s", "encoder", "detector"}
+    detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
     passed: bool = False
     why_not: str = ""
 
@@ -88,9 +91,16 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
         with lock:
             received[(message.robot_id, message.seq)] = arrived
 
+    detector_stats: dict[str, Any] = {}
+
+    def on_detector_stats(sample: Any) -> None:
+        detector_stats.update(json.loads(payload_bytes(sample)))
+
     try:
         with open_session(ZenohSettings.loopback(bench_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
+            stats_sub = session.declare_subscriber(f"{STATS_PREFIX}/detector/*", on_detector_stats)
+            next_rss_sample = 0.0
             publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
             wait_for_subscriber(session, scan_key(robot_ids[0]))
             wait_for_subscriber(session, f"triscan/{robot_ids[0]}/tensor")
@@ -115,6 +125,10 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
                         break
                 if measure_from is not None:
                     step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
+                    if (elapsed := time.monotonic() - measure_from) >= next_rss_sample:
+                        sample = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+                        step.rss_mb_timeline.append({"t_s": round(elapsed, 1), **sample})
+                        next_rss_sample += args.rss_every
                 measuring = measure_from is not None
                 base = scans[tick % len(scans)]
                 # Robots publish spread over the tick, as independent robots would, not in one burst.
@@ -130,7 +144,9 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
                 tick += 1
             time.sleep(1.0)
             step.rss_mb_end = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+            step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
             sub.undeclare()
+            stats_sub.undeclare()
     finally:
         for p in children.values():
             p.terminate()
@@ -167,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)
     parser.add_argument("--rss-growth-mb", type=float, default=20.0)
+    parser.add_argument("--rss-every", type=float, default=5.0, help="seconds between RSS samples")
     parser.add_argument("--keep-going", action="store_true", help="try every step even after one fails")
     parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_capacity.json"))
     args = parser.parse_args(argv)
