@@ -19,6 +19,7 @@ Conventions, fixed here once for every process:
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Literal, get_args
 
@@ -32,6 +33,7 @@ R_MAX_M = 4.0
 SENTINEL_ROW = RANGE_ROWS - 1
 ROW_SCALE = (RANGE_ROWS - 1) / R_MAX_M  # rows per metre: 63 / 4
 HIT = np.uint8(255)
+MAX_ABS_ANGLE_RAD = 1000.0  # ~160 turns: far beyond any real angle_min, far below float trouble
 STACK_DEPTH = 3
 
 Padding = Literal["zero", "wrap"]
@@ -62,6 +64,13 @@ def _check_scan(
             raise ScanError(f"{name} must be finite, got {value}")
     if angle_increment == 0.0:
         raise ScanError("angle_increment must be non-zero")
+    # Finite is not enough: a bearing of 1e300 rad overflows when converted to a column. No sensor
+    # reports angles beyond a few turns, nor steps of more than a full turn between beams.
+    if abs(angle_min) > MAX_ABS_ANGLE_RAD or abs(angle_increment) > 2 * math.pi:
+        raise ScanError(
+            f"angle_min {angle_min} or angle_increment {angle_increment} is beyond any sensor "
+            f"(|angle_min| <= {MAX_ABS_ANGLE_RAD:g} rad, |angle_increment| <= 2*pi)"
+        )
     if not 0.0 <= range_min < range_max:
         raise ScanError(f"need 0 <= range_min < range_max, got {range_min} and {range_max}")
     return values.astype(np.float64, copy=False)

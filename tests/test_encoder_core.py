@@ -160,3 +160,14 @@ def test_robot_limit_bounds_memory() -> None:
     clock.now = 100.0  # a and b went silent: room for c
     core.push(scan("c", 1))
     assert core.robot_ids == ["c"]
+
+
+def test_clock_jump_back_restarts_the_fifo() -> None:
+    core = EncoderCore("zero")
+    for i in range(3):
+        core.push(scan("r", i, stamp_ns=1_000 + i))
+    assert core.push(scan("r", 3, stamp_ns=500)) is None  # next seq, older stamp: the clock jumped back
+    assert core.push(scan("r", 4, stamp_ns=501)) is None
+    tensor = core.push(scan("r", 5, stamp_ns=502))
+    assert tensor is not None and tensor.scan_stamps_ns == (500, 501, 502)
+    assert core.counters.restarts == 1

@@ -11,6 +11,8 @@ happened. So, per robot (robots never share a FIFO):
   counted; Zenoh over TCP keeps order, so this is a misbehaving publisher or a replay.
 * **Publisher restart** (``seq <= last`` with a newer stamp: the simulator or driver came back and
   counts from 0 again): the FIFO restarts, so old and new frames never mix in one tensor.
+* **Clock jump** (a later ``seq`` with an older stamp): the FIFO restarts too, so the stamps inside a
+  tensor never run backwards.
 * **Silence**: a robot not heard from for ``forget_after_s`` is forgotten (its FIFO freed), so a fleet
   that changes over time does not leak memory; if it speaks again it starts a fresh stream.
 """
@@ -153,6 +155,17 @@ class EncoderCore:
                 self.counters.restarts += 1
                 log.info(
                     "%s: seq %d after %d with a newer stamp: publisher restarted",
+                    scan.robot_id,
+                    scan.seq,
+                    last_seq,
+                )
+                stream.restart()
+            elif scan.stamp_ns < last_stamp:
+                # The next seq with an older stamp: the sender's clock jumped back. Frames on both
+                # sides of the jump are not one motion; start over rather than mix them.
+                self.counters.restarts += 1
+                log.info(
+                    "%s: seq %d stamped before seq %d: clock jumped, FIFO restarted",
                     scan.robot_id,
                     scan.seq,
                     last_seq,
