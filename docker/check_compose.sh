@@ -112,6 +112,22 @@ else
     podman logs --tail 3 "${PROJECT}_detector_1" 2>&1 | sed 's/^/detector log: /'
 fi
 
+log "fault: kill -9 the encoder's process (a crash, not a manual stop); compose must restart it"
+if ((status == 0)); then
+    victim="${PROJECT}_encoder_1"
+    kill -9 "$(podman inspect -f '{{.State.Pid}}' "$victim")"
+    t_kill=$(date +%s)
+    for _ in $(seq 60); do
+        state=$(podman inspect -f '{{.State.Status}} {{.RestartCount}}' "$victim" 2>/dev/null || echo "missing 0")
+        [[ $state == running* && ${state#* } -ge 1 ]] && break
+        sleep 0.5
+    done
+    echo "$victim after the kill: $state (after $(( $(date +%s) - t_kill )) s)"
+    [[ $state == running* && ${state#* } -ge 1 ]] || status=1
+    $PY docker/check_subscriber.py --connect tcp/127.0.0.1:7447 --duration 10 --robots "$ROBOTS" \
+        | tee /tmp/triscan-check-after-fault.txt || status=1
+fi
+
 log "summary"
 podman images --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep -E 'triscan-(base|robot|simulator|visualizer)'
 grep -E '^(TOTAL|  robot|OK|FAIL)' /tmp/triscan-check-subscriber.txt || true
