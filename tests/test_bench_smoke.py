@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench import dataset_rate, fleet_capacity, pipeline_latency, robot_footprint
+from bench import batch_inference, dataset_rate, fleet_capacity, pipeline_latency, robot_footprint
 
 
 def test_pipeline_latency_reports_every_field() -> None:
@@ -61,3 +61,12 @@ def test_robot_footprint_reports_both_deployments(tmp_path: Path) -> None:
     assert set(report["peak_rss_mb"]["encoder + detector (2 processes)"]) == {"encoder", "detector"}
     assert set(report["peak_rss_mb"]["detector --from-scans (1 process)"]) == {"detector"}
     assert "triscan-yolov8n-zero.onnx" in report["model_files_mb"]
+
+
+def test_batch_inference_reports_per_image_cost_for_each_batch(tmp_path: Path) -> None:
+    out = tmp_path / "batch.json"
+    argv = ["--batches", "1,2", "--threads", "1", "--seconds", "0.05", "--cache-dir", str(tmp_path / "cache")]
+    assert batch_inference.main([*argv, "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["threads"], r["batch"]) for r in rows] == [(1, 1), (1, 2)]
+    assert rows[0]["speedup_per_image"] == 1.0 and all(r["ms_per_image"] > 0 for r in rows)
