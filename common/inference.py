@@ -414,14 +414,21 @@ def file_model_id(path: Path) -> str:
     return f"{path.stem}@{digest[:12]}"
 
 
-def model_padding(path: Path | str) -> Padding:
-    """The padding a triscan ONNX model was trained with (its ``triscan.padding`` metadata; ``zero``
-    for a model without it), so the launcher can start the encoder to match the detector's model."""
-    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    padding = session.get_modelmeta().custom_metadata_map.get("triscan.padding", "zero")
-    if padding not in PADDINGS:
+def _declared_padding(session: ort.InferenceSession, path: Path | str) -> Padding | None:
+    """The model's ``triscan.padding`` metadata, checked; None for a model without it."""
+    padding = session.get_modelmeta().custom_metadata_map.get("triscan.padding")
+    if padding is not None and padding not in PADDINGS:
         raise ValueError(f"{path} declares an unknown triscan.padding {padding!r}")
     return padding  # type: ignore[return-value]
+
+
+def model_padding(path: Path | str) -> Padding:
+    """The padding a triscan ONNX model was trained with (``zero`` for a model that does not say), so
+    the launcher can start the encoder to match the detector's model."""
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL  # metadata only
+    session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    return _declared_padding(session, path) or "zero"
 
 
 def default_providers() -> list[str]:
@@ -497,9 +504,7 @@ class OnnxDetector:
         )
 
     def _padding_of_model(self, path: Path, requested: Padding | None) -> Padding:
-        trained = self._session.get_modelmeta().custom_metadata_map.get("triscan.padding")
-        if trained is not None and trained not in PADDINGS:
-            raise ValueError(f"{path} declares an unknown triscan.padding {trained!r}")
+        trained = _declared_padding(self._session, path)
         if requested is not None and trained is not None and requested != trained:
             raise ValueError(
                 f"{path} was trained with {trained!r} padding; running it on {requested!r} tensors would "
