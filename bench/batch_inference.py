@@ -12,16 +12,16 @@ proportionally more robots; this measures by how much.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from bench.machine import MachineInfo, machine_info
+from bench.report import write_report
 
 log = logging.getLogger("bench.batch_inference")
 
@@ -117,10 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--batches must start with 1 (the reference)")
     threads = sorted({int(t) for t in args.threads.split(",")})
     report = measure(export_dynamic(args.cache_dir), batches, threads, args.seconds)
-    text = json.dumps(asdict(report), indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_report(report, args.out)
     return 0
 
 

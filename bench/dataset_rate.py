@@ -11,13 +11,13 @@ scale instead of extrapolating (about 10 minutes on 2 cores).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import tempfile
 import time
 from pathlib import Path
 
+from bench.report import write_report
 from training.dataset import DatasetConfig, generate_dataset
 
 log = logging.getLogger("bench.dataset_rate")
@@ -66,10 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     report = measure(args.scenarios, args.positions, args.workers)
-    text = json.dumps(report, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_report(report, args.out)
     return 0
 
 

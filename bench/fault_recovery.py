@@ -22,11 +22,12 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from bench.machine import MachineInfo, machine_info
+from bench.report import write_report
 from common.keys import DETECTIONS, TENSOR, wildcard_key
 from common.messages import Detections, StackedTensor, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
@@ -156,10 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     report = run(args.timeout)
-    text = json.dumps(asdict(report), indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_report(report, args.out)
     recovered = all(r.recovery_s is not None for r in report.recoveries) and report.mixed_tensors == 0
     return 0 if recovered else 1
 

@@ -30,12 +30,13 @@ from typing import Any
 import numpy as np
 
 from bench.machine import machine_info
+from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
-from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service
+from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service, stop_processes
 from services.runtime import STATS_PREFIX
-from services.simulator.publisher import SimulatedFleet
+from services.simulator.publisher import recorded_scans
 
 log = logging.getLogger("bench.fleet_capacity")
 
@@ -59,12 +60,6 @@ class FleetStep:
     detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
     passed: bool = False
     why_not: str = ""
-
-
-def recorded_scans(count: int) -> list[Scan]:
-    """One robot's real simulated scans, replayed for every robot of the fleet."""
-    with SimulatedFleet(1, seed=7) as fleet:
-        return [fleet.step(i * 100_000_000)[0][0] for i in range(count)]
 
 
 def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetStep:
@@ -148,19 +143,12 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
             sub.undeclare()
             stats_sub.undeclare()
     finally:
-        for p in children.values():
-            p.terminate()
-        for p in children.values():
-            p.wait(30)
+        stop_processes(children, grace_s=30)
     latencies = np.array([(received[k] - t) / 1e6 for k, t in published.items() if k in received])
     step.scans_published, step.scans_answered = len(published), len(latencies)
     step.answered_share = round(len(latencies) / max(1, len(published)), 4)
     if len(latencies):
-        step.latency_ms = {
-            q: round(float(np.percentile(latencies, p)), 2)
-            for q, p in (("p50", 50), ("p95", 95), ("p99", 99))
-        }
-        step.latency_ms["max"] = round(float(latencies.max()), 2)
+        step.latency_ms = latency_quantiles_ms(latencies)
     growth = max(step.rss_mb_end[n] - step.rss_mb_start.get(n, step.rss_mb_end[n]) for n in step.rss_mb_end)
     reasons = [step.why_not] if step.why_not else []
     if not len(latencies) or step.latency_ms["p99"] >= args.p99_limit_ms:
@@ -189,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     ladder = [int(n) for n in args.ladder.split(",")]
-    scans = recorded_scans(RECORDED_SCANS)
+    scans = recorded_scans(RECORDED_SCANS, seed=7)
     steps: list[FleetStep] = []
     for robots in ladder:
         step = run_step(robots, scans, args)
@@ -220,10 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": asdict(machine_info()),
         "steps": [asdict(s) for s in steps],
     }
-    text = json.dumps(report, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_report(report, args.out)
     log.info("capacity: %d robots at %.0f Hz", capacity, args.rate)
     return 0
 

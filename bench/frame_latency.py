@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import logging
 import os
 import sys
@@ -59,6 +58,7 @@ from bench.occupancy_grid import (
     grid_model_onnx,
     rasterise_occupancy_grid,
 )
+from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
 from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector
 
@@ -268,17 +268,18 @@ class GridPipeline:
 
 def simulated_scans(count: int, seed: int) -> list[ScanArgs]:
     """``count`` consecutive scans of one simulated robot (10 Hz, a new world every 30 s of sim time)."""
-    from services.simulator.publisher import SimulatedFleet
+    from services.simulator.publisher import recorded_scans
 
-    scans = []
-    with SimulatedFleet(robots=1, seed=seed, rate_hz=10.0) as fleet:
-        for tick in range(count):
-            scan = fleet.step(tick * 100_000_000)[0][0]
-            ranges = np.ascontiguousarray(scan.ranges, dtype=np.float32)
-            scans.append(
-                ScanArgs(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max)
-            )
-    return scans
+    return [
+        ScanArgs(
+            np.ascontiguousarray(scan.ranges, dtype=np.float32),
+            scan.angle_min,
+            scan.angle_increment,
+            scan.range_min,
+            scan.range_max,
+        )
+        for scan in recorded_scans(count, seed=seed)
+    ]
 
 
 def time_frames(pipeline: Pipeline, scans: Sequence[ScanArgs]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -547,8 +548,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     config, out = parse_args(argv)
     report = run(config)
     print(format_table(report))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(asdict(report), indent=2, ensure_ascii=False) + "\n")
+    write_report(report, out, echo=False)
     log.info("wrote %s (%.0f s)", out, report.wall_s)
     return 0
 

@@ -33,7 +33,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,7 @@ import msgpack
 import numpy as np
 import zenoh
 
+from bench.report import write_report
 from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import (
     MAX_PAYLOAD_BYTES,
@@ -53,9 +54,9 @@ from common.messages import (
 )
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.encoder.core import EncoderCore, EncoderCounters
-from services.launcher import free_tcp_ports, start_loopback_service
+from services.launcher import free_tcp_ports, start_loopback_service, stop_processes
 from services.runtime import STATS_PREFIX
-from services.simulator.publisher import SimulatedFleet
+from services.simulator.publisher import recorded_scans
 
 log = logging.getLogger("bench.fuzz_services")
 
@@ -182,8 +183,7 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
             "services.detector", detector_port, [fuzz_port, encoder_port], **quiet
         ),
     }
-    with SimulatedFleet(1, seed=3) as fleet:
-        scans = [fleet.step(i * 100_000_000)[0][0] for i in range(40)]
+    scans = recorded_scans(40, seed=3)
     tensor = StackedTensor(
         robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=np.zeros((64, 384, 3), np.uint8), padding="zero",
         scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
@@ -282,10 +282,7 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
                 sub.undeclare()
         report.alive_at_end = {name: p.poll() is None for name, p in children.items()}
     finally:
-        for p in children.values():
-            p.terminate()
-        for p in children.values():
-            p.wait(30)
+        stop_processes(children, grace_s=30)
     report.bad_sent = sum(sent_by_kind.values())
     report.bad_sent_by_kind = dict(sent_by_kind)
     good_range = range(first_counted_seq + 2, last_good)  # tensors exist from the third scan on
@@ -317,10 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     report = run(args.bad, args.good_every, args.seed)
-    text = json.dumps(asdict(report), indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_report(report, args.out)
     return 0 if report.passed else 1
 
 

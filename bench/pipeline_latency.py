@@ -14,22 +14,22 @@ machine). The per-stage split comes from the timings the detector puts in every 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench.machine import MachineInfo, machine_info
+from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.detector.__main__ import default_model_path
-from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service
+from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service, stop_processes
 from services.simulator.publisher import SimulatedFleet
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,10 +134,7 @@ def run(
             }
             sub.undeclare()
     finally:
-        for p in children.values():
-            p.terminate()
-        for p in children.values():
-            p.wait(20)
+        stop_processes(children, grace_s=20)
     latencies, stages = [], {"encode": [], "inference": [], "nms": [], "transport": []}
     for key, stamp in published.items():
         if key not in received:
@@ -153,14 +150,7 @@ def run(
     report.scans_published, report.scans_answered = len(published), len(latencies)
     report.answered_share = round(len(latencies) / max(1, len(published)), 4)
     if latencies:
-        values = np.array(latencies)
-        report.latency_ms = {
-            "p50": round(float(np.percentile(values, 50)), 2),
-            "p95": round(float(np.percentile(values, 95)), 2),
-            "p99": round(float(np.percentile(values, 99)), 2),
-            "max": round(float(values.max()), 2),
-            "mean": round(float(values.mean()), 2),
-        }
+        report.latency_ms = {**latency_quantiles_ms(latencies), "mean": round(float(np.mean(latencies)), 2)}
         report.stage_ms_mean = {k: round(float(np.mean(v)), 3) for k, v in stages.items()}
     return report
 
@@ -177,11 +167,7 @@ def main() -> int:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     report = run(args.robots, args.rate, args.duration, args.from_scans, args.threads, args.model)
-    text = json.dumps(asdict(report), indent=2)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    write_report(report, args.out)
     return 0 if report.scans_answered else 1
 
 

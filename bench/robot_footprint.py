@@ -11,11 +11,11 @@ single ``--from-scans`` detector. Peak RSS is each process's ``VmHWM``; model si
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
 from bench.pipeline_latency import run as run_pipeline
+from bench.report import write_report
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 
@@ -40,10 +40,7 @@ def main(argv: list[str] | None = None) -> int:
         "model_files_mb": {f.name: round(f.stat().st_size / 2**20, 2) for f in sorted(MODELS.glob("*.onnx"))},
         "seconds": args.seconds,
     }
-    text = json.dumps(report, indent=2)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_report(report, args.out)
     return 0
 
 

@@ -21,7 +21,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -84,6 +84,25 @@ def start_loopback_service(
     return subprocess.Popen(
         command, cwd=Path(__file__).resolve().parents[1], env=child_environment(), **popen_kwargs
     )
+
+
+def stop_processes(processes: Mapping[str, subprocess.Popen[bytes]], grace_s: float) -> None:
+    """SIGTERM every process, then wait for all of them together; kill those still alive after ``grace_s``.
+
+    Signalling all first lets them shut down in parallel (each closes its Zenoh session), so the whole
+    stop takes one grace period, not one per process.
+    """
+    for process in processes.values():
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for name, process in processes.items():
+        try:
+            process.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning("%s (pid %d) did not stop in %.0f s: killing it", name, process.pid, grace_s)
+            process.kill()
+            process.wait()
 
 
 def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:
@@ -160,20 +179,6 @@ class _Child:
 
     def exit_code(self) -> int | None:
         return None if self.process is None else self.process.poll()
-
-    def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-
-    def wait_or_kill(self, deadline: float) -> None:
-        if self.process is None:
-            return
-        try:
-            self.process.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            log.warning("%s did not stop in %.0f s: killing it", self.name, STOP_GRACE_S)
-            self.process.kill()
-            self.process.wait()
 
 
 class HealthBoard:
@@ -269,11 +274,7 @@ def up(config: UpConfig, stop: threading.Event) -> int:
                     log.info("duration %.0f s reached: stopping", config.duration_s)
                     break
         finally:
-            deadline = time.monotonic() + STOP_GRACE_S
-            for child in children.values():
-                child.stop()
-            for child in children.values():
-                child.wait_or_kill(deadline)
+            stop_processes({n: c.process for n, c in children.items() if c.process is not None}, STOP_GRACE_S)
             watcher.undeclare()
             for counter in counters:
                 counter.undeclare()

@@ -316,6 +316,16 @@ class SimulatedRobot:
         )
 
 
+def recorded_scans(count: int, seed: int = 1, rate_hz: float = 10.0) -> list[Scan]:
+    """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
+
+    For benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
+    """
+    period_ns = round(1e9 / rate_hz)
+    with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
+        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
+
+
 class SimulatedFleet:
     """``robots`` independent robots (``robot0``, ``robot1``, …) stepped together, one world each.
 
