@@ -134,6 +134,21 @@ def _check_boxes(boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray) -
         )
 
 
+def _iou_above(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...], iou_threshold: np.float64) -> np.ndarray:
+    """IoU of boxes ``a`` and ``b`` (x1, y1, x2, y2, area; broadcastable) above the threshold.
+
+    One place for the arithmetic, in torchvision's CPU operation order, which the kept set depends
+    on. Zero-area pairs give NaN and never suppress.
+    """
+    ax1, ay1, ax2, ay2, a_area = a
+    bx1, by1, bx2, by2, b_area = b
+    w = np.maximum(np.minimum(ax2, bx2) - np.maximum(ax1, bx1), 0)
+    h = np.maximum(np.minimum(ay2, by2) - np.maximum(ay1, by1), 0)
+    inter = w * h
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return inter / (a_area + b_area - inter) > iou_threshold
+
+
 def _nms_matrix(
     x1: np.ndarray,
     y1: np.ndarray,
@@ -145,11 +160,8 @@ def _nms_matrix(
     max_detections: int,
 ) -> list[int]:
     """Greedy NMS over score-sorted boxes with the whole IoU matrix computed in one vectorised step."""
-    w = np.maximum(np.minimum(x2[:, None], x2) - np.maximum(x1[:, None], x1), 0)
-    h = np.maximum(np.minimum(y2[:, None], y2) - np.maximum(y1[:, None], y1), 0)
-    inter = w * h
-    with np.errstate(invalid="ignore", divide="ignore"):  # zero-area pairs give NaN: never suppress
-        suppresses = inter / (areas[:, None] + areas - inter) > iou_threshold
+    column = (x1[:, None], y1[:, None], x2[:, None], y2[:, None], areas[:, None])
+    suppresses = _iou_above(column, (x1, y1, x2, y2, areas), iou_threshold)
     suppresses &= classes[:, None] == classes
     alive = np.ones(x1.size, dtype=bool)
     keep: list[int] = []
@@ -184,11 +196,8 @@ def _nms_rows(
         i = int(remaining[0])
         keep.append(i)
         rest = remaining[1:]
-        w = np.maximum(np.minimum(x2[i], x2[rest]) - np.maximum(x1[i], x1[rest]), 0)
-        h = np.maximum(np.minimum(y2[i], y2[rest]) - np.maximum(y1[i], y1[rest]), 0)
-        inter = w * h
-        with np.errstate(invalid="ignore", divide="ignore"):
-            suppressed = inter / (areas[i] + areas[rest] - inter) > iou_threshold
+        kept = (x1[i], y1[i], x2[i], y2[i], areas[i])
+        suppressed = _iou_above(kept, (x1[rest], y1[rest], x2[rest], y2[rest], areas[rest]), iou_threshold)
         remaining = rest[~(suppressed & (classes[rest] == classes[i]))]
     return keep
 
