@@ -17,6 +17,7 @@ from tests.scan_replay import replay_scans
 from training.evaluate import box_iou
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "triscan-yolov8n-zero.onnx"
+BATCH_MODEL = MODEL.with_name("triscan-yolov8n-zero-batch.onnx")
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +69,24 @@ def test_mailbox_never_hands_one_robot_to_two_workers_at_once() -> None:
     assert box.take(0.01) is None
     box.release("a")
     assert box.take(0) == ("a", 2)
+
+
+def test_mailbox_take_many_takes_what_is_ready_without_waiting_to_fill_the_batch() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot()
+    for robot in "abc":
+        box.put(robot, 1)
+    assert box.take_many(2, 0) == [("a", 1), ("b", 1)]  # longest-waiting first, at most the limit
+    box.put("a", 2)  # a is busy: it stays waiting, in the queue behind c
+    started = time.monotonic()
+    assert box.take_many(8, 5) == [("c", 1)]  # one ready robot is a batch of one, at once
+    assert time.monotonic() - started < 2.5
+    assert box.take_many(8, 0.01) == []
+    box.release("a")
+    box.release("b")
+    box.put("b", 2)
+    assert box.take_many(8, 0) == [("a", 2), ("b", 2)]
+    with pytest.raises(ValueError, match="limit"):
+        box.take_many(0, 0)
 
 
 def test_mailbox_close_wakes_a_waiting_taker() -> None:
@@ -129,3 +148,37 @@ def test_bad_tensors_are_rejected_with_a_reason(
     assert core.counters.rejected["robot_id_mismatch"] == 1
     assert core.counters.rejected["padding_mismatch"] == 1
     assert sum(core.counters.rejected.values()) == 3 and core.counters.received == 4
+
+
+def test_a_batch_gives_each_robot_what_it_would_get_alone(
+    detector: OnnxDetector, replayed_tensors: list[tuple[StackedTensor, list]]
+) -> None:
+    """The batch model (same network, free batch axis) in one call vs the shipped model one by one."""
+    batch_detector = OnnxDetector(BATCH_MODEL, providers=["CPUExecutionProvider"], intra_op_threads=1)
+    assert batch_detector.batched and not detector.batched
+    # Eight different robots' tensors, as the service hands them over (one per robot).
+    tensors = [
+        tensor.model_copy(update={"robot_id": f"r{i}"})
+        for i, (tensor, _) in enumerate(replayed_tensors[::7][:8])
+    ]
+    alone = [DetectorCore(detector).detect(tensor) for tensor in tensors]
+    core = DetectorCore(batch_detector)
+    together = core.detect_many(tensors)
+    assert core.counters.to_dict() | {"rejected": {}} == {
+        "received": 0,
+        "processed": 8,
+        "inference_calls": 1,
+        "dropped_stale": 0,
+        "rejected": {},
+    }
+    assert sum(len(m.detections) for m in alone) >= 8, "the frames must hold objects for this test to bite"
+    for one, batched in zip(alone, together, strict=True):
+        assert (batched.robot_id, batched.seq, batched.scan_stamp_ns) == (
+            one.robot_id,
+            one.seq,
+            one.scan_stamp_ns,
+        )
+        assert batched.detections == one.detections
+    # One shared call: every frame of the batch reports the same inference time.
+    assert len({m.timings.inference_ms for m in together}) == 1
+    assert core.detect_many([]) == [] and core.counters.inference_calls == 1

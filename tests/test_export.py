@@ -20,11 +20,14 @@ from common.messages import CLASS_NAMES
 from training.dataset import DatasetConfig, generate_dataset
 from training.export import (
     ANCHORS,
+    BATCH_AXIS,
     BOX_CHANNELS,
     INPUT_SHAPE,
     ExportError,
     _calibration_reader,
     _check_io,
+    add_batch_axis,
+    batch_variant_path,
     calibration_images,
     compare_outputs,
     export_models,
@@ -327,6 +330,50 @@ def test_read_tensor_png_rejects_other_sizes(tmp_path: Path) -> None:
         read_tensor_png(tmp_path / "small.png")
 
 
+# --- batch variants ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["fp32", "int8"])
+def test_batch_variant_is_the_same_network_with_a_free_batch_axis(
+    kind: str, request: pytest.FixtureRequest, tmp_path: Path
+) -> None:
+    source: Path = request.getfixturevalue(kind)
+    out = add_batch_axis(source, tmp_path / batch_variant_path(source).name)
+    assert out.name == source.stem + "-batch.onnx"
+    model = onnx.load(str(out))
+    onnx.checker.check_model(model, full_check=True)
+    dims = [
+        [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
+        for v in (*model.graph.input, *model.graph.output)
+    ]
+    assert dims == [[BATCH_AXIS, 3, 64, 384], [BATCH_AXIS, 8, 504]]
+    meta, source_meta = onnx_metadata(out), onnx_metadata(source)
+    assert meta["triscan.batch"] == BATCH_AXIS
+    assert meta["triscan.batch_source"] == f"{source.name} sha256:{sha256_of(source)[:12]}"
+    assert {k: v for k, v in meta.items() if not k.startswith("triscan.batch")} == source_meta
+    # The same weights: every initializer except the Reshape targets is byte-identical.
+    before = {t.name: t.raw_data for t in onnx.load(str(source)).graph.initializer}
+    after = {t.name: t.raw_data for t in model.graph.initializer}
+    changed = sorted(name for name in before if before[name] != after[name])
+    reshape_targets = {n.input[1] for n in model.graph.node if n.op_type == "Reshape"}
+    assert changed and set(changed) <= reshape_targets
+    # Five different frames in one call equal each frame alone through the source model.
+    frames = (np.random.default_rng(1).random((5, 3, 64, 384)) < 0.05).astype(np.float32)
+    together = _run(out, frames)
+    alone = np.concatenate([_run(source, frames[i : i + 1]) for i in range(5)])
+    assert np.std(alone[:, :BOX_CHANNELS]) > 1.0, "outputs must differ between frames for this to bite"
+    np.testing.assert_allclose(together, alone, rtol=0, atol=1e-4)
+
+
+def test_batch_variant_refuses_what_it_cannot_rewrite(fp32: Path, tmp_path: Path) -> None:
+    once = add_batch_axis(fp32, tmp_path / "once.onnx")
+    with pytest.raises(ExportError, match="input must be"):  # already free: not a known starting point
+        add_batch_axis(once, tmp_path / "twice.onnx")
+    with pytest.raises(FileNotFoundError):
+        add_batch_axis(tmp_path / "missing.onnx", tmp_path / "x.onnx")
+    assert not (tmp_path / "twice.onnx").exists() and not (tmp_path / "x.onnx").exists()
+
+
 # --- both models ---------------------------------------------------------------------------------------
 
 
@@ -343,7 +390,9 @@ def test_export_models_writes_and_describes_both_files(weights: Path, dataset: P
     )
     assert Path(result["fp32"]["path"]) == tmp_path / "models" / "triscan-test.onnx"
     assert Path(result["int8"]["path"]) == tmp_path / "models" / "triscan-test-int8.onnx"
-    for kind in ("fp32", "int8"):
+    assert Path(result["fp32_batch"]["path"]) == tmp_path / "models" / "triscan-test-batch.onnx"
+    assert Path(result["int8_batch"]["path"]) == tmp_path / "models" / "triscan-test-int8-batch.onnx"
+    for kind in ("fp32", "int8", "fp32_batch", "int8_batch"):
         path = Path(result[kind]["path"])
         assert result[kind]["bytes"] == path.stat().st_size
         assert result[kind]["sha256"] == sha256_of(path)

@@ -386,6 +386,57 @@ def test_detector_wiring_on_constant_graph(tmp_path: Path) -> None:
     assert frame.to_message().nms_ms == frame.nms_ms
 
 
+def batch_constant_model(path: Path, output: np.ndarray, output_batch: str | int = "batch") -> Path:
+    """Like :func:`constant_model` with a free batch axis: ``output`` repeated once per input frame."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    nodes = [
+        helper.make_node("Constant", [], ["one"], value=numpy_helper.from_array(output, "one_value")),
+        helper.make_node("Shape", ["images"], ["in_shape"], start=0, end=1),
+        helper.make_node(
+            "Constant",
+            [],
+            ["rest"],
+            value=numpy_helper.from_array(np.array(output.shape[1:])),
+        ),
+        helper.make_node("Concat", ["in_shape", "rest"], ["out_shape"], axis=0),
+        helper.make_node("Expand", ["one", "out_shape"], ["output0"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "batch_constant",
+        [helper.make_tensor_value_info("images", TensorProto.FLOAT, ["batch", 3, 64, 384])],
+        [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [output_batch, *output.shape[1:]])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9)
+    onnx.save(model, str(path))
+    return path
+
+
+def test_detect_many_equals_detect_frame_by_frame_with_and_without_a_batch_axis(tmp_path: Path) -> None:
+    cpu = ["CPUExecutionProvider"]
+    fixed = OnnxDetector(constant_model(tmp_path / "fixed.onnx", known_output()), providers=cpu)
+    batch = OnnxDetector(batch_constant_model(tmp_path / "batch.onnx", known_output()), providers=cpu)
+    assert not fixed.batched and batch.batched
+    frames = [tensor(seed) for seed in range(3)]
+    expected = [fixed.detect(frame)[0] for frame in frames]
+    assert expected[0], "the constant output holds a desk"
+    for detector in (fixed, batch):
+        results = detector.detect_many(frames)
+        assert [detections for detections, _ in results] == expected
+        assert all(min(t.encode_ms, t.inference_ms, t.nms_ms) >= 0.0 for _, t in results)
+    assert batch.detect_many([]) == []
+    with pytest.raises(ValueError, match="tensor 1 of 3"):  # refused before anything runs
+        batch.detect_many([frames[0], np.zeros((64, 360, 3), np.uint8), frames[2]])
+
+
+def test_a_free_batch_axis_must_reach_the_output(tmp_path: Path) -> None:
+    model = batch_constant_model(tmp_path / "half.onnx", known_output(), output_batch=1)
+    with pytest.raises(ValueError, match=r"expected \[batch, 4 \+ nc, anchors\]"):
+        OnnxDetector(model, providers=["CPUExecutionProvider"])
+
+
 def test_model_id_names_the_file(tmp_path: Path) -> None:
     path = constant_model(tmp_path / "tri-v1.onnx", known_output())
     detector = OnnxDetector(path, providers=["CPUExecutionProvider"])

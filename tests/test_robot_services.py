@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import threading
 import time
 from collections import defaultdict
@@ -121,12 +122,17 @@ def ports() -> Iterator[list[int]]:
     yield free_tcp_ports(3)
 
 
+@pytest.mark.parametrize(
+    "detector_args",
+    [("--threads", "1"), ("--threads", "1", "--batch", "4")],
+    ids=["batch-1-model", "batch-model"],
+)
 def test_encoder_and_detector_processes_serve_two_robots_without_cross_talk(
-    replay: dict[str, list], ports: list[int]
+    replay: dict[str, list], ports: list[int], detector_args: tuple[str, ...]
 ) -> None:
     test_port, encoder_port, detector_port = ports
     encoder = start_service("services.encoder", encoder_port, [test_port, detector_port])
-    detector = start_service("services.detector", detector_port, [test_port, encoder_port], "--threads", "1")
+    detector = start_service("services.detector", detector_port, [test_port, encoder_port], *detector_args)
     tensors, detections = Collector(StackedTensor), Collector(Detections)
     try:
         with open_session(ZenohSettings.loopback(test_port)) as session:
@@ -190,3 +196,16 @@ def test_detector_from_scans_with_two_workers_serves_in_order_and_forgets_silent
         stop_all([detector])
     # Two inference workers, yet one robot's detections come out in order, one per tensor.
     assert [d.seq for d in detections.by_robot[ROBOTS[1]]] == list(range(2, SCANS_PER_ROBOT))
+
+
+def test_detector_refuses_a_batch_its_model_cannot_run() -> None:
+    fixed = ROOT / "models" / "triscan-yolov8n-zero.onnx"
+    result = subprocess.run(
+        [sys.executable, "-m", "services.detector", "--batch", "4", "--model", str(fixed), "--no-multicast"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert "free batch axis" in result.stderr and "triscan-yolov8n-zero-batch.onnx" in result.stderr

@@ -56,6 +56,20 @@ def test_card_files_exist_and_ids_match() -> None:
     assert OnnxDetector(INT8).model_id == CARD["model_ids"]["int8"]
 
 
+@pytest.mark.parametrize("kind", ["fp32", "int8"])
+def test_batch_variants_are_the_shipped_models_with_a_free_batch_axis(kind: str) -> None:
+    """The ``-batch`` files say which file they were made from, by hash, and load as batch models."""
+    onnx = pytest.importorskip("onnx")
+    from training.export import sha256_of
+
+    source, batch = MODELS / CARD["files"][kind], MODELS / CARD["files"][f"{kind}_batch"]
+    meta = {p.key: p.value for p in onnx.load(str(batch), load_external_data=False).metadata_props}
+    assert meta["triscan.batch_source"] == f"{source.name} sha256:{sha256_of(source)[:12]}"
+    detector = OnnxDetector(batch)
+    assert detector.batched and detector.padding == "zero"
+    assert not OnnxDetector(source).batched
+
+
 def test_the_wrap_ablation_model_ships_with_its_padding() -> None:
     wrap = CARD["ablation"]["wrap"]
     path = MODELS / f"{wrap['model_id'].split('@')[0]}.onnx"

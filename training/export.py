@@ -13,6 +13,10 @@ conversion (:func:`common.encoding.to_model_input`). The detection head's decode
 box arithmetic, class sigmoid, the final concat of pixel boxes with 0–1 scores) stays float: one
 8-bit scale spanning boxes up to 384 px and scores below 1 rounds scores to a few levels (measured:
 28 % of candidate detections changed class). Whether INT8 ships is decided by evaluation, not here.
+
+Each model also gets a ``-batch`` variant with a free batch axis (:func:`add_batch_axis`): the same
+graph and weights, so a detector serving a fleet can run several robots' frames in one call without
+running a model that was never evaluated.
 """
 
 from __future__ import annotations
@@ -109,8 +113,11 @@ def _resolve_padding(requested: str | None, dataset_dir: Path | None) -> str:
     return requested
 
 
-def _check_io(model: Any, path: Path) -> None:
-    """Fail unless the graph takes ``float32[1,3,64,384]`` and returns ``float32[1,4+nc,504]``."""
+def _check_io(model: Any, path: Path, batch: int | str = 1) -> None:
+    """Fail unless the graph takes ``float32[B,3,64,384]`` and returns ``float32[B,4+nc,504]``.
+
+    ``B`` is 1 for the robot's fixed-shape models and the symbolic ``batch`` for their batch variants.
+    """
     import onnx
 
     def signature(value: Any) -> tuple[int, tuple[int | str, ...]]:
@@ -121,20 +128,21 @@ def _check_io(model: Any, path: Path) -> None:
 
     name = _input_name(model)
     (graph_input,) = (i for i in model.graph.input if i.name == name)
-    if signature(graph_input) != (onnx.TensorProto.FLOAT, INPUT_SHAPE):
-        raise ExportError(f"{path}: input must be float32{list(INPUT_SHAPE)}, got {graph_input.type}")
-    expected_out = (1, BOX_CHANNELS + len(CLASS_NAMES), ANCHORS)
+    expected_in = (batch, *INPUT_SHAPE[1:])
+    if signature(graph_input) != (onnx.TensorProto.FLOAT, expected_in):
+        raise ExportError(f"{path}: input must be float32{list(expected_in)}, got {graph_input.type}")
+    expected_out = (batch, BOX_CHANNELS + len(CLASS_NAMES), ANCHORS)
     outputs = model.graph.output
     if len(outputs) != 1 or signature(outputs[0]) != (onnx.TensorProto.FLOAT, expected_out):
         raise ExportError(f"{path}: output must be float32{list(expected_out)}, got {outputs}")
 
 
-def _save_checked(model: Any, out: Path) -> None:
-    """Write a model only once it passes the ONNX checker and has the robot's fixed input and output."""
+def _save_checked(model: Any, out: Path, batch: int | str = 1) -> None:
+    """Write a model only once it passes the ONNX checker and has the robot's input and output."""
     import onnx
 
     onnx.checker.check_model(model, full_check=True)
-    _check_io(model, out)
+    _check_io(model, out, batch)
     out.parent.mkdir(parents=True, exist_ok=True)
     onnx.save(model, str(out))
 
@@ -469,6 +477,92 @@ def quantize_int8(
     return out
 
 
+# --- batch variants ------------------------------------------------------------------------------------
+
+BATCH_AXIS = "batch"
+BATCH_SUFFIX = "-batch"
+_BATCH_CHECK_FRAMES = 3  # frames run one by one and as one batch to prove the variant computes the same
+
+
+def add_batch_axis(model_path: Path, out: Path) -> Path:
+    """Write a copy of a fixed-shape triscan model whose batch axis is free, for a detector serving a fleet.
+
+    The copy is the same graph, weights and (for INT8) quantisation scales: only the graph's batch
+    dimension becomes the symbolic ``batch`` and the leading ``1`` of every Reshape target becomes
+    ``0`` ("copy the input's dimension"), the head's only places that spell the batch size out. A
+    re-export with ``dynamic=True`` would instead re-trace the network and, for INT8, re-calibrate it:
+    a new model to evaluate rather than the evaluated one. Before writing, ``_BATCH_CHECK_FRAMES``
+    frames are run one by one through the source and as one batch through the copy; any difference
+    beyond float rounding refuses the copy (measured on the shipped models: bit-identical).
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    model_path, out = Path(model_path), Path(out)
+    if not model_path.is_file():
+        raise FileNotFoundError(f"model {model_path} not found")
+    model = onnx.load(str(model_path))
+    _check_io(model, model_path)  # only a fixed batch-1 triscan model is a known starting point
+    initializers = {t.name: t for t in model.graph.initializer}
+    rewritten: set[str] = set()
+    for node in model.graph.node:
+        if node.op_type != "Reshape" or node.input[1] in rewritten:
+            continue  # Reshapes may share one shape initializer
+        target = initializers.get(node.input[1])
+        shape = numpy_helper.to_array(target).copy() if target is not None else None
+        if shape is None or shape.ndim != 1 or shape.size == 0 or shape[0] != 1:
+            raise ExportError(
+                f"{model_path}: Reshape {node.name!r} has a target shape other than a constant [1, ...]; "
+                "re-export with `dynamic=True` instead"
+            )
+        shape[0] = 0
+        target.CopyFrom(numpy_helper.from_array(shape, target.name))
+        rewritten.add(node.input[1])
+    for value in (*model.graph.input, *model.graph.output):
+        dim = value.type.tensor_type.shape.dim[0]
+        dim.Clear()
+        dim.dim_param = BATCH_AXIS
+    del model.graph.value_info[:]  # inferred shapes still say batch 1; infer them again
+    model = onnx.shape_inference.infer_shapes(model, strict_mode=True)
+    _set_metadata(
+        model,
+        {
+            f"{META_PREFIX}batch": BATCH_AXIS,
+            f"{META_PREFIX}batch_source": f"{model_path.name} sha256:{sha256_of(model_path)[:SHA_PREFIX]}",
+        },
+    )
+    with tempfile.TemporaryDirectory(prefix="triscan-batch-") as scratch:
+        candidate = Path(scratch) / out.name
+        _save_checked(model, candidate, BATCH_AXIS)
+        _check_batch_equivalence(model_path, candidate)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(candidate, out)
+    log.info("batch variant of %s → %s (%d Reshape targets rewritten)", model_path, out, len(rewritten))
+    return out
+
+
+def _check_batch_equivalence(single: Path, batched: Path, atol: float = 1e-4) -> None:
+    """Raise unless a batch through ``batched`` equals its frames run one by one through ``single``."""
+    rng = np.random.default_rng(0)
+    # Sparse binary frames like real rasters (a few % of pixels hit), distinct per frame.
+    frames = (rng.random((_BATCH_CHECK_FRAMES, *INPUT_SHAPE[1:])) < 0.03).astype(np.float32)
+    one, many = _session(single), _session(batched)
+    name = one.get_inputs()[0].name
+    expected = np.concatenate([one.run(None, {name: frames[i : i + 1]})[0] for i in range(len(frames))])
+    got = many.run(None, {many.get_inputs()[0].name: frames})[0]
+    if got.shape != expected.shape or not np.allclose(got, expected, rtol=0, atol=atol):
+        worst = float(np.abs(got - expected).max()) if got.shape == expected.shape else float("nan")
+        raise ExportError(
+            f"{batched}: a batch of {len(frames)} differs from the frames run one by one through {single} "
+            f"(shape {list(got.shape)} vs {list(expected.shape)}, max |diff| {worst:.3g})"
+        )
+
+
+def batch_variant_path(model_path: Path) -> Path:
+    """Where the batch variant of ``models/<stem>.onnx`` lives: ``models/<stem>-batch.onnx``."""
+    return model_path.with_name(f"{model_path.stem}{BATCH_SUFFIX}{model_path.suffix}")
+
+
 # --- measurement ---------------------------------------------------------------------------------------
 
 
@@ -577,7 +671,8 @@ def export_models(
     compare_count: int = 20,
     timing_runs: int = 200,
 ) -> dict[str, Any]:
-    """Write ``<name>.onnx`` (fp32) and ``<name>-int8.onnx`` into ``models_dir``; describe both.
+    """Write ``<name>.onnx`` (fp32) and ``<name>-int8.onnx`` into ``models_dir``, each with its batch
+    variant (``-batch``, :func:`add_batch_axis`) for a detector serving many robots; describe them.
 
     ``dataset_dir`` (or its ``data.yaml``) is the set the weights were trained on: it supplies the
     calibration images (its ``val`` split) and the padding; ``padding``, when given, must match it.
@@ -603,12 +698,16 @@ def export_models(
         method=method,
         activation_type=activation_type,
     )
+    fp32_batch = add_batch_axis(fp32, batch_variant_path(fp32))
+    int8_batch = add_batch_axis(int8, batch_variant_path(int8))
     # Judge on val images the calibrator did not see: ranges fitted to an image flatter its own error.
     unseen = sorted(set(calibration_images(dataset_dir, 10**9)) - set(calibration))
     compare = _spread(unseen, compare_count) if unseen else calibration[:compare_count]
     result = {
         "fp32": _describe(fp32),
         "int8": _describe(int8),
+        "fp32_batch": _describe(fp32_batch),
+        "int8_batch": _describe(int8_batch),
         "padding": recorded_padding,
         "classes": list(CLASS_NAMES),
         "calibration_images": len(calibration),

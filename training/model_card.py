@@ -135,11 +135,15 @@ def write_card(
     lat32, lat8 = export["latency_ms_1_thread"]["fp32"], export["latency_ms_1_thread"]["int8"]
     recommended = "int8" if lat8 < lat32 and map50_delta >= -0.005 else "fp32"
     min_map50 = math.floor((gate_metrics["overall"]["mAP50"] - GATE_MARGIN) * 100) / 100
+    # Batch variants (``-batch``): the same graphs with a free batch axis, written by exports since
+    # they exist; an older export report simply has none.
+    batch_files = {kind: export[f"{kind}_batch"] for kind in ("fp32", "int8") if f"{kind}_batch" in export}
     card = {
         "files": {
             "fp32": Path(fp32["path"]).name,
             "int8": Path(int8["path"]).name,
             "checkpoint": f"{Path(fp32['path']).stem}.pt",
+            **{f"{kind}_batch": Path(entry["path"]).name for kind, entry in batch_files.items()},
         },
         "model_ids": {"fp32": test32["model_id"], "int8": test8["model_id"]},
         "recommended": recommended,
@@ -170,6 +174,12 @@ def write_card(
         f"`{fp32['sha256'][:16]}…` |",
         f"| `{card['files']['int8']}` | ONNX INT8 static QDQ, per-channel weights, uint8 activations, "
         f"head in float | {int8['bytes']} | `{int8['sha256'][:16]}…` |",
+        *(
+            f"| `{card['files'][f'{kind}_batch']}` | the {kind} file with a free batch axis (same graph "
+            "and weights, outputs checked equal) for `python -m services.detector --batch N` | "
+            f"{entry['bytes']} | `{entry['sha256'][:16]}…` |"
+            for kind, entry in batch_files.items()
+        ),
         f"| `{card['files']['checkpoint']}` | Ultralytics checkpoint of the same weights "
         "(optimizer stripped) | | |",
         "",

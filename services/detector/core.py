@@ -13,11 +13,19 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
 from common.inference import OnnxDetector
-from common.messages import Detections, MessageError, StackedTensor, StageTimings, decode_message
+from common.messages import (
+    Detection,
+    Detections,
+    MessageError,
+    StackedTensor,
+    StageTimings,
+    decode_message,
+)
 
 log = logging.getLogger(__name__)
 
@@ -61,13 +69,26 @@ class LatestPerRobot(Generic[T]):
 
         The robot stays busy until :meth:`release`.
         """
+        taken = self.take_many(1, timeout)
+        return taken[0] if taken else None
+
+    def take_many(self, limit: int, timeout: float | None = None) -> list[tuple[str, T]]:
+        """Up to ``limit`` free robots' newest items, longest-waiting first; empty after ``timeout``
+        or once closed.
+
+        Waits only for the first item and takes whatever else is ready then: a batch grows with the
+        load instead of holding a lone robot's frame back until others arrive. Each robot stays busy
+        until :meth:`release`.
+        """
+        if limit < 1:
+            raise ValueError(f"limit must be >= 1, got {limit}")
         with self._cond:
             self._cond.wait_for(lambda: self._closed or self._first_ready() is not None, timeout)
-            robot_id = None if self._closed else self._first_ready()
-            if robot_id is None:
-                return None
-            self._busy.add(robot_id)
-            return robot_id, self._slots.pop(robot_id)
+            if self._closed:
+                return []
+            ready = [robot_id for robot_id in self._slots if robot_id not in self._busy][:limit]
+            self._busy.update(ready)
+            return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
 
     def release(self, robot_id: str) -> None:
         """The robot's last taken item is done: its next one may be taken."""
@@ -87,6 +108,7 @@ class DetectorCounters:
 
     received: int = 0
     processed: int = 0
+    inference_calls: int = 0  # processed ÷ this is the mean batch size (``--batch``)
     dropped_stale: int = 0  # replaced by a newer tensor of the same robot before inference
     rejected: Counter[str] = field(default_factory=Counter)  # reason → count
 
@@ -94,6 +116,7 @@ class DetectorCounters:
         return {
             "received": self.received,
             "processed": self.processed,
+            "inference_calls": self.inference_calls,
             "dropped_stale": self.dropped_stale,
             "rejected": dict(self.rejected),
         }
@@ -154,9 +177,27 @@ class DetectorCore:
 
         ``detector`` is a worker's own session of the same model (``--workers``); default: the core's.
         """
-        detections, timings = (detector or self.detector).detect(tensor.tensor)
+        return self.detect_many([tensor], detector)[0]
+
+    def detect_many(
+        self, tensors: Sequence[StackedTensor], detector: OnnxDetector | None = None
+    ) -> list[Detections]:
+        """:meth:`detect` for several robots' tensors, in one model call with a batch model."""
+        if not tensors:
+            return []
+        model = detector or self.detector
+        results = model.detect_many([tensor.tensor for tensor in tensors])
         with self._lock:
-            self.counters.processed += 1
+            self.counters.processed += len(results)
+            self.counters.inference_calls += 1 if model.batched else len(results)
+        return [
+            self._message(tensor, detections, timings)
+            for tensor, (detections, timings) in zip(tensors, results, strict=True)
+        ]
+
+    def _message(
+        self, tensor: StackedTensor, detections: list[Detection], timings: StageTimings
+    ) -> Detections:
         return Detections(
             robot_id=tensor.robot_id,
             seq=tensor.seq,
