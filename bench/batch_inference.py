@@ -1,10 +1,10 @@
 """Would batching frames across robots raise fleet capacity? Per-image cost of YOLOv8n vs batch size.
 
-Exports the shipped checkpoint once more with a dynamic batch axis (the shipped ONNX is fixed at
-1×3×64×384, which the detector's input check relies on) into a cache directory, then times
-``session.run`` on B stacked real-shaped tensors for each B and thread count. If the per-image cost
-fell far below the batch-1 cost, a detector draining several robots per call would serve
-proportionally more robots; this measures by how much.
+Times ``session.run`` of the shipped ``-batch`` models (the evaluated networks with a free batch axis,
+:func:`training.export.add_batch_axis`) on B real stacked tensors at once, for each B and thread count.
+If the per-image cost falls below the batch-1 cost, a detector draining several robots per call
+(``services.detector --batch``) serves proportionally more robots; this measures by how much. The
+tensors come from simulated scans through the encoder, so sparsity matches what the detector sees.
 
     python -m bench.batch_inference --batches 1,2,4,8,16
 """
@@ -22,101 +22,123 @@ import numpy as np
 
 from bench.machine import MachineInfo, machine_info
 from bench.report import write_report
+from common.encoding import to_model_input
+from services.encoder.core import EncoderCore
+from services.simulator.publisher import recorded_scans
 
 log = logging.getLogger("bench.batch_inference")
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKPOINT = ROOT / "models" / "triscan-yolov8n-zero.pt"
+MODELS = (
+    ROOT / "models" / "triscan-yolov8n-zero-batch.onnx",
+    ROOT / "models" / "triscan-yolov8n-zero-int8-batch.onnx",
+)
+FRAMES = 64  # distinct real frames; batches are cut from them in turn
 
 
 @dataclass
 class BatchRow:
+    model: str
     threads: int
     batch: int
     ms_per_call: float
     ms_per_image: float
-    speedup_per_image: float  # batch-1 cost per image ÷ this cost per image, same threads
+    speedup_per_image: float  # batch-1 cost per image ÷ this cost per image, same model and threads
 
 
 @dataclass
 class BatchReport:
-    model: str
+    models: list[str]
+    frames: int
     rows: list[BatchRow] = field(default_factory=list)
     machine: MachineInfo = field(default_factory=machine_info)
 
 
-def export_dynamic(cache_dir: Path) -> Path:
-    """The shipped checkpoint as ONNX with a dynamic batch axis, exported once into ``cache_dir``."""
-    from training.offline import configure_offline
-
-    target = cache_dir / "triscan-yolov8n-zero-dynamic.onnx"
-    if target.is_file() and target.stat().st_mtime >= CHECKPOINT.stat().st_mtime:
-        return target
-    configure_offline()
-    import shutil
-
-    from ultralytics import YOLO
-
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    weights = cache_dir / CHECKPOINT.name
-    shutil.copyfile(CHECKPOINT, weights)  # Ultralytics writes the export next to its weights
-    exported = Path(YOLO(str(weights)).export(format="onnx", imgsz=(64, 384), dynamic=True, simplify=True))
-    exported.replace(target)
-    return target
+def real_model_inputs(count: int) -> np.ndarray:
+    """``float32[count, 3, 64, 384]``: simulated scans through the encoder and the detector's conversion."""
+    encoder = EncoderCore("zero")
+    inputs = []
+    for scan in recorded_scans(count + 2, seed=11):
+        tensor = encoder.push(scan)
+        if tensor is not None:
+            inputs.append(to_model_input(tensor.tensor))
+    return np.concatenate(inputs[:count])
 
 
-def measure(model: Path, batches: list[int], threads_list: list[int], seconds: float) -> BatchReport:
+def measure(
+    models: list[Path], batches: list[int], threads_list: list[int], seconds: float, frames: np.ndarray
+) -> BatchReport:
     import onnxruntime as ort
 
-    report = BatchReport(model=model.name)
-    rng = np.random.default_rng(0)
-    for threads in threads_list:
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = threads
-        session = ort.InferenceSession(str(model), options, providers=["CPUExecutionProvider"])
-        name = session.get_inputs()[0].name
-        base_per_image = None
-        for batch in batches:
-            # Sparse binary frames like real rasters (about 1 % of pixels hit), scaled as the detector does.
-            frames = (rng.random((batch, 3, 64, 384)) < 0.01).astype(np.float32)
-            for _ in range(3):
-                session.run(None, {name: frames})
-            calls, started = 0, time.perf_counter()
-            while (elapsed := time.perf_counter() - started) < seconds or calls < 3:
-                session.run(None, {name: frames})
-                calls += 1
-            per_call = elapsed / calls * 1e3
-            per_image = per_call / batch
-            base_per_image = base_per_image or per_image
-            row = BatchRow(
-                threads, batch, round(per_call, 3), round(per_image, 3), round(base_per_image / per_image, 2)
-            )
-            report.rows.append(row)
-            log.info(
-                "threads %d batch %2d: %.2f ms/call, %.2f ms/image (%.2fx)",
-                threads,
-                batch,
-                per_call,
-                per_image,
-                row.speedup_per_image,
-            )
+    report = BatchReport(models=[m.name for m in models], frames=len(frames))
+    for model in models:
+        for threads in threads_list:
+            options = ort.SessionOptions()
+            options.intra_op_num_threads = threads
+            options.inter_op_num_threads = 1
+            session = ort.InferenceSession(str(model), options, providers=["CPUExecutionProvider"])
+            name = session.get_inputs()[0].name
+            base_per_image = None
+            for batch in batches:
+                feeds = [
+                    {name: np.take(frames, range(i, i + batch), axis=0, mode="wrap")}
+                    for i in range(0, len(frames), batch)
+                ]
+                for feed in feeds[:3]:
+                    session.run(None, feed)
+                calls, started = 0, time.perf_counter()
+                while (elapsed := time.perf_counter() - started) < seconds or calls < 3:
+                    session.run(None, feeds[calls % len(feeds)])
+                    calls += 1
+                per_call = elapsed / calls * 1e3
+                per_image = per_call / batch
+                base_per_image = base_per_image or per_image
+                row = BatchRow(
+                    model.name,
+                    threads,
+                    batch,
+                    round(per_call, 3),
+                    round(per_image, 3),
+                    round(base_per_image / per_image, 2),
+                )
+                report.rows.append(row)
+                log.info(
+                    "%s threads %d batch %2d: %.2f ms/call, %.2f ms/image (%.2fx)",
+                    model.name,
+                    threads,
+                    batch,
+                    per_call,
+                    per_image,
+                    row.speedup_per_image,
+                )
     return report
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--models",
+        type=Path,
+        nargs="+",
+        default=list(MODELS),
+        help="models with a free batch axis (default: the shipped fp32 and INT8 -batch files)",
+    )
     parser.add_argument("--batches", default="1,2,4,8,16", help="batch sizes, starting with 1")
     parser.add_argument("--threads", default=f"1,{os.cpu_count() or 1}", help="ONNX Runtime thread counts")
-    parser.add_argument("--seconds", type=float, default=3.0, help="timed seconds per (threads, batch)")
-    parser.add_argument("--cache-dir", type=Path, default=ROOT / "runs" / "bench_cache")
+    parser.add_argument(
+        "--seconds", type=float, default=3.0, help="timed seconds per model, threads and batch"
+    )
+    parser.add_argument("--frames", type=int, default=FRAMES, help="distinct real frames to cycle through")
     parser.add_argument("--out", type=Path, default=Path("bench/results/batch_inference.json"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     batches = [int(b) for b in args.batches.split(",")]
-    if batches[0] != 1:
-        parser.error("--batches must start with 1 (the reference)")
+    if batches[0] != 1 or any(b < 1 for b in batches):
+        parser.error("--batches must start with 1 (the reference) and hold positive sizes")
+    if args.frames < 1:
+        parser.error("--frames must be >= 1")
     threads = sorted({int(t) for t in args.threads.split(",")})
-    report = measure(export_dynamic(args.cache_dir), batches, threads, args.seconds)
+    report = measure(args.models, batches, threads, args.seconds, real_model_inputs(args.frames))
     write_report(report, args.out)
     return 0
 

@@ -2,8 +2,9 @@
 
 For each N of a ladder, this process publishes N robots' scans at ``--rate`` Hz (real simulated scans,
 recorded once and replayed with fresh ids, seqs and stamps, so the publisher costs almost nothing),
-into one ``services.encoder`` and one ``services.detector`` process (``--workers`` inference threads)
-over Zenoh on loopback. A step passes when, over its measured window:
+into one ``services.encoder`` and one ``services.detector`` process (``--workers`` inference threads,
+each running up to ``--batch`` robots per model call), or one ``--from-scans`` detector, over Zenoh
+on loopback. A step passes when, over its measured window:
 
 * p99 scan→detection latency < ``--p99-limit-ms`` (100 ms), and
 * at least ``--min-answered`` (95 %) of scans got their detections (the detector keeps only the newest
@@ -13,6 +14,7 @@ over Zenoh on loopback. A step passes when, over its measured window:
 The capacity is the largest passing N. Every step's figures are printed and written as JSON.
 
     python -m bench.fleet_capacity --ladder 10,20,30,40,50 --seconds 20 --workers 2
+    python -m bench.fleet_capacity --ladder 10,15,20,25 --workers 1 --threads 2 --batch 8
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ class FleetStep:
     publish_lag_ms_max: float = 0.0  # how late this process itself published (a bench limit, not triscan's)
     rss_mb_timeline: list[dict[str, float]] = field(default_factory=list)  # {"t_s", "encoder", "detector"}
     detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
+    detector_mean_batch: float = 0.0  # tensors per model call over the whole step (--batch)
     passed: bool = False
     why_not: str = ""
 
@@ -65,16 +68,23 @@ class FleetStep:
 def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetStep:
     step = FleetStep(robots)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
-    children = {
-        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
-        "detector": start_loopback_service(
-            "services.detector",
-            detector_port,
-            [bench_port, encoder_port],
-            *("--workers", str(args.workers)),
-            *(("--model", str(args.model)) if args.model else ()),
-        ),
-    }
+    detector_args = (
+        *("--workers", str(args.workers), "--batch", str(args.batch)),
+        *(("--threads", str(args.threads)) if args.threads else ()),
+        *(("--model", str(args.model)) if args.model else ()),
+        *(("--from-scans",) if args.from_scans else ()),
+    )
+    children = {}
+    if not args.from_scans:
+        children["encoder"] = start_loopback_service(
+            "services.encoder", encoder_port, [bench_port, detector_port]
+        )
+    children["detector"] = start_loopback_service(
+        "services.detector",
+        detector_port,
+        [bench_port] if args.from_scans else [bench_port, encoder_port],
+        *detector_args,
+    )
     robot_ids = [f"fleet{i:03d}" for i in range(robots)]
     published: dict[tuple[str, int], int] = {}
     received: dict[tuple[str, int], int] = {}
@@ -98,7 +108,8 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
             next_rss_sample = 0.0
             publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
             wait_for_subscriber(session, scan_key(robot_ids[0]))
-            wait_for_subscriber(session, f"triscan/{robot_ids[0]}/tensor")
+            if not args.from_scans:
+                wait_for_subscriber(session, f"triscan/{robot_ids[0]}/tensor")
             period = 1.0 / args.rate
             start = time.monotonic()
             tick = 0
@@ -140,6 +151,10 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
             time.sleep(1.0)
             step.rss_mb_end = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
             step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
+            calls = int(detector_stats.get("inference_calls", 0))
+            step.detector_mean_batch = (
+                round(int(detector_stats.get("processed", 0)) / calls, 2) if calls else 0.0
+            )
             sub.undeclare()
             stats_sub.undeclare()
     finally:
@@ -168,6 +183,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="detector inference threads")
     parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
+    parser.add_argument(
+        "--batch", type=int, default=1, help="detector --batch (above 1: default model is the -batch fp32)"
+    )
+    parser.add_argument("--threads", type=int, default=None, help="detector --threads per worker")
+    parser.add_argument(
+        "--from-scans",
+        action="store_true",
+        help="one detector --from-scans process instead of encoder + detector",
+    )
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)
     parser.add_argument("--rss-growth-mb", type=float, default=20.0)
@@ -203,7 +227,10 @@ def main(argv: list[str] | None = None) -> int:
         },
         "rate_hz": args.rate,
         "workers": args.workers,
-        "model": str(args.model or "default (fp32)"),
+        "batch": args.batch,
+        "threads": args.threads,
+        "from_scans": args.from_scans,
+        "model": str(args.model or f"default ({'fp32 -batch' if args.batch > 1 else 'fp32'})"),
         "seconds_per_step": args.seconds,
         "machine": asdict(machine_info()),
         "steps": [asdict(s) for s in steps],

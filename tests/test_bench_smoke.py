@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from bench import batch_inference, dataset_rate, fleet_capacity, pipeline_latency, robot_footprint
 
 
@@ -19,7 +21,14 @@ def test_pipeline_latency_reports_every_field() -> None:
     )
 
 
-def test_fleet_capacity_runs_a_step_and_writes_json(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("extra", "processes"),
+    [((), {"encoder", "detector"}), (("--batch", "4", "--from-scans"), {"detector"})],
+    ids=["encoder+detector", "from-scans-batched"],
+)
+def test_fleet_capacity_runs_a_step_and_writes_json(
+    tmp_path: Path, extra: tuple[str, ...], processes: set[str]
+) -> None:
     out = tmp_path / "fleet.json"
     # Two robots for two seconds with generous criteria: the point is that every field is produced.
     argv = [
@@ -34,13 +43,14 @@ def test_fleet_capacity_runs_a_step_and_writes_json(tmp_path: Path) -> None:
         "--min-answered",
         "0",
     ]
-    assert fleet_capacity.main([*argv, "--rss-growth-mb", "1e9", "--out", str(out)]) == 0
+    assert fleet_capacity.main([*argv, *extra, "--rss-growth-mb", "1e9", "--out", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["capacity_robots"] == 2
     (step,) = report["steps"]
     assert step["robots"] == 2 and step["scans_published"] > 0 and step["scans_answered"] > 0
     assert set(step["latency_ms"]) == {"p50", "p95", "p99", "max"}
-    assert set(step["rss_mb_end"]) == {"encoder", "detector"}
+    assert set(step["rss_mb_end"]) == processes
+    assert step["detector_mean_batch"] >= 1.0  # read from the detector's own stats
 
 
 def test_dataset_rate_reports_rate_and_paper_scale(tmp_path: Path) -> None:
@@ -65,8 +75,13 @@ def test_robot_footprint_reports_both_deployments(tmp_path: Path) -> None:
 
 def test_batch_inference_reports_per_image_cost_for_each_batch(tmp_path: Path) -> None:
     out = tmp_path / "batch.json"
-    argv = ["--batches", "1,2", "--threads", "1", "--seconds", "0.05", "--cache-dir", str(tmp_path / "cache")]
+    argv = ["--batches", "1,2", "--threads", "1", "--seconds", "0.05", "--frames", "4"]
     assert batch_inference.main([*argv, "--out", str(out)]) == 0
-    rows = json.loads(out.read_text())["rows"]
-    assert [(r["threads"], r["batch"]) for r in rows] == [(1, 1), (1, 2)]
+    report = json.loads(out.read_text())
+    assert report["frames"] == 4
+    rows = report["rows"]
+    assert [(r["model"], r["threads"], r["batch"]) for r in rows] == [
+        (model, 1, batch) for model in report["models"] for batch in (1, 2)
+    ]
+    assert report["models"] == ["triscan-yolov8n-zero-batch.onnx", "triscan-yolov8n-zero-int8-batch.onnx"]
     assert rows[0]["speedup_per_image"] == 1.0 and all(r["ms_per_image"] > 0 for r in rows)
