@@ -432,13 +432,29 @@ def _declared_padding(session: ort.InferenceSession, path: Path | str) -> Paddin
     return padding  # type: ignore[return-value]
 
 
+def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
+    """A session only to read a model's metadata and signature: no graph optimisation, so it is cheap."""
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+
+
 def model_padding(path: Path | str) -> Padding:
     """The padding a triscan ONNX model was trained with (``zero`` for a model that does not say), so
     the launcher can start the encoder to match the detector's model."""
-    options = ort.SessionOptions()
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL  # metadata only
-    session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
-    return _declared_padding(session, path) or "zero"
+    return _declared_padding(_unoptimised_session(path), path) or "zero"
+
+
+def _is_free_dimension(dim: object) -> bool:
+    """ONNX Runtime reports a symbolic dimension as its name (a str) and an unnamed one as None."""
+    return dim is None or isinstance(dim, str)
+
+
+def model_takes_batches(path: Path | str) -> bool:
+    """Whether a model's batch axis is free (a ``-batch`` file), so a launcher can refuse ``--batch``
+    for a fixed batch-1 model before starting a detector that would refuse it."""
+    shape = _unoptimised_session(path).get_inputs()[0].shape
+    return bool(shape) and _is_free_dimension(shape[0])
 
 
 def default_providers() -> list[str]:
@@ -540,9 +556,8 @@ class OnnxDetector:
             raise ValueError(f"{path} must have exactly one input, got {[i.name for i in inputs]}")
         model_input = inputs[0]
         in_shape = list(model_input.shape)
-        batch = in_shape[0] if in_shape else None
-        # ONNX Runtime reports a symbolic dimension as its name (a str), an unnamed one as None.
-        free_batch = batch is None or isinstance(batch, str)
+        batch = in_shape[0] if in_shape else 1
+        free_batch = _is_free_dimension(batch)
         if (
             len(in_shape) != 4
             or not (batch == 1 or free_batch)
@@ -559,7 +574,7 @@ class OnnxDetector:
         if (
             len(shape) != 3
             or not all(isinstance(d, int) for d in shape[1:])
-            or (isinstance(shape[0], int) if free_batch else shape[0] != 1)
+            or (not _is_free_dimension(shape[0]) if free_batch else shape[0] != 1)
             or shape[1] < 5
         ):
             raise ValueError(
@@ -654,10 +669,15 @@ class OnnxDetector:
             results.append((detections, timings))
         return results
 
-    def warmup(self) -> None:
-        """Run one blank frame through the whole path, so the first real frame's timing is honest.
+    def warmup(self, max_batch: int = 1) -> None:
+        """Run blank frames through the whole path, so the first real frame's timing is honest.
 
-        ONNX Runtime allocates its arenas and picks kernels on the first run; SPEC §6 measures after
-        one warm-up.
+        ONNX Runtime allocates its arenas and plans memory on the first run of each input shape; SPEC
+        §6 measures after one warm-up. With a batch model every batch size up to ``max_batch`` is run
+        once, so the first batch of each size in service does not pay for it.
         """
-        self.detect(np.zeros((RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH), dtype=np.uint8))
+        if max_batch < 1:
+            raise ValueError(f"max_batch must be >= 1, got {max_batch}")
+        blank = np.zeros((RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH), dtype=np.uint8)
+        for size in range(1, (max_batch if self.batched else 1) + 1):
+            self.detect_many([blank] * size)

@@ -304,6 +304,12 @@ def _add_up(sub: argparse._SubParsersAction) -> None:
         "--viewer", choices=("spawn", "web", "none"), default="spawn", help="viewer when not --headless"
     )
     p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=1,
+        help="detector: most robots per model call (above 1 needs a -batch model, the default then)",
+    )
     p.add_argument("--seed", type=int, default=1, help="simulator seed (training used 0)")
     p.add_argument(
         "--max-restarts", type=int, default=5, help="restarts of one service per minute before giving up"
@@ -333,6 +339,7 @@ def _run_up(args: argparse.Namespace) -> int:
         rrd_path=args.rrd,
         viewer=args.viewer,
         model=args.model,
+        batch=args.batch,
         seed=args.seed,
         max_restarts=args.max_restarts,
         settings=settings,

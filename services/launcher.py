@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import model_padding
+from common.inference import model_padding, model_takes_batches
 from common.keys import DETECTIONS, SCAN, wildcard_key
 from common.transport import HEALTH_PREFIX, ZenohSettings, open_session, parse_health_key
 from services.detector.__main__ import default_model_path
@@ -52,6 +52,7 @@ class UpConfig:
     rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
     viewer: str = "spawn"  # spawn | web | none, when not headless
     model: Path | None = None
+    batch: int = 1  # the detector's --batch: most robots per model call
     seed: int = 1  # the shipped model trained on seed 0's worlds: show it unseen ones
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
@@ -136,14 +137,15 @@ def service_commands(
         sink = ["--spawn"]
     else:
         sink = []
-    padding = model_padding(config.model or default_model_path())  # the encoder must match the model
+    model = config.model or default_model_path(batched=config.batch > 1)
+    padding = model_padding(model)  # the encoder must match the model
     service_args = {
         "simulator": [
             *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
             *("--padding", padding),
         ],
         "encoder": ["--padding", padding],
-        "detector": ["--model", str(config.model)] if config.model else [],
+        "detector": [*(("--model", str(config.model)) if config.model else ()), "--batch", str(config.batch)],
         "visualizer": sink,
     }
     commands = {}
@@ -234,6 +236,14 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     """Start, watch and stop the services; 0 on a clean stop, 1 if a service kept dying or never came up."""
     if config.robots < 1:
         raise ValueError(f"--robots must be >= 1, got {config.robots}")
+    if config.batch < 1:
+        raise ValueError(f"--batch must be >= 1, got {config.batch}")
+    if config.batch > 1 and not model_takes_batches(
+        model := config.model or default_model_path(batched=True)
+    ):
+        raise ValueError(
+            f"--batch {config.batch} needs a model with a free batch axis (a -batch file), not {model}"
+        )
     launcher_ports = [p for p in (_endpoint_port(e) for e in config.settings.listen) if p is not None]
     ports = dict(zip(SERVICES, free_tcp_ports(len(SERVICES)), strict=True))
     commands = service_commands(config, ports, launcher_ports[0] if launcher_ports else None)

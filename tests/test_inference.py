@@ -427,6 +427,10 @@ def test_detect_many_equals_detect_frame_by_frame_with_and_without_a_batch_axis(
         assert [detections for detections, _ in results] == expected
         assert all(min(t.encode_ms, t.inference_ms, t.nms_ms) >= 0.0 for _, t in results)
     assert batch.detect_many([]) == []
+    batch.warmup(4)  # every batch size up to 4 once; a fixed model ignores the size
+    fixed.warmup(4)
+    with pytest.raises(ValueError, match="max_batch"):
+        batch.warmup(0)
     with pytest.raises(ValueError, match="tensor 1 of 3"):  # refused before anything runs
         batch.detect_many([frames[0], np.zeros((64, 360, 3), np.uint8), frames[2]])
 

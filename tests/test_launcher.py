@@ -57,3 +57,19 @@ def test_encoder_padding_follows_the_model(tmp_path: Path) -> None:
     assert flag_values(commands["detector"], "--model") == [str(wrap_model)]
     default = service_commands(UpConfig(viewer="none"), ports, None)
     assert flag_values(default["encoder"], "--padding") == ["zero"]
+
+
+def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything_starts() -> None:
+    import threading
+
+    from services.launcher import up
+
+    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    assert flag_values(service_commands(UpConfig(viewer="none"), ports, None)["detector"], "--batch") == ["1"]
+    batched = service_commands(UpConfig(viewer="none", batch=8), ports, None)["detector"]
+    assert flag_values(batched, "--batch") == ["8"] and flag_values(batched, "--model") == []
+    fixed = MODELS / "triscan-yolov8n-zero.onnx"
+    with pytest.raises(ValueError, match="free batch axis"):
+        up(UpConfig(viewer="none", batch=4, model=fixed), threading.Event())
+    with pytest.raises(ValueError, match="--batch must be >= 1"):
+        up(UpConfig(viewer="none", batch=0), threading.Event())

@@ -89,7 +89,7 @@ def run(
     encoder_lock = threading.Lock()
     mailbox: LatestPerRobot[StackedTensor] = LatestPerRobot()
     for worker_detector in detectors:
-        worker_detector.warmup()
+        worker_detector.warmup(batch)
 
     def robot_of(sample: Any) -> str | None:
         try:
@@ -148,14 +148,17 @@ def run(
                 if not taken:
                     continue
                 try:
-                    for detections in core.detect_many([tensor for _, tensor in taken], worker_detector):
+                    try:
+                        results = core.detect_many([tensor for _, tensor in taken], worker_detector)
+                    except Exception as exc:  # one failed model call must not end this worker
+                        log.exception("inference failed for %s", [robot_id for robot_id, _ in taken])
+                        for robot_id, tensor in taken:
+                            core.reject("inference_error", f"{robot_id} seq {tensor.seq}: {exc}")
+                        results = []
+                    for detections in results:
                         publish(detections)
-                except Exception as exc:
-                    log.exception("inference failed for %s", [robot_id for robot_id, _ in taken])
-                    for robot_id, tensor in taken:
-                        core.reject("inference_error", f"{robot_id} seq {tensor.seq}: {exc}")
                 finally:
-                    for robot_id, _ in taken:
+                    for robot_id, _ in taken:  # only now: a robot's next tensor must not overtake this one
                         mailbox.release(robot_id)
 
         workers = [
