@@ -7,7 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from bench import batch_inference, dataset_rate, fleet_capacity, pipeline_latency, robot_footprint
+from bench import (
+    batch_inference,
+    dataset_rate,
+    fleet_batch_ab,
+    fleet_capacity,
+    pipeline_latency,
+    robot_footprint,
+)
 
 
 def test_pipeline_latency_reports_every_field() -> None:
@@ -51,6 +58,18 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     assert set(step["latency_ms"]) == {"p50", "p95", "p99", "max"}
     assert set(step["rss_mb_end"]) == processes
     assert step["detector_mean_batch"] >= 1.0  # read from the detector's own stats
+
+
+def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:
+    out = tmp_path / "ab.json"
+    argv = ["--robots", "2", "--rounds", "1", "--batch", "4", "--seconds", "2", "--precision", "int8"]
+    assert fleet_batch_ab.main([*argv, "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert set(report["summary"]) == set(report["rounds"]) == {"batch_1", "batch_4"}
+    for name, figures in report["summary"].items():
+        assert set(figures) == {"answered_share", "p50_ms", "p99_ms", "mean_batch", "rounds_passed"}
+        (step,) = report["rounds"][name]
+        assert step["robots"] == 2 and step["scans_answered"] > 0 and figures["mean_batch"] >= 1.0
 
 
 def test_dataset_rate_reports_rate_and_paper_scale(tmp_path: Path) -> None:

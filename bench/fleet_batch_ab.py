@@ -1,0 +1,105 @@
+"""Does ``--batch`` raise what one detector serves? The same fleet, batch 1 and batched, taking turns.
+
+This VM's throughput drifts by up to 2× between minutes (the same ``bench.fleet_capacity`` ladder has
+put the knee anywhere from 10 to 20 robots), so two ladders run one after the other compare the
+machine's moods as much as the two settings. Here one fleet size is run ``--rounds`` times with the
+batch-1 model at ``--batch 1`` and the ``-batch`` model at ``--batch N``, alternating, each round a
+full ``bench.fleet_capacity`` step (fresh services, warm-up, measured window); the medians per
+setting are printed and written as JSON.
+
+    python -m bench.fleet_batch_ab --robots 24 --rounds 3 --precision int8
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import statistics
+from dataclasses import asdict
+from pathlib import Path
+
+from bench import fleet_capacity
+from bench.machine import machine_info
+from bench.report import write_report
+from services.simulator.publisher import recorded_scans
+
+log = logging.getLogger("bench.fleet_batch_ab")
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = {
+    "fp32": (
+        ROOT / "models" / "triscan-yolov8n-zero.onnx",
+        ROOT / "models" / "triscan-yolov8n-zero-batch.onnx",
+    ),
+    "int8": (
+        ROOT / "models" / "triscan-yolov8n-zero-int8.onnx",
+        ROOT / "models" / "triscan-yolov8n-zero-int8-batch.onnx",
+    ),
+}
+
+
+def summary(steps: list[fleet_capacity.FleetStep]) -> dict[str, float]:
+    """Medians over the rounds of one setting."""
+    return {
+        "answered_share": statistics.median(s.answered_share for s in steps),
+        "p50_ms": statistics.median(s.latency_ms.get("p50", float("nan")) for s in steps),
+        "p99_ms": statistics.median(s.latency_ms.get("p99", float("nan")) for s in steps),
+        "mean_batch": statistics.median(s.detector_mean_batch for s in steps),
+        "rounds_passed": sum(s.passed for s in steps),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", type=int, default=24, help="fleet size, the same in every round")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds per setting, alternating")
+    parser.add_argument("--batch", type=int, default=8, help="the batched setting's --batch")
+    parser.add_argument(
+        "--precision", choices=sorted(MODELS), default="int8", help="which shipped model pair"
+    )
+    parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per round")
+    parser.add_argument("--from-scans", action="store_true", help="one detector --from-scans process")
+    parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_batch_ab.json"))
+    args = parser.parse_args(argv)
+    if args.robots < 1 or args.rounds < 1 or args.batch < 2:
+        parser.error("--robots and --rounds must be >= 1 and --batch >= 2")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    fixed_model, batch_model = MODELS[args.precision]
+    common = ["--seconds", str(args.seconds), *(["--from-scans"] if args.from_scans else [])]
+    settings = {
+        "batch_1": fleet_capacity.build_parser().parse_args([*common, "--model", str(fixed_model)]),
+        f"batch_{args.batch}": fleet_capacity.build_parser().parse_args(
+            [*common, "--model", str(batch_model), "--batch", str(args.batch)]
+        ),
+    }
+    scans = recorded_scans(fleet_capacity.RECORDED_SCANS, seed=7)
+    rounds: dict[str, list[fleet_capacity.FleetStep]] = {name: [] for name in settings}
+    for round_index in range(args.rounds):
+        for name, step_args in settings.items():
+            step = fleet_capacity.run_step(args.robots, scans, step_args)
+            rounds[name].append(step)
+            log.info(
+                "round %d %s: p99 %s ms, answered %.1f %%, mean batch %.2f",
+                round_index + 1,
+                name,
+                step.latency_ms.get("p99"),
+                100 * step.answered_share,
+                step.detector_mean_batch,
+            )
+    report = {
+        "robots": args.robots,
+        "precision": args.precision,
+        "from_scans": args.from_scans,
+        "seconds_per_round": args.seconds,
+        "summary": {name: summary(steps) for name, steps in rounds.items()},
+        "rounds": {name: [asdict(s) for s in steps] for name, steps in rounds.items()},
+        "machine": asdict(machine_info()),
+    }
+    for name, figures in report["summary"].items():
+        log.info("%s (median of %d): %s", name, args.rounds, figures)
+    write_report(report, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
