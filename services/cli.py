@@ -150,6 +150,24 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=_run_export)
 
 
+def _add_batch_model(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "batch-model",
+        help="a copy of an exported model with a free batch axis, for `services.detector --batch N`",
+    )
+    p.add_argument("model", type=Path, help="a fixed-shape triscan ONNX model (fp32 or INT8)")
+    p.add_argument("--out", type=Path, default=None, help="default: <model stem>-batch.onnx beside it")
+    p.set_defaults(run=_run_batch_model)
+
+
+def _run_batch_model(args: argparse.Namespace) -> int:
+    from training.export import add_batch_axis, batch_variant_path
+
+    out = add_batch_axis(args.model, args.out or batch_variant_path(args.model))
+    print(f"wrote {out}: the same network, frames in one call equal frames one by one")
+    return 0
+
+
 def _run_export(args: argparse.Namespace) -> int:
     import json
 
@@ -378,6 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_show(sub)
     _add_train(sub)
     _add_export(sub)
+    _add_batch_model(sub)
     _add_eval(sub)
     _add_card(sub)
     _add_up(sub)

@@ -70,6 +70,20 @@ def test_batch_variants_are_the_shipped_models_with_a_free_batch_axis(kind: str)
     assert not OnnxDetector(source).batched
 
 
+def test_triscan_batch_model_makes_a_batch_variant_of_any_shipped_model(tmp_path: Path) -> None:
+    """The wrap ablation model ships without one; ``triscan batch-model`` makes it, and refuses twice."""
+    pytest.importorskip("onnx")
+    from services.cli import main as cli_main
+
+    wrap = MODELS / f"{CARD['ablation']['wrap']['model_id'].split('@')[0]}.onnx"
+    out = tmp_path / "wrap-batch.onnx"
+    assert cli_main(["batch-model", str(wrap), "--out", str(out)]) == 0
+    detector = OnnxDetector(out)
+    assert detector.batched and detector.padding == "wrap"
+    assert cli_main(["batch-model", str(out), "--out", str(tmp_path / "again.onnx")]) == 2
+    assert not (tmp_path / "again.onnx").exists()
+
+
 def test_the_wrap_ablation_model_ships_with_its_padding() -> None:
     wrap = CARD["ablation"]["wrap"]
     path = MODELS / f"{wrap['model_id'].split('@')[0]}.onnx"

@@ -59,8 +59,12 @@ ActivationType = Literal["uint8", "int8"]
 ACTIVATION_TYPES: tuple[str, ...] = get_args(ActivationType)
 
 
-class ExportError(RuntimeError):
-    """An export or quantisation that cannot produce a model the robot may run."""
+class ExportError(ValueError):
+    """An export or quantisation that cannot produce a model the robot may run.
+
+    A ``ValueError``: it always comes from what was handed in (weights, data set, model file), and
+    ``triscan`` reports those as a one-line error instead of a traceback.
+    """
 
 
 # --- small helpers -------------------------------------------------------------------------------------
@@ -126,15 +130,20 @@ def _check_io(model: Any, path: Path, batch: int | str = 1) -> None:
             d.dim_value if d.HasField("dim_value") else d.dim_param for d in tensor.shape.dim
         )
 
+    def described(value: Any) -> str:
+        elem_type, dims = signature(value)
+        return f"{onnx.helper.tensor_dtype_to_np_dtype(elem_type)}{list(dims)}"
+
     name = _input_name(model)
     (graph_input,) = (i for i in model.graph.input if i.name == name)
     expected_in = (batch, *INPUT_SHAPE[1:])
     if signature(graph_input) != (onnx.TensorProto.FLOAT, expected_in):
-        raise ExportError(f"{path}: input must be float32{list(expected_in)}, got {graph_input.type}")
+        raise ExportError(f"{path}: input must be float32{list(expected_in)}, got {described(graph_input)}")
     expected_out = (batch, BOX_CHANNELS + len(CLASS_NAMES), ANCHORS)
     outputs = model.graph.output
     if len(outputs) != 1 or signature(outputs[0]) != (onnx.TensorProto.FLOAT, expected_out):
-        raise ExportError(f"{path}: output must be float32{list(expected_out)}, got {outputs}")
+        got = ", ".join(described(o) for o in outputs)
+        raise ExportError(f"{path}: output must be float32{list(expected_out)}, got {got}")
 
 
 def _save_checked(model: Any, out: Path, batch: int | str = 1) -> None:
