@@ -590,25 +590,56 @@ class OnnxDetector:
     def infer(self, tensor: np.ndarray) -> np.ndarray:
         """Raw model output ``float32[1, 4 + nc, A]`` for a stacked ``uint8[64, 384, 3]`` tensor (any
         model, batch or not)."""
-        return self._run(self._model_input(tensor))
+        return self._run(self._model_input(tensor))[0]
 
     def _model_input(self, tensor: np.ndarray) -> np.ndarray:
         if not isinstance(tensor, np.ndarray):
             raise ValueError(f"detector input must be a numpy uint8 array, got {type(tensor).__name__}")
         return to_model_input(tensor)  # the exact conversion training used; raises a ValueError
 
-    def _run(self, model_input: np.ndarray) -> np.ndarray:
-        return self._session.run(self._output_names, {self._input_name: model_input})[0]
+    def _run(self, model_input: np.ndarray) -> tuple[np.ndarray, float]:
+        """Raw output for a model input, and the ``session.run`` time in ms."""
+        started = time.perf_counter_ns()
+        output = self._session.run(self._output_names, {self._input_name: model_input})[0]
+        return output, (time.perf_counter_ns() - started) / _NS_PER_MS
 
-    def _postprocess(self, output: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return postprocess(
-            output,
-            conf_threshold=self.conf_threshold,
-            iou_threshold=self.iou_threshold,
-            max_detections=self.max_detections,
-            padding=self.padding,
-            num_classes=self.num_classes,
-        )
+    def _boxes_many(
+        self, tensors: Sequence[np.ndarray]
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, FrameTimings]]:
+        """The one frame pipeline behind every ``detect*`` method: convert, run, post-process.
+
+        Every tensor is converted (and so checked) before anything runs. A batch model runs several
+        frames in one ``session.run``, whose whole time each of them reports as ``inference_ms``.
+        """
+        inputs, encode_ms = [], []
+        for index, tensor in enumerate(tensors):
+            started = time.perf_counter_ns()
+            try:
+                inputs.append(self._model_input(tensor))
+            except ValueError as exc:
+                if len(tensors) == 1:
+                    raise
+                raise ValueError(f"tensor {index} of {len(tensors)}: {exc}") from exc
+            encode_ms.append((time.perf_counter_ns() - started) / _NS_PER_MS)
+        if self.batched and len(inputs) > 1:
+            batch_output, inference_ms = self._run(np.concatenate(inputs))
+            outputs = [(batch_output[i : i + 1], inference_ms) for i in range(len(inputs))]
+        else:
+            outputs = [self._run(model_input) for model_input in inputs]
+        results = []
+        for frame_encode_ms, (output, inference_ms) in zip(encode_ms, outputs, strict=True):
+            started = time.perf_counter_ns()
+            boxes, scores, class_ids = postprocess(
+                output,
+                conf_threshold=self.conf_threshold,
+                iou_threshold=self.iou_threshold,
+                max_detections=self.max_detections,
+                padding=self.padding,
+                num_classes=self.num_classes,
+            )
+            nms_ms = (time.perf_counter_ns() - started) / _NS_PER_MS
+            results.append((boxes, scores, class_ids, FrameTimings(frame_encode_ms, inference_ms, nms_ms)))
+        return results
 
     def detect_boxes(self, tensor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, FrameTimings]:
         """Final boxes (xyxy pixels), scores and class ids, highest score first, and stage timings.
@@ -616,23 +647,11 @@ class OnnxDetector:
         ``encode_ms`` is only the uint8 → float32 conversion done here (the service adds its raster
         time); ``nms_ms`` covers decode, NMS, clipping and seam merging.
         """
-        t0 = time.perf_counter_ns()
-        model_input = self._model_input(tensor)
-        t1 = time.perf_counter_ns()
-        output = self._run(model_input)
-        t2 = time.perf_counter_ns()
-        boxes, scores, class_ids = self._postprocess(output)
-        t3 = time.perf_counter_ns()
-        timings = FrameTimings((t1 - t0) / _NS_PER_MS, (t2 - t1) / _NS_PER_MS, (t3 - t2) / _NS_PER_MS)
-        return boxes, scores, class_ids, timings
+        return self._boxes_many([tensor])[0]
 
     def detect(self, tensor: np.ndarray) -> tuple[list[Detection], StageTimings]:
         """Wire detections and timings for one tensor; ``nms_ms`` includes building the detections."""
-        boxes, scores, class_ids, timings = self.detect_boxes(tensor)
-        t0 = time.perf_counter_ns()
-        detections = detections_from_boxes(boxes, scores, class_ids)
-        convert_ms = (time.perf_counter_ns() - t0) / _NS_PER_MS
-        return detections, timings._replace(nms_ms=timings.nms_ms + convert_ms).to_message()
+        return self.detect_many([tensor])[0]
 
     def detect_many(self, tensors: Sequence[np.ndarray]) -> list[tuple[list[Detection], StageTimings]]:
         """:meth:`detect` for several robots' tensors, in one ``session.run`` when the model allows.
@@ -646,27 +665,12 @@ class OnnxDetector:
         Every tensor is checked before anything runs, so one bad tensor raises a ``ValueError`` that
         names its index instead of failing the batch half-way.
         """
-        if not self.batched or len(tensors) <= 1:
-            return [self.detect(tensor) for tensor in tensors]
-        inputs, encode_ms = [], []
-        for index, tensor in enumerate(tensors):
-            t0 = time.perf_counter_ns()
-            try:
-                inputs.append(self._model_input(tensor))
-            except ValueError as exc:
-                raise ValueError(f"tensor {index} of {len(tensors)}: {exc}") from exc
-            encode_ms.append((time.perf_counter_ns() - t0) / _NS_PER_MS)
-        t1 = time.perf_counter_ns()
-        output = self._run(np.concatenate(inputs))
-        inference_ms = (time.perf_counter_ns() - t1) / _NS_PER_MS
         results = []
-        for index, frame_encode_ms in enumerate(encode_ms):
-            t2 = time.perf_counter_ns()
-            boxes, scores, class_ids = self._postprocess(output[index : index + 1])
+        for boxes, scores, class_ids, timings in self._boxes_many(tensors):
+            started = time.perf_counter_ns()
             detections = detections_from_boxes(boxes, scores, class_ids)
-            nms_ms = (time.perf_counter_ns() - t2) / _NS_PER_MS
-            timings = StageTimings(encode_ms=frame_encode_ms, inference_ms=inference_ms, nms_ms=nms_ms)
-            results.append((detections, timings))
+            convert_ms = (time.perf_counter_ns() - started) / _NS_PER_MS
+            results.append((detections, timings._replace(nms_ms=timings.nms_ms + convert_ms).to_message()))
         return results
 
     def warmup(self, max_batch: int = 1) -> None:
