@@ -7,6 +7,7 @@ else) notices a dead peer without polling.
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -16,7 +17,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from common.transport import health_key
+from common.transport import add_zenoh_arguments, health_key
 
 STATS_PREFIX = "triscan/@stats"  # triscan/@stats/<service>/<pid>: JSON counters, once a second
 STATS_PERIOD_S = 1.0
@@ -24,6 +25,20 @@ STATS_PERIOD_S = 1.0
 EXIT_WITH_PARENT_ENV = "TRISCAN_EXIT_WITH_PARENT"
 PARENT_POLL_S = 0.5
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+def add_service_arguments(parser: argparse.ArgumentParser, *, forget_after_s: float | None = None) -> None:
+    """The flags every long-running service shares: ``--duration``, ``--verbose`` and Zenoh's, plus
+    ``--forget-after`` (default ``forget_after_s``) for the services that keep state per robot."""
+    if forget_after_s is not None:
+        parser.add_argument(
+            "--forget-after", type=float, default=forget_after_s, help="seconds of silence to forget a robot"
+        )
+    parser.add_argument(
+        "--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until stopped)"
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    add_zenoh_arguments(parser)
 
 
 def configure_logging(verbose: bool = False) -> None:

@@ -24,14 +24,19 @@ from common.keys import SCAN, TENSOR, detections_key, parse_key, wildcard_key
 from common.messages import Detections, StackedTensor, encode_message
 from common.transport import (
     ZenohSettings,
-    add_zenoh_arguments,
     open_session,
     payload_bytes,
     settings_from_args,
 )
 from services.detector.core import DetectorCore, LatestPerRobot
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
-from services.runtime import StatsPublisher, configure_logging, declare_health, stop_event_on_signals
+from services.runtime import (
+    StatsPublisher,
+    add_service_arguments,
+    configure_logging,
+    declare_health,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger("triscan.detector")
 
@@ -223,15 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
     )
-    parser.add_argument(
-        "--forget-after",
-        type=float,
-        default=DEFAULT_FORGET_AFTER_S,
-        help="seconds of silence to forget a robot",
-    )
-    parser.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: never)")
-    parser.add_argument("--verbose", "-v", action="store_true")
-    add_zenoh_arguments(parser)
+    add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
     if args.workers < 1:

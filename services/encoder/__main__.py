@@ -17,13 +17,18 @@ from common.keys import SCAN, parse_key, tensor_key, wildcard_key
 from common.messages import encode_message
 from common.transport import (
     ZenohSettings,
-    add_zenoh_arguments,
     open_session,
     payload_bytes,
     settings_from_args,
 )
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
-from services.runtime import StatsPublisher, configure_logging, declare_health, stop_event_on_signals
+from services.runtime import (
+    StatsPublisher,
+    add_service_arguments,
+    configure_logging,
+    declare_health,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger("triscan.encoder")
 
@@ -92,15 +97,7 @@ def run(
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="triscan-encoder", description=__doc__.splitlines()[0])
     parser.add_argument("--padding", choices=PADDINGS, default="zero", help="must match the detector's model")
-    parser.add_argument(
-        "--forget-after",
-        type=float,
-        default=DEFAULT_FORGET_AFTER_S,
-        help="seconds of silence to forget a robot",
-    )
-    parser.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: never)")
-    parser.add_argument("--verbose", "-v", action="store_true")
-    add_zenoh_arguments(parser)
+    add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
     run(

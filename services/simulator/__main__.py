@@ -26,8 +26,14 @@ from dataclasses import dataclass
 from common.encoding import PADDINGS, Padding
 from common.keys import scan_key, truth_key, validate_robot_id
 from common.messages import encode_message
-from common.transport import ZenohSettings, add_zenoh_arguments, open_session, settings_from_args
-from services.runtime import StatsPublisher, configure_logging, declare_health, stop_event_on_signals
+from common.transport import ZenohSettings, open_session, settings_from_args
+from services.runtime import (
+    StatsPublisher,
+    add_service_arguments,
+    configure_logging,
+    declare_health,
+    stop_event_on_signals,
+)
 from services.simulator.publisher import SimulatedFleet
 
 log = logging.getLogger("triscan.simulator")
@@ -172,12 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--padding", choices=PADDINGS, default="zero", help="padding the ground-truth boxes are given for"
     )
-    parser.add_argument(
-        "--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run forever)"
-    )
     parser.add_argument("--robot-prefix", default="robot", help="robot ids are PREFIX0, PREFIX1, ...")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    add_zenoh_arguments(parser)
+    add_service_arguments(parser)
     return parser
 
 
