@@ -11,7 +11,11 @@ Conventions, fixed here once for every process:
 * Column ``a = floor(deg(θ) + 0.5) mod 360``: rounding half up, so 359.5° lands in column 0.
 * Row ``r = floor(clip(ρ · 63 / R_MAX, 0, 63))`` with ``R_MAX = 4.0`` m; row 0 is nearest.
 * Invalid returns (inf, NaN, below ``range_min``, above ``range_max``) become ``R_MAX`` (row 63):
-  they are kept, not dropped, because "nothing seen along this bearing" is information too.
+  they are kept, not dropped, because "nothing seen along this bearing" is information too. That is
+  the paper's rule (``invalid="sentinel"``, the default). ``invalid="empty"`` leaves an invalid
+  beam's pixel dark instead: a real sensor's dropouts then add no isolated pixels to row 63, at the
+  price of no longer telling "nothing within range" from "no beam here". A model is trained for one
+  rule and carries it in its metadata, like its padding.
 * Continuous pixel coordinates (what label and detection boxes use) put column ``a`` on
   ``[a, a + 1)`` and row ``r`` on ``[r, r + 1)``; so pixel ``u`` is bearing ``u − 0.5`` degrees and
   pixel ``v`` is range ``v · R_MAX / 63`` metres.
@@ -38,6 +42,8 @@ STACK_DEPTH = 3
 
 Padding = Literal["zero", "wrap"]
 PADDINGS: tuple[str, ...] = get_args(Padding)
+InvalidRule = Literal["sentinel", "empty"]
+INVALID_RULES: tuple[str, ...] = get_args(InvalidRule)
 
 
 class ScanError(ValueError):
@@ -86,12 +92,23 @@ def angle_columns(bearings_rad: np.ndarray) -> np.ndarray:
     return (np.floor(np.degrees(bearings_rad) + 0.5).astype(np.int64)) % ANGLE_COLUMNS
 
 
+def valid_returns(ranges: np.ndarray, range_min: float, range_max: float) -> np.ndarray:
+    """``bool[N]``: finite returns within ``[range_min, range_max]``."""
+    values = np.asarray(ranges, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(values) & (values >= range_min) & (values <= range_max)
+
+
 def sanitize_ranges(ranges: np.ndarray, range_min: float, range_max: float) -> np.ndarray:
     """Replace every invalid return by ``R_MAX`` (the sentinel), keeping the beam."""
     values = np.asarray(ranges, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(values) & (values >= range_min) & (values <= range_max)
-    return np.where(valid, values, R_MAX_M)
+    return np.where(valid_returns(values, range_min, range_max), values, R_MAX_M)
+
+
+def check_invalid_rule(invalid: str) -> InvalidRule:
+    if invalid not in INVALID_RULES:
+        raise ScanError(f"invalid must be one of {INVALID_RULES}, got {invalid!r}")
+    return invalid  # type: ignore[return-value]
 
 
 def range_rows(ranges_m: np.ndarray) -> np.ndarray:
@@ -105,16 +122,22 @@ def encode_scan(
     angle_increment: float,
     range_min: float,
     range_max: float,
+    invalid: InvalidRule = "sentinel",
 ) -> np.ndarray:
     """Rasterise one scan to ``uint8[64, 360]`` (255 where hit).
 
     Any beam count and field of view works: each beam is binned by its own bearing, several beams
     may share a column (denser sensors) and columns no beam points at stay 0 (narrower sensors).
+    ``invalid`` says where an invalid return goes: the sentinel row (the paper) or nowhere.
     """
     values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
+    check_invalid_rule(invalid)
     cols = angle_columns(beam_bearings_rad(angle_min, angle_increment, values.size))
     rows = range_rows(sanitize_ranges(values, range_min, range_max))
     raster = np.zeros((RANGE_ROWS, ANGLE_COLUMNS), dtype=np.uint8)
+    if invalid == "empty":
+        keep = valid_returns(values, range_min, range_max)
+        rows, cols = rows[keep], cols[keep]
     raster[rows, cols] = HIT
     return raster
 
@@ -161,10 +184,11 @@ class ScanStacker:
     One stacker per robot; mixing two robots' scans in one FIFO would fuse unrelated geometry.
     """
 
-    def __init__(self, padding: Padding = "zero") -> None:
+    def __init__(self, padding: Padding = "zero", invalid: InvalidRule = "sentinel") -> None:
         if padding not in PADDINGS:
             raise ScanError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.padding: Padding = padding
+        self.invalid: InvalidRule = check_invalid_rule(invalid)
         self._frames: deque[np.ndarray] = deque(maxlen=STACK_DEPTH)
 
     def __len__(self) -> int:
@@ -186,7 +210,7 @@ class ScanStacker:
         self, ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
     ) -> np.ndarray | None:
         """Encode a scan and push it; a scan that cannot be encoded raises and leaves the FIFO as it was."""
-        raster = encode_scan(ranges, angle_min, angle_increment, range_min, range_max)
+        raster = encode_scan(ranges, angle_min, angle_increment, range_min, range_max, self.invalid)
         return self.push_raster(raster)
 
 
@@ -230,7 +254,6 @@ def scan_points_xy(
 ) -> np.ndarray:
     """The valid returns of a scan as sensor-frame points ``float64[K, 2]`` (invalid beams left out)."""
     values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(values) & (values >= range_min) & (values <= range_max)
+    valid = valid_returns(values, range_min, range_max)
     bearings = np.degrees(beam_bearings_rad(angle_min, angle_increment, values.size))
     return polar_to_xy(bearings[valid], values[valid])

@@ -12,7 +12,8 @@ import os
 import sys
 from pathlib import Path
 
-from common.encoding import PADDINGS
+from common.encoding import INVALID_RULES, PADDINGS
+from training.architectures import ARCHS, DEFAULT_ARCH
 
 
 def _add_dataset(sub: argparse._SubParsersAction) -> None:
@@ -29,6 +30,28 @@ def _add_dataset(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=1,
         help="keep every k-th three-scan window of each motion (1 = every window)",
+    )
+    p.add_argument(
+        "--invalid",
+        choices=INVALID_RULES,
+        default="sentinel",
+        help="invalid returns: sentinel row 63 (paper) or empty (no pixel)",
+    )
+    dr = p.add_argument_group("domain randomisation (defaults: the paper's clean LDS-01)")
+    for flag, default, what in (
+        ("--noise-sigma", None, "range noise σ in metres (default 0.015 0.015)"),
+        ("--dropout", (0.0, 0.0), "share of beams returned invalid (e.g. 0 0.1)"),
+        ("--spurious", (0.0, 0.0), "share of beams returned short: dust, mixed pixels (e.g. 0 0.01)"),
+    ):
+        dr.add_argument(
+            flag, type=float, nargs=2, metavar=("LOW", "HIGH"), default=default, help=what + ", per scenario"
+        )
+    dr.add_argument(
+        "--clutter",
+        type=int,
+        default=0,
+        metavar="N",
+        help="up to N unlabelled poles, wall stubs and walking leg pairs per robot motion",
     )
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing data set in --out")
@@ -47,6 +70,11 @@ def _run_dataset(args: argparse.Namespace) -> int:
         padding=args.padding,
         frame_stride=args.frame_stride,
         workers=args.workers,
+        invalid=args.invalid,
+        dropout_rate=tuple(args.dropout),
+        spurious_rate=tuple(args.spurious),
+        clutter=args.clutter,
+        **({"noise_sigma_m": tuple(args.noise_sigma)} if args.noise_sigma else {}),
     )
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)
     samples = summary["samples"]
@@ -81,7 +109,10 @@ def _run_show(args: argparse.Namespace) -> int:
 
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train YOLOv8n from yolov8n.yaml on a triscan data set (offline)")
+    p = sub.add_parser("train", help="train YOLOv8n (or the lighter pico) on a triscan data set (offline)")
+    p.add_argument(
+        "--arch", choices=ARCHS, default=DEFAULT_ARCH, help="n: YOLOv8n (paper); p: pico, width 0.125"
+    )
     p.add_argument("--data", type=Path, required=True, help="data.yaml written by `triscan dataset`")
     p.add_argument("--out", type=Path, default=Path("runs/triscan"), help="run directory")
     p.add_argument("--epochs", type=int, default=30)
@@ -121,6 +152,7 @@ def _run_train(args: argparse.Namespace) -> int:
         device=args.device,
         seed=args.seed,
         fraction=args.fraction,
+        arch=args.arch,
     )
     summary = train(config, resume=args.resume, resume_from=args.resume_from, stop_after=args.stop_after)
     print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")

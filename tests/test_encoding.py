@@ -205,3 +205,22 @@ def test_model_input_keeps_channel_order_and_scales() -> None:
     assert model_input[0, 0, 1, 2] == 1.0 and model_input[0, 2, 3, 4] == pytest.approx(0.2)
     with pytest.raises(ScanError):
         to_model_input(np.zeros((64, 360, 3), dtype=np.uint8))
+
+
+def test_invalid_rule_empty_leaves_invalid_beams_dark() -> None:
+    from common.encoding import SENTINEL_ROW
+
+    ranges = np.array([1.0, np.inf, np.nan, 0.05, 9.0, 2.0])
+    sentinel = encode_scan(ranges, 0.0, math.radians(1.0), 0.12, 3.5)
+    empty = encode_scan(ranges, 0.0, math.radians(1.0), 0.12, 3.5, invalid="empty")
+    assert sentinel[SENTINEL_ROW, 1:5].tolist() == [255] * 4
+    assert empty[SENTINEL_ROW].sum() == 0 and np.count_nonzero(empty) == 2
+    assert np.array_equal(empty[:, [0, 5]], sentinel[:, [0, 5]])
+    with pytest.raises(ScanError, match="invalid must be one of"):
+        encode_scan(ranges, 0.0, 0.01, 0.12, 3.5, invalid="drop")  # type: ignore[arg-type]
+    with pytest.raises(ScanError, match="invalid must be one of"):
+        ScanStacker("zero", "drop")  # type: ignore[arg-type]
+    stacker = ScanStacker("zero", "empty")
+    for _ in range(3):
+        tensor = stacker.push_scan(ranges, 0.0, math.radians(1.0), 0.12, 3.5)
+    assert tensor is not None and tensor[SENTINEL_ROW].sum() == 0

@@ -82,3 +82,21 @@ def test_validation_sees_the_images_unpadded(trained_run: tuple[Path, Path]) -> 
     assert len(dataset) > 0
     assert {tuple(shape) for shape in dataset.batch_shapes} == {(64, 384)}
     assert dataset[0]["img"].shape == (3, 64, 384)
+
+
+def test_pico_architecture_is_ultralytics_yolov8_at_width_0125(tmp_path: Path) -> None:
+    from training.architectures import model_name, model_yaml
+    from training.offline import configure_offline
+
+    configure_offline(tmp_path / "yolo")
+    from ultralytics import YOLO
+
+    pico, nano = YOLO(model_yaml("p", tmp_path)), YOLO(model_yaml("n", tmp_path))
+    n_pico = sum(p.numel() for p in pico.model.parameters())
+    n_nano = sum(p.numel() for p in nano.model.parameters())
+    assert n_pico < 0.4 * n_nano  # 0.91 M against 3.0 M once the head has triscan's 4 classes
+    assert len(pico.model.model) == len(nano.model.model)  # the same graph, thinner
+    assert pico.model.model[0].conv.out_channels * 2 == nano.model.model[0].conv.out_channels
+    assert model_name("p") == "yolov8p"
+    with pytest.raises(ValueError, match="arch must be one of"):
+        model_yaml("q", tmp_path)

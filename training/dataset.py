@@ -7,6 +7,12 @@ frame, because neighbouring frames are near-duplicates and would leak between tr
 
 Every scenario owns its random streams (derived from ``[seed, index]``), so the output is byte-for-byte
 the same for a seed whatever the number of workers or the order they finish in.
+
+Domain randomisation makes the simulated LiDAR look like real ones: each scenario draws its own range
+noise σ, dropout rate and spurious-return rate from the configured ranges, and each motion may hold
+non-target clutter (poles, wall stubs, walking legs) that is never labelled. Labels stay those of the
+true geometry. The defaults are the paper's clean setting, and they reproduce its data set exactly:
+the randomisation draws from streams of their own.
 """
 
 from __future__ import annotations
@@ -18,15 +24,16 @@ import multiprocessing
 import shutil
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from common.encoding import PADDINGS, Padding, ScanStacker
+from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding, ScanStacker
 from common.messages import CLASS_NAMES
+from services.simulator.clutter import Clutter, sample_clutter
 from services.simulator.labels import ObjectLabel, label_scan, yolo_lines
-from services.simulator.lidar import Lidar, LidarReading, LidarSpec
+from services.simulator.lidar import DEFAULT_SPEC, Lidar, LidarReading, LidarSpec
 from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
     Scenario,
@@ -55,12 +62,41 @@ class DatasetConfig:
     padding: Padding = "zero"
     frame_stride: int = 1  # keep every k-th three-scan window of a motion (1 = all, as the paper)
     workers: int = 1
+    invalid: InvalidRule = "sentinel"  # where invalid returns go in the raster (common.encoding)
+    # Domain randomisation: each scenario draws σ, dropout and spurious rates uniformly from these.
+    noise_sigma_m: tuple[float, float] = (DEFAULT_SPEC.noise_sigma_m, DEFAULT_SPEC.noise_sigma_m)
+    dropout_rate: tuple[float, float] = (0.0, 0.0)
+    spurious_rate: tuple[float, float] = (0.0, 0.0)
+    clutter: int = 0  # at most this many unlabelled clutter items per motion
 
     def __post_init__(self) -> None:
         if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
             raise ValueError("scenarios, positions, frame_stride and workers must all be >= 1")
         if self.padding not in PADDINGS:
             raise ValueError(f"padding must be one of {PADDINGS}, got {self.padding!r}")
+        if self.invalid not in INVALID_RULES:
+            raise ValueError(f"invalid must be one of {INVALID_RULES}, got {self.invalid!r}")
+        for name, upper in (("noise_sigma_m", 0.5), ("dropout_rate", 1.0), ("spurious_rate", 1.0)):
+            lo, hi = getattr(self, name)
+            if not 0.0 <= lo <= hi <= upper:
+                raise ValueError(f"{name} must be a range 0 <= low <= high <= {upper}, got {lo}..{hi}")
+        if self.clutter < 0:
+            raise ValueError(f"clutter must be >= 0, got {self.clutter}")
+
+
+def scenario_lidar_spec(config: DatasetConfig, index: int) -> LidarSpec:
+    """The sensor of scenario ``index``: σ, dropout and spurious rates drawn from the config's ranges.
+
+    Its own stream (``[seed, index, 3]``): the paper's fixed setting draws the same values every
+    time, so the defaults rebuild the clean data set unchanged.
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, index, 3]))
+    return replace(
+        DEFAULT_SPEC,
+        noise_sigma_m=float(rng.uniform(*config.noise_sigma_m)),
+        dropout_rate=float(rng.uniform(*config.dropout_rate)),
+        spurious_rate=float(rng.uniform(*config.spurious_rate)),
+    )
 
 
 @dataclass
@@ -128,10 +164,22 @@ def plan_motions(scenario: Scenario, seed: int, positions: int) -> list[Motion]:
     return motions
 
 
-def scans_of_motion(lidar: Lidar, motion: Motion) -> tuple[np.ndarray, list[LidarReading]]:
-    """Drive one motion and scan at every 10 Hz tick."""
+def scans_of_motion(
+    lidar: Lidar,
+    motion: Motion,
+    scenario: Scenario | None = None,
+    clutter: int = 0,
+    clutter_rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, list[LidarReading]]:
+    """Drive one motion and scan at every 10 Hz tick, among up to ``clutter`` clutter items."""
     poses = follow_waypoints((*motion.start_xy, motion.heading_rad), motion.waypoints)
-    return poses, [lidar.scan(tuple(pose)) for pose in poses]
+    period_s = 0.1
+    items: tuple[Clutter, ...] = ()
+    if clutter > 0:
+        if scenario is None or clutter_rng is None:
+            raise ValueError("clutter needs the scenario and a generator to place it")
+        items = tuple(sample_clutter(scenario, poses, len(poses) * period_s, clutter, clutter_rng))
+    return poses, [lidar.scan(tuple(pose), items, t * period_s) for t, pose in enumerate(poses)]
 
 
 def simulate_samples(
@@ -141,18 +189,23 @@ def simulate_samples(
     seed: int,
     padding: Padding,
     frame_stride: int = 1,
+    *,
+    spec: LidarSpec = DEFAULT_SPEC,
+    clutter: int = 0,
+    invalid: InvalidRule = "sentinel",
 ) -> Iterator[Sample]:
     """Simulate one scenario and yield its samples, tensors made exactly as on the robot.
 
     Scans go through :class:`ScanStacker`, the FIFO the encoder service runs, so training, evaluation
-    and deployment share one code path from ranges to tensor.
+    and deployment share one code path from ranges to tensor. ``spec`` is the scenario's sensor
+    (noise, dropouts, spurious returns); ``clutter`` the most unlabelled clutter items per motion.
     """
     world.load(scenario)
-    spec = LidarSpec()
     lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 2])))
+    clutter_rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 4]))
     for p_index, motion in enumerate(motions):
-        _, readings = scans_of_motion(lidar, motion)
-        stacker = ScanStacker(padding)
+        _, readings = scans_of_motion(lidar, motion, scenario, clutter, clutter_rng)
+        stacker = ScanStacker(padding, invalid)
         for t, reading in enumerate(readings):
             tensor = stacker.push_scan(
                 reading.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max
@@ -192,7 +245,23 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
     label_dir = config.out / "labels" / split
     motions = plan_motions(scenario, config.seed, config.positions)
     result.positions = len(motions)
-    samples = simulate_samples(_world(), scenario, motions, config.seed, config.padding, config.frame_stride)
+    spec = scenario_lidar_spec(config, index)
+    result.scenario_json["lidar"] = {
+        "noise_sigma_m": spec.noise_sigma_m,
+        "dropout_rate": spec.dropout_rate,
+        "spurious_rate": spec.spurious_rate,
+    }
+    samples = simulate_samples(
+        _world(),
+        scenario,
+        motions,
+        config.seed,
+        config.padding,
+        config.frame_stride,
+        spec=spec,
+        clutter=config.clutter,
+        invalid=config.invalid,
+    )
     for sample in samples:
         write_rgb_png(image_dir / f"{sample.name}.png", sample.tensor)
         lines = yolo_lines(sample.labels)
@@ -243,7 +312,8 @@ def _data_yaml(config: DatasetConfig) -> str:
     names = "\n".join(f"  {i}: {name}" for i, name in enumerate(CLASS_NAMES))
     # No "path:" key: Ultralytics then resolves the splits next to this file, so the set can be moved.
     return (
-        f"# triscan data set: seed {config.seed}, {config.scenarios} scenarios, padding {config.padding}\n"
+        f"# triscan data set: seed {config.seed}, {config.scenarios} scenarios, padding {config.padding}, "
+        f"invalid {config.invalid}\n"
         "train: images/train\nval: images/val\ntest: images/test\n"
         f"nc: {len(CLASS_NAMES)}\nnames:\n{names}\n"
     )

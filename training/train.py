@@ -1,4 +1,4 @@
-"""``triscan train``: YOLOv8n from ``yolov8n.yaml`` with the paper's recipe (SPEC §5), fully offline.
+"""``triscan train``: YOLOv8n (or the lighter ``p``) from Ultralytics' yaml with the paper's recipe, offline.
 
 The recipe: imgsz 384 with rectangular batches (the 64×384 images are never letterboxed to a square),
 mosaic/mixup/cutmix/copy-paste off (they would cut scans apart and break the range/bearing geometry),
@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from training.architectures import DEFAULT_ARCH, check_arch, model_yaml
 from training.offline import configure_offline
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,10 @@ class TrainConfig:
     device: str = ""  # "" picks the first GPU when there is one, else the CPU
     seed: int = 0
     fraction: float = 1.0  # share of the training images used per epoch (Ultralytics' `fraction`)
+    arch: str = DEFAULT_ARCH  # training.architectures: n (the paper's YOLOv8n) or p (pico)
+
+    def __post_init__(self) -> None:
+        check_arch(self.arch)
 
 
 def pick_device(requested: str) -> str:
@@ -267,7 +272,8 @@ def train(
     else:
         if resume:
             log.info("no %s yet: starting a new run", last)
-        model = YOLO("yolov8n.yaml")  # architecture only: no pretrained weights exist offline
+        # Architecture only: no pretrained weights exist offline.
+        model = YOLO(model_yaml(config.arch, config.out.resolve()))
         _add_callbacks(model, watch, stopper)
         model.train(trainer=triscan_trainer(), **recipe(config, device))
     if stopper is not None:

@@ -9,6 +9,13 @@ each beam hit, which the labeller needs ("at least 2 beams hit it", SPEC §4).
 All beams of one scan go to PyBullet in one ``rayTestBatch`` call; noise comes from the caller's seeded
 generator and is drawn for every beam on every scan, so the random stream advances identically
 whatever the scene and the same seed reproduces the same ranges byte for byte.
+
+Real sensors are worse than Gaussian noise, and a model trained on clean scans is fragile exactly
+there: dark or shiny surfaces return nothing (``dropout_rate``: a beam comes back invalid), dust and
+mixed pixels return something short (``spurious_rate``: a beam comes back at a random range before
+its true hit). Both are drawn from a second stream spawned from the caller's generator, so turning
+them on leaves the Gaussian noise of every beam exactly as it was: the same world under several
+imperfection settings differs only by the imperfections.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
+from services.simulator.clutter import CLUTTER_OBJECT, Clutter, clutter_distances
 from services.simulator.robot import Pose
 from services.simulator.world import World
 
@@ -37,6 +45,8 @@ class LidarSpec:
     range_min: float = 0.12
     range_max: float = 3.5
     noise_sigma_m: float = 0.015
+    dropout_rate: float = 0.0  # share of beams that come back invalid (inf)
+    spurious_rate: float = 0.0  # share of beams that come back short, at U(range_min, true range)
     mount_offset_x_m: float = -0.03  # the LDS-01 sits 3 cm behind the robot centre
     mount_height_m: float = 0.173
 
@@ -47,6 +57,9 @@ class LidarSpec:
             raise ValueError(f"need 0 <= range_min < range_max, got {self.range_min}, {self.range_max}")
         if self.noise_sigma_m < 0.0:
             raise ValueError(f"noise_sigma_m must be >= 0, got {self.noise_sigma_m}")
+        for name in ("dropout_rate", "spurious_rate"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
     @property
     def bearings_rad(self) -> np.ndarray:
@@ -100,6 +113,7 @@ class Lidar:
         self.world = world
         self.spec = spec
         self.rng = rng
+        self.fault_rng = rng.spawn(1)[0]  # dropouts and spurious returns: never shifts the noise stream
         bearings = spec.bearings_rad
         self._cos_b = np.cos(bearings)
         self._sin_b = np.sin(bearings)
@@ -139,17 +153,36 @@ class Lidar:
         true_ranges = np.where(bodies >= 0, np.asarray(fractions, dtype=np.float64) * spec.range_max, np.inf)
         return true_ranges, bodies
 
-    def scan(self, robot_pose: Pose) -> LidarReading:
-        """One scan from a robot pose (the sensor offset is applied here)."""
+    def scan(self, robot_pose: Pose, clutter: tuple[Clutter, ...] = (), t_s: float = 0.0) -> LidarReading:
+        """One scan from a robot pose (the sensor offset is applied here), with ``clutter`` as at ``t_s``.
+
+        Clutter is merged with the world's first hits before any noise: a beam stopped by clutter
+        has the clutter's true range and object index ``CLUTTER_OBJECT``, so it counts for no label.
+        """
+        spec = self.spec
         sensor_pose = self.pose_of(robot_pose)
         true_ranges, bodies = self.cast(sensor_pose)
+        hit_object = self.world.hit_object(bodies)
+        if clutter:
+            angles = sensor_pose[2] + spec.bearings_rad
+            directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+            blocked = clutter_distances(clutter, sensor_pose[:2], directions, t_s)
+            closer = blocked < np.minimum(true_ranges, spec.range_max)
+            true_ranges = np.where(closer, blocked, true_ranges)
+            hit_object = np.where(closer, CLUTTER_OBJECT, hit_object).astype(hit_object.dtype)
         # Always draw N samples, even where there is no return, so the stream does not depend on the scene.
-        noisy = true_ranges + self.rng.normal(0.0, self.spec.noise_sigma_m, size=self.spec.beams)
-        valid = (noisy >= self.spec.range_min) & (noisy <= self.spec.range_max)  # inf and NaN fail both
+        noisy = true_ranges + self.rng.normal(0.0, spec.noise_sigma_m, size=spec.beams)
+        if spec.dropout_rate > 0.0 or spec.spurious_rate > 0.0:
+            draws = self.fault_rng.random((3, spec.beams))  # all three every scan, whatever the rates
+            reach = np.minimum(true_ranges, spec.range_max)
+            spurious = draws[0] < spec.spurious_rate
+            noisy = np.where(spurious, spec.range_min + draws[1] * (reach - spec.range_min), noisy)
+            noisy = np.where(draws[2] < spec.dropout_rate, np.inf, noisy)
+        valid = (noisy >= spec.range_min) & (noisy <= spec.range_max)  # inf and NaN fail both
         ranges = np.where(valid, noisy, np.inf).astype(np.float32)
         return LidarReading(
             ranges=ranges,
             true_ranges=true_ranges,
-            hit_object=self.world.hit_object(bodies),
+            hit_object=hit_object,
             lidar_pose=sensor_pose,
         )

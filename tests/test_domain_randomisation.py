@@ -1,0 +1,204 @@
+"""Domain randomisation: LiDAR imperfections, unlabelled clutter, and the data sets they make.
+
+The clean default must stay the paper's data set byte for byte; the randomised one must differ only
+where the sensor does, and its labels must remain those of the true geometry.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.simulator.clutter import (
+    CLUTTER_OBJECT,
+    Pole,
+    WalkingLegs,
+    WallStub,
+    clutter_distances,
+    ray_circle_distances,
+    ray_rect_distances,
+    sample_clutter,
+)
+from services.simulator.lidar import DEFAULT_SPEC, Lidar
+from services.simulator.scenario import Rect, sample_scenario
+from services.simulator.world import World
+from training.dataset import (
+    DatasetConfig,
+    Motion,
+    generate_dataset,
+    plan_motions,
+    scans_of_motion,
+    scenario_lidar_spec,
+)
+
+
+def unit_rays(degrees: list[float]) -> np.ndarray:
+    rad = np.radians(degrees)
+    return np.stack([np.cos(rad), np.sin(rad)], axis=1)
+
+
+def test_ray_circle_distance_by_hand() -> None:
+    circles = np.array([[2.0, 0.0, 0.5], [0.0, 3.0, 0.1]])
+    d = ray_circle_distances((0.0, 0.0), unit_rays([0.0, 90.0, 180.0, 45.0]), circles)
+    assert d[0] == pytest.approx(1.5)
+    assert d[1] == pytest.approx(2.9)
+    assert math.isinf(d[2]) and math.isinf(d[3])
+
+
+def test_ray_rect_distance_by_hand_including_rotation() -> None:
+    square = Rect((2.0, 0.0), (1.0, 1.0), 0.0)
+    diamond = Rect((0.0, -2.0), (math.sqrt(2) / 2, math.sqrt(2) / 2), math.pi / 4)  # corner at y = -1.5
+    d = ray_rect_distances((0.0, 0.0), unit_rays([0.0, -90.0, 90.0]), [square, diamond])
+    assert d[0] == pytest.approx(1.5)
+    assert d[1] == pytest.approx(1.5)
+    assert math.isinf(d[2])
+
+
+def test_walking_legs_move_and_swing_in_antiphase() -> None:
+    legs = WalkingLegs((0.0, 0.0), (1.0, 0.0), 0.05, 0.2, 0.1, 1.0, 0.0)
+    (l0x, l0y, _), (r0x, r0y, _) = legs.circles(0.25)  # quarter step: full swing
+    assert l0y == pytest.approx(-0.1) and r0y == pytest.approx(0.1)  # stance across the walking direction
+    assert l0x == pytest.approx(0.25 - 0.1) and r0x == pytest.approx(0.25 + 0.1)  # one behind, one ahead
+    standing = WalkingLegs((1.0, 1.0), (0.0, 0.0), 0.05, 0.2, 0.0, 1.0, 0.0)
+    assert standing.circles(0.0) == standing.circles(3.0)
+
+
+def test_clutter_keeps_off_furniture_and_the_robot_path() -> None:
+    scenario = sample_scenario(3, seed=11)
+    rng = np.random.default_rng(5)
+    robot_path = np.array([[-1.2, -1.2], [-1.1, -1.2], [-1.0, -1.15]])
+    kinds = set()
+    for _ in range(200):
+        for item in sample_clutter(scenario, robot_path, 3.0, 3, rng):
+            kinds.add(type(item))
+            path = item.path(3.0)
+            assert np.all(np.abs(path) <= 2.0)
+            for obj in scenario.objects:
+                assert np.all(obj.footprint.distance(path) > item.extent_m)
+            gaps = np.hypot(*(path[:, None, :] - robot_path[None]).transpose(2, 0, 1))
+            assert gaps.min() >= 0.35
+    assert kinds == {Pole, WallStub, WalkingLegs}
+    assert sample_clutter(scenario, robot_path, 3.0, 0, rng) == []
+
+
+def test_scan_merges_clutter_as_unlabelled_hits() -> None:
+    with World(None) as world:  # the closed, empty room
+        lidar = Lidar(world, replace(DEFAULT_SPEC, noise_sigma_m=0.0), rng=np.random.default_rng(0))
+        pole = Pole((1.0, 0.0), 0.02)
+        plain = lidar.scan((0.0, 0.0, 0.0))
+        seen = lidar.scan((0.0, 0.0, 0.0), (pole,))
+    ahead = 0  # beam 0 points along +x from the sensor, 3 cm behind the robot centre
+    assert seen.hit_object[ahead] == CLUTTER_OBJECT
+    assert seen.true_ranges[ahead] == pytest.approx(1.0 + 0.03 - 0.02, abs=1e-9)
+    assert seen.ranges[ahead] == pytest.approx(1.01, abs=1e-6)
+    changed = seen.hit_object != plain.hit_object
+    assert 1 <= changed.sum() <= 3 and np.all(seen.hit_object[changed] == CLUTTER_OBJECT)
+    np.testing.assert_array_equal(seen.ranges[~changed], plain.ranges[~changed])
+
+
+def test_clutter_distances_follow_time() -> None:
+    legs = WalkingLegs((1.0, 0.0), (0.0, 1.0), 0.05, 0.2, 0.0, 1.0, 0.0)
+    rays = unit_rays([0.0])
+    assert np.isfinite(clutter_distances([legs], (0.0, 0.0), rays, 0.0)[0])
+    assert math.isinf(clutter_distances([legs], (0.0, 0.0), rays, 2.0)[0])  # walked 2 m away
+
+
+def test_dropouts_and_spurious_returns_leave_the_noise_stream_alone() -> None:
+    pose = (0.0, 0.0, 0.3)
+    with World(None) as world:
+        clean = Lidar(world, DEFAULT_SPEC, rng=np.random.default_rng(4)).scan(pose)
+        faulty_spec = replace(DEFAULT_SPEC, dropout_rate=0.2, spurious_rate=0.1)
+        faulty = Lidar(world, faulty_spec, rng=np.random.default_rng(4)).scan(pose)
+        again = Lidar(world, faulty_spec, rng=np.random.default_rng(4)).scan(pose)
+    np.testing.assert_array_equal(faulty.ranges, again.ranges)  # seeded
+    dropped = np.isinf(faulty.ranges) & np.isfinite(clean.ranges)
+    short = np.isfinite(faulty.ranges) & (faulty.ranges < clean.ranges - 1e-6)
+    untouched = ~dropped & ~short
+    assert 0.12 < dropped.mean() < 0.3
+    assert 0.03 < short.mean() < 0.17
+    np.testing.assert_array_equal(faulty.ranges[untouched], clean.ranges[untouched])
+    assert np.all(faulty.ranges[short] >= DEFAULT_SPEC.range_min)
+    np.testing.assert_array_equal(faulty.true_ranges, clean.true_ranges)  # truth never degrades
+
+
+def test_rates_outside_zero_one_are_refused() -> None:
+    with pytest.raises(ValueError, match="dropout_rate"):
+        replace(DEFAULT_SPEC, dropout_rate=1.5)
+    with pytest.raises(ValueError, match="dropout_rate must be a range"):
+        DatasetConfig(out=Path("x"), dropout_rate=(0.2, 0.1))
+
+
+def test_scenario_sensors_are_drawn_from_the_ranges_and_default_to_the_paper() -> None:
+    clean = DatasetConfig(out=Path("x"))
+    assert scenario_lidar_spec(clean, 5) == DEFAULT_SPEC
+    config = DatasetConfig(
+        out=Path("x"), noise_sigma_m=(0.01, 0.03), dropout_rate=(0.0, 0.1), spurious_rate=(0.0, 0.01)
+    )
+    specs = [scenario_lidar_spec(config, i) for i in range(40)]
+    sigmas = np.array([s.noise_sigma_m for s in specs])
+    assert sigmas.min() >= 0.01 and sigmas.max() <= 0.03 and sigmas.std() > 0.003
+    assert all(0.0 <= s.dropout_rate <= 0.1 and 0.0 <= s.spurious_rate <= 0.01 for s in specs)
+    assert specs[3] == scenario_lidar_spec(config, 3)
+
+
+def test_motion_with_clutter_is_reproducible_and_labels_ignore_clutter() -> None:
+    scenario = sample_scenario(0, seed=21)
+    motion: Motion = plan_motions(scenario, 21, 1)[0]
+    with World(scenario) as world:
+        runs = []
+        for _ in range(2):
+            lidar = Lidar(world, DEFAULT_SPEC, rng=np.random.default_rng(1))
+            _, readings = scans_of_motion(lidar, motion, scenario, 3, np.random.default_rng(9))
+            runs.append(readings)
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+    with pytest.raises(ValueError, match="clutter needs"):
+        scans_of_motion(lidar, motion, None, 2, None)
+
+
+@pytest.fixture(scope="module")
+def clean_and_randomised(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("dr")
+    base = {"scenarios": 4, "positions": 3, "seed": 13, "frame_stride": 6}
+    clean, randomised = root / "clean", root / "dr"
+    generate_dataset(DatasetConfig(out=clean, **base), progress=False)
+    generate_dataset(
+        DatasetConfig(
+            out=randomised,
+            noise_sigma_m=(0.01, 0.03),
+            dropout_rate=(0.05, 0.1),
+            spurious_rate=(0.0, 0.01),
+            clutter=3,
+            **base,
+        ),
+        progress=False,
+    )
+    return clean, randomised
+
+
+def test_randomised_set_records_its_settings_and_keeps_true_geometry_labels(
+    clean_and_randomised: tuple[Path, Path],
+) -> None:
+    clean, randomised = clean_and_randomised
+    summary = json.loads((randomised / "summary.json").read_text())
+    assert summary["config"]["dropout_rate"] == [0.05, 0.1] and summary["config"]["clutter"] == 3
+    records = [json.loads(line) for line in (randomised / "scenarios.jsonl").read_text().splitlines()]
+    assert all(0.05 <= r["lidar"]["dropout_rate"] <= 0.1 for r in records)
+    # Same worlds, same motions: the sample list is the same and every label file is identical.
+    assert (clean / "samples.jsonl").read_text() == (randomised / "samples.jsonl").read_text()
+    for label in sorted((clean / "labels").rglob("*.txt")):
+        assert label.read_text() == (randomised / label.relative_to(clean)).read_text()
+    # ...while the scans differ, and dropouts light the sentinel row.
+    from training.export import read_tensor_png
+
+    differing, sentinel_gain = 0, 0
+    for image in sorted((clean / "images").rglob("*.png")):
+        a, b = read_tensor_png(image), read_tensor_png(randomised / image.relative_to(clean))
+        differing += int(not np.array_equal(a, b))
+        sentinel_gain += int(b[63].sum()) - int(a[63].sum())
+    assert differing > 0 and sentinel_gain > 0
