@@ -20,11 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.harness import recorded_scans
 from bench.machine import MachineInfo, machine_info
 from bench.report import write_report
 from common.encoding import to_model_input
+from common.inference import session_options
 from services.encoder.core import EncoderCore
-from services.simulator.publisher import recorded_scans
 
 log = logging.getLogger("bench.batch_inference")
 
@@ -73,10 +74,9 @@ def measure(
     report = BatchReport(models=[m.name for m in models], frames=len(frames))
     for model in models:
         for threads in threads_list:
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = threads
-            options.inter_op_num_threads = 1
-            session = ort.InferenceSession(str(model), options, providers=["CPUExecutionProvider"])
+            session = ort.InferenceSession(
+                str(model), session_options(threads), providers=["CPUExecutionProvider"]
+            )
             name = session.get_inputs()[0].name
             base_per_image = None
             for batch in batches:

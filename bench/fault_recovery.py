@@ -28,11 +28,10 @@ from typing import Any
 
 from bench.machine import MachineInfo, machine_info
 from bench.report import write_report
-from common.keys import DETECTIONS, TENSOR, wildcard_key
+from common.keys import ALL_STATS, DETECTIONS, TENSOR, wildcard_key
 from common.messages import Detections, StackedTensor, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
-from services.runtime import STATS_PREFIX
 
 log = logging.getLogger("bench.fault_recovery")
 
@@ -111,7 +110,7 @@ def run(timeout_s: float = 30.0) -> FaultReport:
     try:
         with open_session(ZenohSettings.loopback(None, [port])) as session:
             subs = [
-                session.declare_subscriber(f"{STATS_PREFIX}/**", watcher.on_stats),
+                session.declare_subscriber(ALL_STATS, watcher.on_stats),
                 session.declare_subscriber(wildcard_key(DETECTIONS), watcher.on_detections),
                 session.declare_subscriber(wildcard_key(TENSOR), watcher.on_tensor),
             ]

@@ -19,9 +19,9 @@ from dataclasses import asdict
 from pathlib import Path
 
 from bench import fleet_capacity
+from bench.harness import recorded_scans
 from bench.machine import machine_info
 from bench.report import write_report
-from services.simulator.publisher import recorded_scans
 
 log = logging.getLogger("bench.fleet_batch_ab")
 

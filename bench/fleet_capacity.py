@@ -31,14 +31,13 @@ from typing import Any
 
 import numpy as np
 
+from bench.harness import proc_status_mb, recorded_scans, start_loopback_service
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
-from common.keys import DETECTIONS, scan_key, wildcard_key
+from common.keys import DETECTIONS, scan_key, service_stats_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
-from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service, stop_processes
-from services.runtime import STATS_PREFIX
-from services.simulator.publisher import recorded_scans
+from services.launcher import free_tcp_ports, stop_processes
 
 log = logging.getLogger("bench.fleet_capacity")
 
@@ -105,7 +104,7 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
     try:
         with open_session(ZenohSettings.loopback(bench_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
-            stats_sub = session.declare_subscriber(f"{STATS_PREFIX}/detector/*", on_detector_stats)
+            stats_sub = session.declare_subscriber(service_stats_key("detector"), on_detector_stats)
             next_rss_sample = 0.0
             publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
             wait_for_subscriber(session, scan_key(robot_ids[0]))

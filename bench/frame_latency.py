@@ -268,7 +268,7 @@ class GridPipeline:
 
 def simulated_scans(count: int, seed: int) -> list[ScanArgs]:
     """``count`` consecutive scans of one simulated robot (10 Hz, a new world every 30 s of sim time)."""
-    from services.simulator.publisher import recorded_scans
+    from bench.harness import recorded_scans
 
     return [
         ScanArgs(
@@ -436,7 +436,7 @@ def run(config: BenchConfig) -> BenchReport:
         config=config_dict,
         machine=machine,
         scans={
-            "source": "services.simulator.publisher.SimulatedFleet(robots=1, rate_hz=10), PyBullet",
+            "source": "services.simulator.fleet.SimulatedFleet(robots=1, rate_hz=10), PyBullet",
             "seed": config.seed,
             "count": len(scans),
             "grid_model": _shown(grid_model) if grid_model else None,

@@ -41,8 +41,9 @@ import msgpack
 import numpy as np
 import zenoh
 
+from bench.harness import recorded_scans, start_loopback_service
 from bench.report import write_report
-from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
+from common.keys import ALL_STATS, DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import (
     MAX_PAYLOAD_BYTES,
     Detections,
@@ -54,9 +55,7 @@ from common.messages import (
 )
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.encoder.core import EncoderCore, EncoderCounters
-from services.launcher import free_tcp_ports, start_loopback_service, stop_processes
-from services.runtime import STATS_PREFIX
-from services.simulator.publisher import recorded_scans
+from services.launcher import free_tcp_ports, stop_processes
 
 log = logging.getLogger("bench.fuzz_services")
 
@@ -210,7 +209,7 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
         with open_session(ZenohSettings.loopback(fuzz_port)) as session:
             subs = [
                 session.declare_subscriber(wildcard_key(DETECTIONS), on_detections),
-                session.declare_subscriber(f"{STATS_PREFIX}/**", on_stats),
+                session.declare_subscriber(ALL_STATS, on_stats),
             ]
             wait_for_subscriber(session, scan_key(GOOD_ROBOT), 60)
             wait_for_subscriber(session, tensor_key(GOOD_ROBOT), 60)

@@ -35,7 +35,8 @@ import numpy as np
 import onnxruntime as ort
 
 from common.encoding import R_MAX_M, scan_points_xy
-from common.inference import DEFAULT_CONF, DEFAULT_IOU, MAX_DETECTIONS, decode_yolov8, nms
+from common.inference import DEFAULT_CONF, DEFAULT_IOU, decode_yolov8, nms, session_options
+from common.model_spec import MAX_DETECTIONS
 
 log = logging.getLogger(__name__)
 
@@ -147,13 +148,10 @@ class GridDetector:
         conf_threshold: float = DEFAULT_CONF,
         iou_threshold: float = DEFAULT_IOU,
     ) -> None:
-        options = ort.SessionOptions()  # the options OnnxDetector uses for the triscan model
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.inter_op_num_threads = 1
-        options.intra_op_num_threads = intra_op_threads
-        self._session = ort.InferenceSession(
-            str(model_path), sess_options=options, providers=["CPUExecutionProvider"]
+        self._session = ort.InferenceSession(  # the options OnnxDetector uses for the triscan model
+            str(model_path),
+            sess_options=session_options(intra_op_threads),
+            providers=["CPUExecutionProvider"],
         )
         model_input = self._session.get_inputs()[0]
         self._input_name = model_input.name

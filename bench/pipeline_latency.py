@@ -23,14 +23,15 @@ from typing import Any
 
 import numpy as np
 
+from bench.harness import proc_status_mb, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
+from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
-from services.detector.__main__ import default_model_path
-from services.launcher import free_tcp_ports, proc_status_mb, start_loopback_service, stop_processes
-from services.simulator.publisher import SimulatedFleet
+from services.launcher import free_tcp_ports, stop_processes
+from services.simulator.fleet import SimulatedFleet
 
 ROOT = Path(__file__).resolve().parents[1]
 

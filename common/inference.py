@@ -24,7 +24,7 @@ detections (at most ``max_detections``), never over anchors.
 
 from __future__ import annotations
 
-import hashlib
+import json
 import logging
 import time
 from collections.abc import Sequence
@@ -47,17 +47,25 @@ from common.encoding import (
     to_model_input,
     wrap_bearing_deg,
 )
-from common.messages import CLASS_NAMES, Detection, StageTimings
+from common.messages import Detection, StageTimings
+from common.model_spec import (
+    CLASS_NAMES,
+    INPUT_SHAPE,
+    MAX_DETECTIONS,
+    META_CLASSES,
+    META_PADDING,
+    NUM_ANCHORS,
+    NUM_CLASSES,
+    SHIPPED_BATCH_MODEL,
+    file_model_id,
+)
 
 log = logging.getLogger(__name__)
 
 DEFAULT_CONF: Final[float] = 0.25
 DEFAULT_IOU: Final[float] = 0.45
-MAX_DETECTIONS: Final[int] = 100
 # A box is a seam duplicate when this share of the smaller box lies inside the other box's copy.
 SEAM_CONTAINMENT: Final[float] = 0.7
-NUM_CLASSES: Final[int] = len(CLASS_NAMES)
-INPUT_SHAPE: Final[tuple[int, int, int, int]] = (1, STACK_DEPTH, RANGE_ROWS, IMAGE_WIDTH)
 # Above this many candidates the K×K IoU matrix would cost more memory than it saves time, so NMS
 # switches to computing one row per kept box (only reachable with a very low threshold).
 _MATRIX_NMS_MAX: Final[int] = 1024
@@ -417,26 +425,37 @@ class FrameTimings(NamedTuple):
         return StageTimings(encode_ms=self.encode_ms, inference_ms=self.inference_ms, nms_ms=self.nms_ms)
 
 
-def file_model_id(path: Path) -> str:
-    """``<stem>@<12 hex of sha256>``: names the exact weights, so a result can be traced to its file."""
-    with path.open("rb") as fh:
-        digest = hashlib.file_digest(fh, "sha256").hexdigest()
-    return f"{path.stem}@{digest[:12]}"
-
-
 def _declared_padding(session: ort.InferenceSession, path: Path | str) -> Padding | None:
     """The model's ``triscan.padding`` metadata, checked; None for a model without it."""
-    padding = session.get_modelmeta().custom_metadata_map.get("triscan.padding")
+    padding = session.get_modelmeta().custom_metadata_map.get(META_PADDING)
     if padding is not None and padding not in PADDINGS:
-        raise ValueError(f"{path} declares an unknown triscan.padding {padding!r}")
+        raise ValueError(f"{path} declares an unknown {META_PADDING} {padding!r}")
     return padding  # type: ignore[return-value]
+
+
+def session_options(intra_op_threads: int | None = None, *, optimise: bool = True) -> ort.SessionOptions:
+    """The ONNX Runtime options every triscan session uses (detector, export checks, benchmarks).
+
+    Sequential execution and one inter-op thread: the graph is one small chain with nothing to run
+    in parallel. ``intra_op_threads`` None lets ONNX Runtime use every core. ``optimise`` False skips
+    graph optimisation, for sessions that only read a model's metadata and signature.
+    """
+    options = ort.SessionOptions()
+    options.graph_optimization_level = (
+        ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimise else ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    )
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.inter_op_num_threads = 1
+    if intra_op_threads is not None:
+        options.intra_op_num_threads = intra_op_threads
+    return options
 
 
 def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
     """A session only to read a model's metadata and signature: no graph optimisation, so it is cheap."""
-    options = ort.SessionOptions()
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-    return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(
+        str(path), sess_options=session_options(optimise=False), providers=["CPUExecutionProvider"]
+    )
 
 
 def model_padding(path: Path | str) -> Padding:
@@ -455,6 +474,17 @@ def model_takes_batches(path: Path | str) -> bool:
     for a fixed batch-1 model before starting a detector that would refuse it."""
     shape = _unoptimised_session(path).get_inputs()[0].shape
     return bool(shape) and _is_free_dimension(shape[0])
+
+
+def check_batch(batch: int, takes_batches: bool, model_path: Path | str) -> None:
+    """Refuse a batch size the model cannot run, before any frame is lost to it (``--batch``)."""
+    if batch < 1:
+        raise ValueError(f"--batch must be >= 1, got {batch}")
+    if batch > 1 and not takes_batches:
+        raise ValueError(
+            f"--batch {batch} needs a model with a free batch axis; {model_path} is fixed at batch 1 "
+            f"(its -batch variant, e.g. models/{SHIPPED_BATCH_MODEL.name}, is the same network)"
+        )
 
 
 def default_providers() -> list[str]:
@@ -503,15 +533,11 @@ class OnnxDetector:
         self.max_detections = max_detections
         self.model_id = file_model_id(path)
 
-        options = ort.SessionOptions()
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.inter_op_num_threads = 1  # one small sequential graph: nothing to run in parallel
-        if intra_op_threads is not None:
-            options.intra_op_num_threads = intra_op_threads
         try:
             self._session = ort.InferenceSession(
-                str(path), sess_options=options, providers=providers or default_providers()
+                str(path),
+                sess_options=session_options(intra_op_threads),
+                providers=providers or default_providers(),
             )
         except Exception as exc:  # onnxruntime raises its own exception zoo for unreadable models
             raise ValueError(f"{path} is not a loadable ONNX model: {exc}") from exc
@@ -584,6 +610,14 @@ class OnnxDetector:
         if num_classes != NUM_CLASSES:
             raise ValueError(
                 f"{path} predicts {num_classes} classes, this project has {NUM_CLASSES} {CLASS_NAMES}"
+            )
+        if shape[2] != NUM_ANCHORS:
+            raise ValueError(f"{path} has {shape[2]} anchors, a 64×384 YOLOv8 head has {NUM_ANCHORS}")
+        declared = meta.get(META_CLASSES)
+        if declared is not None and tuple(json.loads(declared)) != CLASS_NAMES:
+            raise ValueError(
+                f"{path} was trained for the classes {json.loads(declared)}, this build knows {CLASS_NAMES}"
+                " (the class list lives in common/model_spec.py)"
             )
         return model_input.name, [output.name], num_classes, shape[2], free_batch
 

@@ -1,9 +1,12 @@
-"""Zenoh key expressions shared by every triscan process.
+"""Every Zenoh key expression of triscan, built and parsed in one place.
 
-All services talk through keys of the form ``<prefix>/<robot_id>/<topic>`` (SPEC §7). Building and
-parsing them in one place keeps publishers and subscribers from drifting apart, and validating the
-robot id here means a malformed id (one containing ``/`` or a Zenoh wildcard) can never silently
-turn a publication key into a pattern that matches, or leaks into, another robot's traffic.
+Data flows on ``<prefix>/<robot_id>/<topic>`` (README, "Services"); each service also announces itself
+with a liveliness token on ``triscan/@health/<service>/<instance>`` and publishes JSON counters on
+``triscan/@stats/<service>/<instance>``. Building and parsing all of them here keeps publishers,
+subscribers, the launcher, ``triscan status`` and the access-control rules of the secure mode from
+drifting apart, and validating the robot id here means a malformed id (one containing ``/`` or a
+Zenoh wildcard) can never silently turn a publication key into a pattern that matches, or leaks
+into, another robot's traffic.
 """
 
 from __future__ import annotations
@@ -119,3 +122,60 @@ def parse_key(key: str, *, prefix: str = PREFIX) -> tuple[str, str]:
     except ValueError as exc:
         raise ValueError(f"key {key!r}: {exc}") from None
     return robot_id, topic
+
+
+# --- service keys: liveliness tokens and counters ---------------------------------------------------
+
+HEALTH: Final[str] = "@health"
+STATS: Final[str] = "@stats"
+HEALTH_PREFIX: Final[str] = f"{PREFIX}/{HEALTH}"  # liveliness tokens: triscan/@health/<service>/<instance>
+STATS_PREFIX: Final[str] = f"{PREFIX}/{STATS}"  # JSON counters: triscan/@stats/<service>/<instance>
+ALL_HEALTH: Final[str] = f"{HEALTH_PREFIX}/**"
+ALL_STATS: Final[str] = f"{STATS_PREFIX}/**"
+
+
+def health_key(service: str, instance: str) -> str:
+    """Liveliness token of one running service; the launcher watches :data:`ALL_HEALTH`."""
+    return f"{HEALTH_PREFIX}/{validate_robot_id(service)}/{validate_robot_id(instance)}"
+
+
+def stats_key(service: str, instance: str) -> str:
+    """Where one running service publishes its counters."""
+    return f"{STATS_PREFIX}/{validate_robot_id(service)}/{validate_robot_id(instance)}"
+
+
+def service_stats_key(service: str) -> str:
+    """The counters of every instance of one service (``triscan/@stats/detector/*``)."""
+    return f"{STATS_PREFIX}/{validate_robot_id(service)}/*"
+
+
+def _parse_service_key(key: str, prefix: str, what: str) -> tuple[str, str]:
+    head = prefix + "/"
+    if not isinstance(key, str) or not key.startswith(head) or key.count("/") != prefix.count("/") + 2:
+        raise ValueError(f"{key!r} is not a triscan {what} key ({head}<service>/<instance>)")
+    service, instance = key[len(head) :].split("/")
+    return service, instance
+
+
+def parse_health_key(key: str) -> tuple[str, str]:
+    """``triscan/@health/<service>/<instance>`` → (service, instance)."""
+    return _parse_service_key(key, HEALTH_PREFIX, "health")
+
+
+def parse_stats_key(key: str) -> tuple[str, str]:
+    """``triscan/@stats/<service>/<instance>`` → (service, instance)."""
+    return _parse_service_key(key, STATS_PREFIX, "stats")
+
+
+# --- access-control patterns of the secure mode (security/zenoh_config.py) --------------------------
+
+
+def everything_key(prefix: str = PREFIX) -> str:
+    """All triscan traffic of a deployment: data, health and stats."""
+    return f"{_validate_prefix(prefix)}/**"
+
+
+def service_keys(prefix: str = PREFIX) -> tuple[str, str]:
+    """(health pattern, stats pattern) of a deployment's prefix."""
+    base = _validate_prefix(prefix)
+    return f"{base}/{HEALTH}/**", f"{base}/{STATS}/**"

@@ -38,16 +38,13 @@ from pydantic import (
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import core_schema
 
-from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
 from common.keys import validate_robot_id
+from common.model_spec import CLASS_NAMES, MAX_DETECTIONS, TENSOR_SHAPE
 
 SCHEMA_VERSION: Final[int] = 1
 MAX_PAYLOAD_BYTES: Final[int] = 4 * 1024 * 1024
 MAX_BEAMS: Final[int] = 8192
-MAX_DETECTIONS: Final[int] = 300
 MAX_TRUTH_OBJECTS: Final[int] = 64
-TENSOR_SHAPE: Final[tuple[int, int, int]] = (RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH)
-CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe")
 
 # Unpacker limits: no legitimate message comes near them, and they stop a small hostile payload from
 # declaring a huge container that msgpack would pre-allocate before noticing the data is missing.

@@ -23,7 +23,6 @@ log = logging.getLogger(__name__)
 
 ZENOH_CONFIG_ENV = "ZENOH_CONFIG"
 MODES = ("peer", "client", "router")
-HEALTH_PREFIX = "triscan/@health"  # liveliness tokens: triscan/@health/<service>/<instance>
 
 
 @dataclass(frozen=True)
@@ -139,20 +138,6 @@ def open_session(settings: ZenohSettings) -> Iterator[Any]:
         yield session
     finally:
         session.close()
-
-
-def health_key(service: str, instance: str) -> str:
-    """Liveliness token of one running service; the launcher watches ``triscan/@health/**``."""
-    return f"{HEALTH_PREFIX}/{service}/{instance}"
-
-
-def parse_health_key(key: str) -> tuple[str, str]:
-    """``triscan/@health/<service>/<instance>`` → (service, instance)."""
-    prefix = HEALTH_PREFIX + "/"
-    if not key.startswith(prefix) or key.count("/") != HEALTH_PREFIX.count("/") + 2:
-        raise ValueError(f"{key!r} is not a triscan health key")
-    service, instance = key[len(prefix) :].split("/")
-    return service, instance
 
 
 def payload_bytes(sample: Any) -> bytes:

@@ -21,15 +21,15 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import model_padding, model_takes_batches
-from common.keys import DETECTIONS, SCAN, wildcard_key
-from common.transport import HEALTH_PREFIX, ZenohSettings, open_session, parse_health_key
-from services.detector.__main__ import default_model_path
+from common.inference import check_batch, model_padding, model_takes_batches
+from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
+from common.model_spec import default_model_path
+from common.transport import ZenohSettings, open_session
 from services.runtime import EXIT_WITH_PARENT_ENV
 
 log = logging.getLogger("triscan.up")
@@ -73,20 +73,6 @@ def free_tcp_ports(count: int) -> list[int]:
             s.close()
 
 
-def start_loopback_service(
-    module: str, port: int, connect: Sequence[int], *extra: str, **popen_kwargs: Any
-) -> subprocess.Popen[bytes]:
-    """``python -m <module>`` as a loopback peer listening on ``port`` and connecting to ``connect``.
-
-    For benchmarks and tests that wire a few services by hand rather than through :func:`up`.
-    """
-    settings = ZenohSettings.loopback(port, list(connect))
-    command = [sys.executable, "-m", module, *extra, *settings.to_cli()]
-    return subprocess.Popen(
-        command, cwd=Path(__file__).resolve().parents[1], env=child_environment(), **popen_kwargs
-    )
-
-
 def stop_processes(processes: Mapping[str, subprocess.Popen[bytes]], grace_s: float) -> None:
     """SIGTERM every process, then wait for all of them together; kill those still alive after ``grace_s``.
 
@@ -104,14 +90,6 @@ def stop_processes(processes: Mapping[str, subprocess.Popen[bytes]], grace_s: fl
             log.warning("%s (pid %d) did not stop in %.0f s: killing it", name, process.pid, grace_s)
             process.kill()
             process.wait()
-
-
-def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:
-    """A memory figure of a live process from /proc (``VmRSS`` now, ``VmHWM`` its peak), in MiB."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(f"{field_name}:"):
-            return int(line.split()[1]) / 1024.0
-    raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
 
 
 def _endpoint_port(endpoint: str) -> int | None:
@@ -219,7 +197,7 @@ class TrafficCounter:
 
     def counter(self, topic: str) -> Any:
         def count(sample: Any) -> None:
-            robot = str(sample.key_expr).split("/")[-2]
+            robot = parse_key(str(sample.key_expr))[0]
             with self._lock:
                 self.counts[topic] = self.counts.get(topic, 0) + 1
                 self.robots.add(robot)
@@ -236,14 +214,8 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     """Start, watch and stop the services; 0 on a clean stop, 1 if a service kept dying or never came up."""
     if config.robots < 1:
         raise ValueError(f"--robots must be >= 1, got {config.robots}")
-    if config.batch < 1:
-        raise ValueError(f"--batch must be >= 1, got {config.batch}")
-    if config.batch > 1 and not model_takes_batches(
-        model := config.model or default_model_path(batched=True)
-    ):
-        raise ValueError(
-            f"--batch {config.batch} needs a model with a free batch axis (a -batch file), not {model}"
-        )
+    model = config.model or default_model_path(batched=config.batch > 1)
+    check_batch(config.batch, config.batch == 1 or model_takes_batches(model), model)
     launcher_ports = [p for p in (_endpoint_port(e) for e in config.settings.listen) if p is not None]
     ports = dict(zip(SERVICES, free_tcp_ports(len(SERVICES)), strict=True))
     commands = service_commands(config, ports, launcher_ports[0] if launcher_ports else None)
@@ -252,9 +224,7 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     traffic = TrafficCounter()
     exit_code = 0
     with open_session(config.settings) as session:
-        watcher = session.liveliness().declare_subscriber(
-            f"{HEALTH_PREFIX}/**", health.on_sample, history=True
-        )
+        watcher = session.liveliness().declare_subscriber(ALL_HEALTH, health.on_sample, history=True)
         counters = [
             session.declare_subscriber(wildcard_key(topic), traffic.counter(topic))
             for topic in (SCAN, DETECTIONS)

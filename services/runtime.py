@@ -1,8 +1,16 @@
-"""What every service process does the same way: logging, stopping on signals, announcing itself.
+"""The skeleton every triscan service runs in: one Zenoh session, a health token, counters, a stop.
 
 A service is healthy while its Zenoh liveliness token ``triscan/@health/<service>/<pid>`` exists; the
 token vanishes when the process exits or its session closes, which is how ``triscan up`` (and anyone
-else) notices a dead peer without polling.
+else) notices a dead peer without polling. Once a second it publishes its counters as JSON on
+``triscan/@stats/<service>/<pid>``, which ``triscan status`` collects.
+
+:class:`ServiceRuntime` does all of that, plus ``--duration`` and clean shutdown (every subscriber,
+publisher and token undeclared, the session closed: a session left open with a callback subscriber
+hangs the interpreter at exit). :class:`RobotPublishers` holds one publisher per robot, declared on
+first use and forgotten with its robot, so a fleet that changes over time does not leak them. A
+service's ``run`` is then: build its pure core, subscribe the core's handlers, and hand
+:meth:`ServiceRuntime.serve` a housekeeping function that returns the counters to publish.
 """
 
 from __future__ import annotations
@@ -14,14 +22,17 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
+from types import TracebackType
 from typing import Any
 
-from common.transport import add_zenoh_arguments, health_key
+from common.keys import health_key, parse_key, stats_key
+from common.transport import ZenohSettings, add_zenoh_arguments, open_session, payload_bytes
 
-STATS_PREFIX = "triscan/@stats"  # triscan/@stats/<service>/<pid>: JSON counters, once a second
+log = logging.getLogger(__name__)
+
 STATS_PERIOD_S = 1.0
-
+SUMMARY_PERIOD_S = 10.0  # a one-line summary in the log this often
 EXIT_WITH_PARENT_ENV = "TRISCAN_EXIT_WITH_PARENT"
 PARENT_POLL_S = 0.5
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -77,10 +88,6 @@ def declare_health(session: Any, service: str) -> Any:
     return session.liveliness().declare_token(health_key(service, str(os.getpid())))
 
 
-def stats_key(service: str, instance: str) -> str:
-    return f"{STATS_PREFIX}/{service}/{instance}"
-
-
 class StatsPublisher:
     """Publishes a service's counters as JSON on ``triscan/@stats/<service>/<pid>``.
 
@@ -104,3 +111,156 @@ class StatsPublisher:
 
     def close(self) -> None:
         self._publisher.undeclare()
+
+
+class RobotPublishers:
+    """One Zenoh publisher per robot on ``key_of(robot_id)``, declared on first use.
+
+    Thread-safe (Zenoh callbacks and inference threads both publish). A robot not published for
+    ``forget_after_s`` is forgotten by :meth:`forget_silent`, and :meth:`forget` drops the ones a
+    core has forgotten itself, so publishers live exactly as long as their robot.
+    """
+
+    def __init__(self, session: Any, key_of: Callable[[str], str]) -> None:
+        self._session = session
+        self._key_of = key_of
+        self._publishers: dict[str, Any] = {}
+        self._last_put: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._publishers)
+
+    def put(self, robot_id: str, payload: bytes) -> None:
+        with self._lock:
+            publisher = self._publishers.get(robot_id)
+            if publisher is None:
+                publisher = self._publishers[robot_id] = self._session.declare_publisher(
+                    self._key_of(robot_id)
+                )
+            self._last_put[robot_id] = time.monotonic()
+        publisher.put(payload)
+
+    def forget(self, robot_ids: Iterable[str]) -> None:
+        with self._lock:
+            for robot_id in robot_ids:
+                publisher = self._publishers.pop(robot_id, None)
+                self._last_put.pop(robot_id, None)
+                if publisher is not None:
+                    publisher.undeclare()
+
+    def forget_silent(self, forget_after_s: float, now: float | None = None) -> list[str]:
+        """Undeclare the publishers of robots silent for ``forget_after_s``; returns their ids."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            silent = [robot_id for robot_id, t in self._last_put.items() if now - t > forget_after_s]
+        self.forget(silent)
+        return silent
+
+    def close(self) -> None:
+        with self._lock:
+            robot_ids = list(self._publishers)
+        self.forget(robot_ids)
+
+
+SampleHandler = Callable[[str, bytes], None]
+
+
+class ServiceRuntime:
+    """A service's Zenoh side and lifetime: use as ``with ServiceRuntime(...) as runtime:``.
+
+    Entering opens the session, declares the health token and the stats publisher; leaving undeclares
+    everything declared through it and closes the session, in that order, however the block ends.
+    """
+
+    def __init__(
+        self, service: str, settings: ZenohSettings, stop: threading.Event, *, duration_s: float = 0.0
+    ) -> None:
+        self.service = service
+        self.settings = settings
+        self.stop = stop
+        self.duration_s = duration_s
+        self.log = logging.getLogger(f"services.{service}")
+        self.session: Any = None
+        self._session_cm: Any = None
+        self._declared: list[Any] = []  # subscribers and publishers, undeclared in reverse order
+        self._robot_publishers: list[RobotPublishers] = []
+        self._stats: StatsPublisher | None = None
+        self._started = time.monotonic()
+
+    def __enter__(self) -> ServiceRuntime:
+        self._session_cm = open_session(self.settings)
+        self.session = self._session_cm.__enter__()
+        try:
+            self._declared.append(declare_health(self.session, self.service))
+            self._stats = StatsPublisher(self.session, self.service)
+        except BaseException:
+            self._session_cm.__exit__(None, None, None)
+            raise
+        self._started = time.monotonic()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        try:
+            if self._stats is not None:
+                self._stats.close()
+            for publishers in self._robot_publishers:
+                publishers.close()
+            for entity in reversed(self._declared):
+                entity.undeclare()
+        finally:
+            self._session_cm.__exit__(exc_type, exc, tb)
+
+    def subscribe(self, key: str, handler: SampleHandler) -> None:
+        """Call ``handler(key, payload)`` for every sample on ``key`` (a pattern)."""
+
+        def on_sample(sample: Any) -> None:
+            handler(str(sample.key_expr), payload_bytes(sample))
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def robot_publishers(self, key_of: Callable[[str], str]) -> RobotPublishers:
+        publishers = RobotPublishers(self.session, key_of)
+        self._robot_publishers.append(publishers)
+        return publishers
+
+    @property
+    def elapsed_s(self) -> float:
+        return time.monotonic() - self._started
+
+    def should_stop(self) -> bool:
+        """The stop event is set or ``duration_s`` (when > 0) has passed."""
+        return self.stop.is_set() or (self.duration_s > 0.0 and self.elapsed_s >= self.duration_s)
+
+    def publish_stats(self, counters: Mapping[str, object]) -> None:
+        """Publish counters (at most once per ``STATS_PERIOD_S``)."""
+        assert self._stats is not None, "use ServiceRuntime in a with block"
+        self._stats.publish(counters)
+
+    def serve(
+        self, housekeeping: Callable[[], Mapping[str, object]], period_s: float = STATS_PERIOD_S
+    ) -> None:
+        """Until :meth:`should_stop`: every ``period_s`` run ``housekeeping`` and publish what it returns.
+
+        The counters also go to the log every ``SUMMARY_PERIOD_S`` and once at the end.
+        """
+        last_summary = time.monotonic()
+        counters: Mapping[str, object] = {}
+        while not self.stop.wait(period_s):
+            counters = housekeeping()
+            self.publish_stats(counters)
+            now = time.monotonic()
+            if now - last_summary >= SUMMARY_PERIOD_S:
+                self.log.info("%s", counters)
+                last_summary = now
+            if self.should_stop():
+                break
+        self.log.info("stopping after %.1f s: %s", self.elapsed_s, counters or housekeeping())
+
+
+def robot_of_key(key: str) -> str:
+    """The robot id of a data key (``triscan/<robot>/<topic>``); ValueError for anything else."""
+    return parse_key(key)[0]

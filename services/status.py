@@ -13,8 +13,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.transport import HEALTH_PREFIX, ZenohSettings, open_session, parse_health_key
-from services.runtime import STATS_PERIOD_S, STATS_PREFIX
+from common.keys import ALL_HEALTH, ALL_STATS, parse_health_key, parse_stats_key
+from common.transport import ZenohSettings, open_session
+from services.runtime import STATS_PERIOD_S
 
 
 @dataclass
@@ -31,15 +32,15 @@ def collect_status(settings: ZenohSettings, wait_s: float = 2.5 * STATS_PERIOD_S
     lock = threading.Lock()
 
     def on_stats(sample: Any) -> None:
-        parts = str(sample.key_expr).split("/")
         try:
+            service, instance = parse_stats_key(str(sample.key_expr))
             counters = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
-        if len(parts) != 4 or not isinstance(counters, dict):
+        if not isinstance(counters, dict):
             return
         with lock:
-            status = found.setdefault((parts[2], parts[3]), ServiceStatus(parts[2], parts[3]))
+            status = found.setdefault((service, instance), ServiceStatus(service, instance))
             status.counters = counters
 
     def on_health(sample: Any) -> None:
@@ -56,8 +57,8 @@ def collect_status(settings: ZenohSettings, wait_s: float = 2.5 * STATS_PERIOD_S
     # Subscribers, not one-off queries: peers found through gossip connect during the wait, and
     # a subscriber with history hears their tokens whenever they arrive.
     with open_session(settings) as session:
-        stats_sub = session.declare_subscriber(f"{STATS_PREFIX}/**", on_stats)
-        health_sub = session.liveliness().declare_subscriber(f"{HEALTH_PREFIX}/**", on_health, history=True)
+        stats_sub = session.declare_subscriber(ALL_STATS, on_stats)
+        health_sub = session.liveliness().declare_subscriber(ALL_HEALTH, on_health, history=True)
         time.sleep(wait_s)
         stats_sub.undeclare()
         health_sub.undeclare()

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from common.encoding import to_model_input
-from common.messages import CLASS_NAMES
+from common.model_spec import CLASS_NAMES, file_sha256
 from training.dataset import DatasetConfig, generate_dataset
 from training.export import (
     ANCHORS,
@@ -37,7 +37,6 @@ from training.export import (
     onnx_metadata,
     quantize_int8,
     read_tensor_png,
-    sha256_of,
 )
 from training.offline import configure_offline
 from training.png import write_rgb_png
@@ -138,7 +137,7 @@ def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: P
     assert "doorframe" in meta["names"]
     assert meta["triscan.padding"] == "wrap", "padding must come from the training data set"
     assert json.loads(meta["triscan.classes"]) == list(CLASS_NAMES)
-    assert meta["triscan.source_weights"] == f"last.pt sha256:{sha256_of(weights)[:12]}"
+    assert meta["triscan.source_weights"] == f"last.pt sha256:{file_sha256(weights)[:12]}"
     assert meta["triscan.precision"] == "fp32"
 
 
@@ -349,7 +348,7 @@ def test_batch_variant_is_the_same_network_with_a_free_batch_axis(
     assert dims == [[BATCH_AXIS, 3, 64, 384], [BATCH_AXIS, 8, 504]]
     meta, source_meta = onnx_metadata(out), onnx_metadata(source)
     assert meta["triscan.batch"] == BATCH_AXIS
-    assert meta["triscan.batch_source"] == f"{source.name} sha256:{sha256_of(source)[:12]}"
+    assert meta["triscan.batch_source"] == f"{source.name} sha256:{file_sha256(source)[:12]}"
     assert {k: v for k, v in meta.items() if not k.startswith("triscan.batch")} == source_meta
     # The same weights: every initializer except the Reshape targets is byte-identical.
     before = {t.name: t.raw_data for t in onnx.load(str(source)).graph.initializer}
@@ -395,7 +394,7 @@ def test_export_models_writes_and_describes_both_files(weights: Path, dataset: P
     for kind in ("fp32", "int8", "fp32_batch", "int8_batch"):
         path = Path(result[kind]["path"])
         assert result[kind]["bytes"] == path.stat().st_size
-        assert result[kind]["sha256"] == sha256_of(path)
+        assert result[kind]["sha256"] == file_sha256(path)
     assert result["int8"]["bytes"] < result["fp32"]["bytes"] / 2
     assert result["padding"] == "wrap" and result["calibration_images"] == 4
     assert math.isfinite(result["int8_vs_fp32"]["box_max_abs_px"])

@@ -19,11 +19,11 @@ from typing import Any
 
 import pytest
 
-from common.keys import DETECTIONS, TENSOR, scan_key, wildcard_key
+from bench.harness import start_loopback_service
+from common.keys import DETECTIONS, TENSOR, scan_key, service_stats_key, wildcard_key
 from common.messages import Detections, StackedTensor, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
-from services.launcher import free_tcp_ports, start_loopback_service
-from services.runtime import STATS_PREFIX
+from services.launcher import free_tcp_ports
 from tests.scan_replay import replay_scans
 from tests.waiting import wait_for
 
@@ -177,7 +177,7 @@ def test_detector_from_scans_with_two_workers_serves_in_order_and_forgets_silent
             subs = [
                 session.declare_subscriber(wildcard_key(DETECTIONS), detections),
                 session.declare_subscriber(
-                    f"{STATS_PREFIX}/detector/*", lambda s: stats.append(json.loads(payload_bytes(s)))
+                    service_stats_key("detector"), lambda s: stats.append(json.loads(payload_bytes(s)))
                 ),
             ]
             wait_for_subscriber(session, scan_key(ROBOTS[1]))

@@ -60,7 +60,7 @@ def test_card_files_exist_and_ids_match() -> None:
 def test_batch_variants_are_the_shipped_models_with_a_free_batch_axis(kind: str) -> None:
     """The ``-batch`` files say which file they were made from, by hash, and load as batch models."""
     onnx = pytest.importorskip("onnx")
-    from training.export import sha256_of
+    from common.model_spec import file_sha256 as sha256_of
 
     source, batch = MODELS / CARD["files"][kind], MODELS / CARD["files"][f"{kind}_batch"]
     meta = {p.key: p.value for p in onnx.load(str(batch), load_external_data=False).metadata_props}

@@ -21,10 +21,11 @@ import numpy as np
 import pytest
 
 from common.keys import scan_key, truth_key
-from common.messages import CLASS_NAMES, GroundTruth, Scan, decode_message, encode_message
+from common.messages import GroundTruth, Scan, decode_message, encode_message
+from common.model_spec import CLASS_NAMES
 from common.transport import ZenohSettings, open_session, payload_bytes
+from services.simulator.fleet import SCENARIOS_PER_ROBOT, SimulatedFleet
 from services.simulator.lidar import DEFAULT_SPEC
-from services.simulator.publisher import SCENARIOS_PER_ROBOT, SimulatedFleet
 from services.simulator.robot import DiffDriveLimits
 from services.simulator.scenario import (
     BOX_CLEARANCE_M,

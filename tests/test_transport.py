@@ -9,12 +9,11 @@ from pathlib import Path
 
 import pytest
 
+from common.keys import health_key, parse_health_key
 from common.transport import (
     ZenohSettings,
     add_zenoh_arguments,
-    health_key,
     open_session,
-    parse_health_key,
     settings_from_args,
 )
 from services.launcher import free_tcp_ports

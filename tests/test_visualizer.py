@@ -23,9 +23,14 @@ import pytest
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from common.keys import detections_key, scan_key, tensor_key, truth_key  # noqa: E402
+from common.keys import (  # noqa: E402
+    detections_key,
+    health_key,
+    scan_key,
+    tensor_key,
+    truth_key,
+)
 from common.messages import (  # noqa: E402
-    CLASS_NAMES,
     TENSOR_SHAPE,
     Detection,
     Detections,
@@ -36,9 +41,9 @@ from common.messages import (  # noqa: E402
     TruthObject,
     encode_message,
 )
-from common.transport import ZenohSettings, health_key, open_session  # noqa: E402
+from common.model_spec import CLASS_COLOURS, CLASS_NAMES  # noqa: E402
+from common.transport import ZenohSettings, open_session  # noqa: E402
 from services.visualizer.core import (  # noqa: E402
-    CLASS_COLORS,
     TIMING_NAMES,
     RerunVisualizer,
     RobotPaths,
@@ -234,22 +239,31 @@ def test_core_logs_every_view(tmp_path: Path) -> None:
     RrdReader(path).store()  # the footer (manifest) was written: the file is complete
 
 
-def test_detection_labels_carry_class_and_score(tmp_path: Path) -> None:
+def test_detection_labels_carry_class_and_score_and_colours_come_from_one_context(tmp_path: Path) -> None:
     path = tmp_path / "labels.rrd"
     rec = new_recording(path)
     RerunVisualizer(rec, send_blueprints=False).log_message(make_detections("r1", 3))
     close(rec)
+    context = None
     for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == "/" and "AnnotationContext:context" in batch.schema.names:
+            context = batch.column("AnnotationContext:context").to_pylist()[0][0]
         if chunk.entity_path == "/" + RobotPaths("r1").raster_detections:
-            batch = chunk.to_record_batch()
             labels = batch.column("Boxes2D:labels").to_pylist()[0]
-            colors = batch.column("Boxes2D:colors").to_pylist()[0]
+            class_ids = batch.column("Boxes2D:class_ids").to_pylist()[0]
+            assert "Boxes2D:colors" not in batch.schema.names  # no per-call colours
             break
     else:
         pytest.fail("no raster detections logged")
     assert labels == ["chair 0.91", "desk 0.74"]
-    assert len(set(colors)) == 2  # one fixed colour per class
-    assert len(set(CLASS_COLORS.values())) == len(CLASS_NAMES) == len(CLASS_COLORS)
+    assert class_ids == [0, 2]
+    assert context is not None, "the class AnnotationContext must be logged, static, at the root"
+    infos = {entry["class_id"]: entry["class_description"]["info"] for entry in context}
+    assert [infos[i]["label"] for i in range(len(CLASS_NAMES))] == list(CLASS_NAMES)
+    colours = [infos[i]["color"] for i in range(len(CLASS_NAMES))]
+    expected = [(r << 24) | (g << 16) | (b << 8) | 0xFF for r, g, b in CLASS_COLOURS]
+    assert colours == expected
 
 
 def test_bad_payloads_are_counted_by_reason_and_never_raise(tmp_path: Path) -> None:

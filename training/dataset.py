@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding, ScanStacker
-from common.messages import CLASS_NAMES
+from common.model_spec import CLASS_NAMES
 from services.simulator.clutter import Clutter, sample_clutter
 from services.simulator.labels import ObjectLabel, label_scan, yolo_lines
 from services.simulator.lidar import DEFAULT_SPEC, Lidar, LidarReading, LidarSpec

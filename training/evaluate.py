@@ -32,7 +32,7 @@ import numpy as np
 
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding
 from common.inference import OnnxDetector, unwrap_seam_duplicates
-from common.messages import CLASS_NAMES
+from common.model_spec import CLASS_NAMES, MAX_DETECTIONS
 from training.export import read_tensor_png
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 IOU_THRESHOLDS = np.linspace(0.5, 0.95, 10)  # the COCO ladder behind mAP@0.5:0.95
 VAL_CONF = 0.001  # Ultralytics' validation protocol: keep almost everything, let AP integrate
 VAL_IOU = 0.7
-VAL_MAX_DET = 300
+VAL_MAX_DET = MAX_DETECTIONS  # Ultralytics' max_det is 300 too
 
 
 @dataclass(frozen=True)

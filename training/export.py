@@ -21,7 +21,6 @@ running a model that was never evaluated.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import re
@@ -36,14 +35,20 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from common.encoding import IMAGE_WIDTH, PADDINGS, RANGE_ROWS, STACK_DEPTH, to_model_input
-from common.messages import CLASS_NAMES
+from common.inference import session_options
+from common.model_spec import (
+    CLASS_NAMES,
+    INPUT_SHAPE,
+    META_CLASSES,
+    META_PADDING,
+    META_PREFIX,
+    NUM_ANCHORS,
+    batch_variant_path,
+    file_sha256,
+)
 
 log = logging.getLogger(__name__)
 
-INPUT_SHAPE = (1, STACK_DEPTH, RANGE_ROWS, IMAGE_WIDTH)
-STRIDES = (8, 16, 32)
-# YOLOv8 predicts one box per cell of each stride's grid: 8×48 + 4×24 + 2×12 = 504 for 64×384.
-ANCHORS = sum((RANGE_ROWS // s) * (IMAGE_WIDTH // s) for s in STRIDES)
 BOX_CHANNELS = 4  # output rows 0–3: cx, cy, w, h in input pixels; rows 4…: per-class scores in [0, 1]
 DEFAULT_CALIB_COUNT = 200
 CONFIDENT_SCORE = 0.25  # Ultralytics' default predict threshold: anchors above it are candidate detections
@@ -51,7 +56,6 @@ SHA_PREFIX = 12
 PERCENTILE = 99.999  # share of calibration values the "percentile" activation ranges keep
 ENTROPY_BINS = 2048  # histogram resolution for KL calibration, as TensorRT uses
 ENTROPY_QUANTIZED_BINS = 128  # ONNX Runtime's default target bin count for the KL search
-META_PREFIX = "triscan."
 
 CalibMethod = Literal["minmax", "entropy", "percentile"]
 CALIB_METHODS: tuple[str, ...] = get_args(CalibMethod)
@@ -68,15 +72,6 @@ class ExportError(ValueError):
 
 
 # --- small helpers -------------------------------------------------------------------------------------
-
-
-def sha256_of(path: Path) -> str:
-    """Hex sha256 of a file, read in chunks (ONNX files are megabytes, checkpoints more)."""
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def dataset_padding(dataset_dir: Path) -> str | None:
@@ -139,7 +134,7 @@ def _check_io(model: Any, path: Path, batch: int | str = 1) -> None:
     expected_in = (batch, *INPUT_SHAPE[1:])
     if signature(graph_input) != (onnx.TensorProto.FLOAT, expected_in):
         raise ExportError(f"{path}: input must be float32{list(expected_in)}, got {described(graph_input)}")
-    expected_out = (batch, BOX_CHANNELS + len(CLASS_NAMES), ANCHORS)
+    expected_out = (batch, BOX_CHANNELS + len(CLASS_NAMES), NUM_ANCHORS)
     outputs = model.graph.output
     if len(outputs) != 1 or signature(outputs[0]) != (onnx.TensorProto.FLOAT, expected_out):
         got = ", ".join(described(o) for o in outputs)
@@ -223,9 +218,9 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
     _set_metadata(
         model,
         {
-            f"{META_PREFIX}padding": recorded_padding,
-            f"{META_PREFIX}classes": json.dumps(list(CLASS_NAMES)),
-            f"{META_PREFIX}source_weights": f"{weights.name} sha256:{sha256_of(weights)[:SHA_PREFIX]}",
+            META_PADDING: recorded_padding,
+            META_CLASSES: json.dumps(list(CLASS_NAMES)),
+            f"{META_PREFIX}source_weights": f"{weights.name} sha256:{file_sha256(weights)[:SHA_PREFIX]}",
             f"{META_PREFIX}precision": "fp32",
         },
     )
@@ -466,7 +461,7 @@ def quantize_int8(
                     else method,
                     "calibration_images": len(images),
                     "float_head_nodes": len(exclude),
-                    "source_fp32": f"{fp32_onnx.name} sha256:{sha256_of(fp32_onnx)[:SHA_PREFIX]}",
+                    "source_fp32": f"{fp32_onnx.name} sha256:{file_sha256(fp32_onnx)[:SHA_PREFIX]}",
                 },
                 sort_keys=True,
             ),
@@ -489,7 +484,6 @@ def quantize_int8(
 # --- batch variants ------------------------------------------------------------------------------------
 
 BATCH_AXIS = "batch"
-BATCH_SUFFIX = "-batch"
 _BATCH_CHECK_FRAMES = 3  # frames run one by one and as one batch to prove the variant computes the same
 
 
@@ -537,7 +531,7 @@ def add_batch_axis(model_path: Path, out: Path) -> Path:
         model,
         {
             f"{META_PREFIX}batch": BATCH_AXIS,
-            f"{META_PREFIX}batch_source": f"{model_path.name} sha256:{sha256_of(model_path)[:SHA_PREFIX]}",
+            f"{META_PREFIX}batch_source": f"{model_path.name} sha256:{file_sha256(model_path)[:SHA_PREFIX]}",
         },
     )
     with tempfile.TemporaryDirectory(prefix="triscan-batch-") as scratch:
@@ -567,21 +561,13 @@ def _check_batch_equivalence(single: Path, batched: Path, atol: float = 1e-4) ->
         )
 
 
-def batch_variant_path(model_path: Path) -> Path:
-    """Where the batch variant of ``models/<stem>.onnx`` lives: ``models/<stem>-batch.onnx``."""
-    return model_path.with_name(f"{model_path.stem}{BATCH_SUFFIX}{model_path.suffix}")
-
-
 # --- measurement ---------------------------------------------------------------------------------------
 
 
 def _session(onnx_path: Path, threads: int = 1) -> Any:
     import onnxruntime as ort
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    return ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(str(onnx_path), session_options(threads), providers=["CPUExecutionProvider"])
 
 
 def compare_outputs(
@@ -664,7 +650,7 @@ def median_latency_ms(
 
 
 def _describe(path: Path) -> dict[str, Any]:
-    return {"path": str(path), "bytes": path.stat().st_size, "sha256": sha256_of(path)}
+    return {"path": str(path), "bytes": path.stat().st_size, "sha256": file_sha256(path)}
 
 
 def export_models(

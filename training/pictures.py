@@ -40,7 +40,7 @@ from common.encoding import (
     polar_to_xy,
     range_to_pixel_y,
 )
-from common.messages import CLASS_NAMES
+from common.model_spec import CLASS_COLOURS, CLASS_NAMES
 from services.simulator.scenario import (
     DOORFRAME,
     Rect,
@@ -55,14 +55,6 @@ Colour = tuple[int, int, int]
 Pose = tuple[float, float, float]
 Font = ImageFont.FreeTypeFont | ImageFont.ImageFont
 
-# Class colours avoid the pure and mixed channel colours (red, green, blue, yellow, cyan, magenta,
-# white) that lit pixels and hits take, so a box or outline is never mistaken for a scan.
-CLASS_COLOURS: tuple[Colour, ...] = (
-    (255, 150, 30),  # chair: orange
-    (180, 130, 255),  # box: lavender
-    (255, 95, 170),  # desk: pink
-    (215, 205, 130),  # doorframe: khaki
-)
 CHANNEL_COLOURS: tuple[Colour, ...] = ((255, 0, 0), (0, 255, 0), (0, 0, 255))
 CHANNEL_NAMES: tuple[str, ...] = ("t-2 (oldest)", "t-1 (middle, labelled)", "t (newest)")
 BACKGROUND: Colour = (0, 0, 0)

@@ -14,57 +14,19 @@ import argparse
 import logging
 import os
 import threading
-import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector
-from common.keys import SCAN, TENSOR, detections_key, parse_key, wildcard_key
-from common.messages import Detections, StackedTensor, encode_message
-from common.transport import (
-    ZenohSettings,
-    open_session,
-    payload_bytes,
-    settings_from_args,
-)
-from services.detector.core import DetectorCore, LatestPerRobot
-from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
-from services.runtime import (
-    StatsPublisher,
-    add_service_arguments,
-    configure_logging,
-    declare_health,
-    stop_event_on_signals,
-)
+from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector, check_batch
+from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
+from common.messages import Detections, encode_message
+from common.model_spec import MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL, default_model_path
+from common.transport import ZenohSettings, settings_from_args
+from services.detector.core import DetectorCore, InferencePipeline
+from services.encoder.core import DEFAULT_FORGET_AFTER_S
+from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
-log = logging.getLogger("triscan.detector")
-
-MODEL_ENV = "TRISCAN_MODEL"
-SHIPPED_MODEL = Path(__file__).resolve().parents[2] / "models" / "triscan-yolov8n-zero.onnx"
-# The same model with a free batch axis (training.export.add_batch_axis), for --batch above 1.
-SHIPPED_BATCH_MODEL = SHIPPED_MODEL.with_name("triscan-yolov8n-zero-batch.onnx")
-TAKE_TIMEOUT_S = 0.5
-SUMMARY_EVERY_S = 10.0
-
-
-def default_model_path(batched: bool = False) -> Path:
-    """``$TRISCAN_MODEL`` if set, else the model shipped in the repository's ``models/`` (its batch
-    variant when ``batched``)."""
-    if os.environ.get(MODEL_ENV):
-        return Path(os.environ[MODEL_ENV])
-    return SHIPPED_BATCH_MODEL if batched else SHIPPED_MODEL
-
-
-def check_batch(detectors: Sequence[OnnxDetector], batch: int) -> None:
-    """Refuse a batch size the model cannot run, before any frame is lost to it."""
-    if batch < 1:
-        raise ValueError(f"batch must be >= 1, got {batch}")
-    if batch > 1 and not all(d.batched for d in detectors):
-        raise ValueError(
-            f"batch {batch} needs a model with a free batch axis; {detectors[0].model_path} is fixed at "
-            f"batch 1 (its -batch variant, e.g. models/{SHIPPED_BATCH_MODEL.name}, is the same network)"
-        )
+log = logging.getLogger(__package__)
 
 
 def run(
@@ -77,126 +39,33 @@ def run(
     duration_s: float = 0.0,
     batch: int = 1,
 ) -> DetectorCore:
-    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
-
-    One inference thread per detector in ``detectors`` (sessions of the same model): ONNX Runtime
-    releases the GIL, so on a multi-core robot with many robots to serve, several single-threaded
-    sessions in parallel beat one session spreading a batch-1 frame over all cores. Each thread takes
-    up to ``batch`` robots' waiting tensors per model call (a batch model is needed for more than 1);
-    it never waits to fill a batch, so a lone robot is served as fast as with ``batch`` 1.
-    """
-    if not detectors:
-        raise ValueError("need at least one detector")
-    check_batch(detectors, batch)
-    detector = detectors[0]
-    core = DetectorCore(detector)
-    encoder = EncoderCore(detector.padding, forget_after_s=forget_after_s) if from_scans else None
-    encoder_lock = threading.Lock()
-    mailbox: LatestPerRobot[StackedTensor] = LatestPerRobot()
-    for worker_detector in detectors:
-        worker_detector.warmup(batch)
-
-    def robot_of(sample: Any) -> str | None:
-        try:
-            return parse_key(str(sample.key_expr))[0]
-        except ValueError as exc:
-            core.reject("bad_key", str(exc))
-            return None
-
-    def on_tensor(sample: Any) -> None:
-        robot_id = robot_of(sample)
-        tensor = core.decode(payload_bytes(sample), robot_id) if robot_id is not None else None
-        if tensor is not None and mailbox.put(tensor.robot_id, tensor):
-            core.note_dropped()
-
-    def on_scan(sample: Any) -> None:
-        assert encoder is not None
-        robot_id = robot_of(sample)
-        if robot_id is None:
-            return
-        with encoder_lock:
-            tensor = encoder.handle_payload(payload_bytes(sample), robot_id)
-        if tensor is not None and core.accept(tensor) is not None and mailbox.put(tensor.robot_id, tensor):
-            core.note_dropped()
-
-    with open_session(settings) as session:
-        key = wildcard_key(SCAN if from_scans else TENSOR)
-        subscriber = session.declare_subscriber(key, on_scan if from_scans else on_tensor)
-        token = declare_health(session, "detector")
-        stats = StatsPublisher(session, "detector")
-        log.info(
-            "detector ready: %s (%s padding) on %s → detections", detector.model_id, detector.padding, key
-        )
-        publishers: dict[str, Any] = {}
-        last_served: dict[str, float] = {}
-        publishers_lock = threading.Lock()
-
-        def forget_silent_robots(now: float) -> None:
-            """Undeclare publishers of robots not served for ``forget_after_s``: no leak as fleets change."""
-            with publishers_lock:
-                for robot_id in [r for r, t in last_served.items() if now - t > forget_after_s]:
-                    publishers.pop(robot_id).undeclare()
-                    del last_served[robot_id]
+    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
+    with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
+        publishers = runtime.robot_publishers(detections_key)
 
         def publish(detections: Detections) -> None:
-            robot_id = detections.robot_id
-            with publishers_lock:
-                publisher = publishers.get(robot_id)
-                if publisher is None:
-                    publisher = publishers[robot_id] = session.declare_publisher(detections_key(robot_id))
-                last_served[robot_id] = time.monotonic()
-            publisher.put(encode_message(detections))
+            publishers.put(detections.robot_id, encode_message(detections))
 
-        def serve(worker_detector: OnnxDetector) -> None:
-            while not stop.is_set():
-                taken = mailbox.take_many(batch, TAKE_TIMEOUT_S)
-                if not taken:
-                    continue
-                try:
-                    try:
-                        results = core.detect_many([tensor for _, tensor in taken], worker_detector)
-                    except Exception as exc:  # one failed model call must not end this worker
-                        log.exception("inference failed for %s", [robot_id for robot_id, _ in taken])
-                        for robot_id, tensor in taken:
-                            core.reject("inference_error", f"{robot_id} seq {tensor.seq}: {exc}")
-                        results = []
-                    for detections in results:
-                        publish(detections)
-                finally:
-                    for robot_id, _ in taken:  # only now: a robot's next tensor must not overtake this one
-                        mailbox.release(robot_id)
+        pipeline = InferencePipeline(
+            detectors, publish, batch=batch, from_scans=from_scans, forget_after_s=forget_after_s
+        )
 
-        workers = [
-            threading.Thread(target=serve, args=(d,), name=f"inference-{i}", daemon=True)
-            for i, d in enumerate(detectors)
-        ]
-        for worker in workers:
-            worker.start()
-        started = last_summary = time.monotonic()
+        def housekeeping() -> dict[str, object]:
+            publishers.forget_silent(forget_after_s)  # no publisher leak as fleets change
+            return {**pipeline.snapshot(), "robots": len(publishers)}
+
+        pipeline.start()
         try:
-            while not stop.wait(1.0):
-                now = time.monotonic()
-                forget_silent_robots(now)
-                counters: dict[str, object] = {**core.counters.to_dict(), "robots": len(publishers)}
-                if encoder is not None:
-                    with encoder_lock:
-                        encoder.forget_silent()
-                        counters["encoder"] = encoder.counters.to_dict()
-                stats.publish(counters)
-                if now - last_summary >= SUMMARY_EVERY_S:
-                    last_summary = now
-                    log.info("robots %d, %s", len(publishers), core.counters.to_dict())
-                if duration_s and now - started >= duration_s:
-                    break
+            key = ALL_SCANS if from_scans else ALL_TENSORS
+            runtime.subscribe(key, pipeline.handle_sample)
+            detector = pipeline.core.detector
+            log.info(
+                "detector ready: %s (%s padding) on %s → detections", detector.model_id, detector.padding, key
+            )
+            runtime.serve(housekeeping)
         finally:
-            stop.set()
-            mailbox.close()
-            for worker in workers:
-                worker.join(10)
-            stats.close()
-            token.undeclare()
-            subscriber.undeclare()
-    return core
+            pipeline.stop()
+    return pipeline.core
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -246,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             for _ in range(args.workers)
         ]
-        check_batch(detectors, args.batch)
+        check_batch(args.batch, all(d.batched for d in detectors), detectors[0].model_path)
     except (FileNotFoundError, ValueError) as exc:
         log.error("cannot load the model: %s", exc)
         return 2

@@ -1,10 +1,13 @@
-"""The detector's pure core: newest tensor per robot in, ``Detections`` out.
+"""The detector's core: newest tensor per robot in, ``Detections`` out, with no network in sight.
 
 A detector that queues frames falls further behind with every frame it cannot keep up with, and its
 detections describe a world that is gone. :class:`LatestPerRobot` holds at most one pending tensor
 per robot: a newer one replaces the waiting one (counted as dropped), and robots are served in turn,
-so one chatty robot cannot starve the others. Inference itself is :class:`common.inference.OnnxDetector`,
-the code ``triscan eval`` measures.
+so one chatty robot cannot starve the others. :class:`InferencePipeline` is the whole detector minus
+Zenoh: samples go in through :meth:`InferencePipeline.handle_sample` (the Zenoh callback only
+forwards), inference threads drain the mailbox, and every result leaves through a ``publish``
+callback. Inference itself is :class:`common.inference.OnnxDetector`, the code ``triscan eval``
+measures.
 """
 
 from __future__ import annotations
@@ -13,11 +16,12 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
-from common.inference import OnnxDetector
+from common.inference import OnnxDetector, check_batch
+from common.keys import parse_key
 from common.messages import (
     Detection,
     Detections,
@@ -26,10 +30,12 @@ from common.messages import (
     StageTimings,
     decode_message,
 )
+from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+TAKE_TIMEOUT_S = 0.5  # how often an idle inference thread looks at the stop flag
 
 
 class LatestPerRobot(Generic[T]):
@@ -137,7 +143,7 @@ class DetectorCore:
 
     def decode(self, payload: bytes, key_robot_id: str | None = None) -> StackedTensor | None:
         """A validated tensor, or None (logged and counted) for anything this model cannot take."""
-        self._count_received()
+        self.count_received()
         try:
             tensor = decode_message(payload, StackedTensor)
         except MessageError as exc:
@@ -147,10 +153,10 @@ class DetectorCore:
 
     def accept(self, tensor: StackedTensor, key_robot_id: str | None = None) -> StackedTensor | None:
         """Same as :meth:`decode` for a tensor built in this process (``--from-scans``)."""
-        self._count_received()
+        self.count_received()
         return self._checked(tensor, key_robot_id)
 
-    def _count_received(self) -> None:
+    def count_received(self) -> None:
         with self._lock:
             self.counters.received += 1
 
@@ -211,3 +217,97 @@ class DetectorCore:
             model_id=self.detector.model_id,
             scan_stamp_ns=tensor.scan_stamps_ns[2],
         )
+
+
+class InferencePipeline:
+    """Samples in, ``Detections`` out through ``publish``: the mailbox and one thread per detector.
+
+    One inference thread per detector in ``detectors`` (sessions of the same model): ONNX Runtime
+    releases the GIL, so on a multi-core robot with many robots to serve, several single-threaded
+    sessions in parallel beat one session spreading a batch-1 frame over all cores. Each thread takes
+    up to ``batch`` robots' waiting tensors per model call (a batch model is needed for more than 1);
+    it never waits to fill a batch, so a lone robot is served as fast as with ``batch`` 1. With
+    ``from_scans`` the samples are scans and an :class:`EncoderCore` in this process stacks them.
+    """
+
+    def __init__(
+        self,
+        detectors: Sequence[OnnxDetector],
+        publish: Callable[[Detections], None],
+        *,
+        batch: int = 1,
+        from_scans: bool = False,
+        forget_after_s: float = DEFAULT_FORGET_AFTER_S,
+    ) -> None:
+        if not detectors:
+            raise ValueError("need at least one detector")
+        check_batch(batch, all(d.batched for d in detectors), detectors[0].model_path)
+        self.detectors = list(detectors)
+        self.core = DetectorCore(self.detectors[0])
+        self.encoder = (
+            EncoderCore(self.core.detector.padding, forget_after_s=forget_after_s) if from_scans else None
+        )
+        self.batch = batch
+        self._publish = publish
+        self._mailbox: LatestPerRobot[StackedTensor] = LatestPerRobot()
+        self._stop = threading.Event()
+        self._workers: list[threading.Thread] = []
+
+    def start(self) -> None:
+        """Warm every batch size a worker may run (no first-frame stall), then start the workers."""
+        for detector in self.detectors:
+            detector.warmup(self.batch)
+        self._workers = [
+            threading.Thread(target=self._serve, args=(d,), name=f"inference-{i}", daemon=True)
+            for i, d in enumerate(self.detectors)
+        ]
+        for worker in self._workers:
+            worker.start()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        self._stop.set()
+        self._mailbox.close()
+        for worker in self._workers:
+            worker.join(timeout_s)
+
+    def handle_sample(self, key: str, payload: bytes) -> None:
+        """A tensor (or, ``from_scans``, a scan) sample from Zenoh; cheap, never blocks on inference."""
+        try:
+            robot_id, _ = parse_key(key)
+        except ValueError as exc:
+            self.core.reject("bad_key", str(exc))
+            return
+        if self.encoder is not None:
+            tensor = self.encoder.handle_payload(payload, robot_id)
+            accepted = self.core.accept(tensor) if tensor is not None else None
+        else:
+            accepted = self.core.decode(payload, robot_id)
+        if accepted is not None and self._mailbox.put(accepted.robot_id, accepted):
+            self.core.note_dropped()
+
+    def snapshot(self) -> dict[str, object]:
+        """Counters for the stats; with ``from_scans`` also forgets the encoder's silent robots."""
+        counters: dict[str, object] = self.core.counters.to_dict()
+        if self.encoder is not None:
+            self.encoder.forget_silent()
+            counters["encoder"] = self.encoder.snapshot()
+        return counters
+
+    def _serve(self, detector: OnnxDetector) -> None:
+        while not self._stop.is_set():
+            taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S)
+            if not taken:
+                continue
+            try:
+                try:
+                    results = self.core.detect_many([tensor for _, tensor in taken], detector)
+                except Exception as exc:  # one failed model call must not end this worker
+                    log.exception("inference failed for %s", [robot_id for robot_id, _ in taken])
+                    for robot_id, tensor in taken:
+                        self.core.reject("inference_error", f"{robot_id} seq {tensor.seq}: {exc}")
+                    results = []
+                for detections in results:
+                    self._publish(detections)
+            finally:
+                for robot_id, _ in taken:  # only now: a robot's next tensor must not overtake this one
+                    self._mailbox.release(robot_id)

@@ -20,12 +20,14 @@ happened. So, per robot (robots never share a FIFO):
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from common.encoding import Padding, ScanError, ScanStacker
+from common.keys import parse_key
 from common.messages import MessageError, Scan, StackedTensor, decode_message
 
 log = logging.getLogger(__name__)
@@ -72,7 +74,11 @@ class _Stream:
 
 
 class EncoderCore:
-    """Scans in, stacked tensors out; see the module docstring for the stream rules."""
+    """Scans in, stacked tensors out; see the module docstring for the stream rules.
+
+    :meth:`handle_sample`, :meth:`handle_payload`, :meth:`forget_silent` and :meth:`snapshot` may be
+    called from several threads (Zenoh callbacks, the service's housekeeping); :meth:`push` is for one.
+    """
 
     def __init__(
         self,
@@ -89,27 +95,47 @@ class EncoderCore:
         self.clock = clock
         self.counters = EncoderCounters()
         self._streams: dict[str, _Stream] = {}
+        self._lock = threading.RLock()
 
     @property
     def robot_ids(self) -> list[str]:
         return list(self._streams)
 
+    def handle_sample(self, key: str, payload: bytes) -> StackedTensor | None:
+        """One Zenoh sample on a scan key: the key names the robot, the payload must agree."""
+        with self._lock:
+            try:
+                robot_id, _ = parse_key(key)
+            except ValueError as exc:
+                self.counters.received += 1
+                self._reject("bad_key", str(exc))
+                return None
+            return self.handle_payload(payload, robot_id)
+
+    def snapshot(self) -> dict[str, object]:
+        """The counters and the number of robots tracked, for the service's stats."""
+        with self._lock:
+            return {**self.counters.to_dict(), "robots": len(self._streams)}
+
     def handle_payload(self, payload: bytes, key_robot_id: str | None = None) -> StackedTensor | None:
         """Decode and push one wire payload; a bad one is logged, counted by reason and dropped.
 
         ``key_robot_id`` is the robot named by the key it arrived on: a scan claiming another robot
-        is refused, so one publisher cannot feed (or poison) another robot's FIFO.
+        is refused, so one publisher cannot feed (or poison) another robot's FIFO. Thread-safe.
         """
-        self.counters.received += 1
-        try:
-            scan = decode_message(payload, Scan)
-        except MessageError as exc:
-            self._reject(exc.reason, str(exc))
-            return None
-        if key_robot_id is not None and scan.robot_id != key_robot_id:
-            self._reject("robot_id_mismatch", f"key says {key_robot_id!r}, payload says {scan.robot_id!r}")
-            return None
-        return self._push(scan)
+        with self._lock:
+            self.counters.received += 1
+            try:
+                scan = decode_message(payload, Scan)
+            except MessageError as exc:
+                self._reject(exc.reason, str(exc))
+                return None
+            if key_robot_id is not None and scan.robot_id != key_robot_id:
+                self._reject(
+                    "robot_id_mismatch", f"key says {key_robot_id!r}, payload says {scan.robot_id!r}"
+                )
+                return None
+            return self._push(scan)
 
     def push(self, scan: Scan) -> StackedTensor | None:
         """Push an already-decoded scan (the ``--from-scans`` detector and tests call this)."""
@@ -118,13 +144,14 @@ class EncoderCore:
 
     def forget_silent(self) -> list[str]:
         """Drop the FIFOs of robots silent for longer than ``forget_after_s``; returns their ids."""
-        now = self.clock()
-        silent = [rid for rid, s in self._streams.items() if now - s.last_seen_s > self.forget_after_s]
-        for robot_id in silent:
-            del self._streams[robot_id]
-            log.info("robot %s silent for %.0f s: forgotten", robot_id, self.forget_after_s)
-        self.counters.forgotten_robots += len(silent)
-        return silent
+        with self._lock:
+            now = self.clock()
+            silent = [rid for rid, s in self._streams.items() if now - s.last_seen_s > self.forget_after_s]
+            for robot_id in silent:
+                del self._streams[robot_id]
+                log.info("robot %s silent for %.0f s: forgotten", robot_id, self.forget_after_s)
+            self.counters.forgotten_robots += len(silent)
+            return silent
 
     def _reject(self, reason: str, detail: str) -> None:
         self.counters.rejected[reason] += 1

@@ -1,6 +1,6 @@
 """``python -m services.simulator``: publish simulated LiDAR scans and ground truth over Zenoh in real time.
 
-The simulation itself lives in :mod:`services.simulator.publisher` and knows no clock and no network;
+The simulation itself lives in :mod:`services.simulator.fleet` and knows no clock and no network;
 this module only adds the two: a tick schedule on the monotonic clock and one Zenoh publisher per robot
 and key (``triscan/<robot_id>/scan``, ``triscan/<robot_id>/truth``). ``run`` takes plain settings and
 a stop event, so it can be called from a test or a launcher; ``main`` is the only place that parses
@@ -17,52 +17,25 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 
-from common.encoding import PADDINGS, Padding
+from common.encoding import PADDINGS
 from common.keys import scan_key, truth_key, validate_robot_id
 from common.messages import encode_message
-from common.transport import ZenohSettings, open_session, settings_from_args
+from common.transport import ZenohSettings, settings_from_args
 from services.runtime import (
-    StatsPublisher,
+    SUMMARY_PERIOD_S,
+    ServiceRuntime,
     add_service_arguments,
     configure_logging,
-    declare_health,
     stop_event_on_signals,
 )
-from services.simulator.publisher import SimulatedFleet
+from services.simulator.defaults import ROBOT_ID_PREFIX, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
+from services.simulator.fleet import SimulatedFleet
 
-log = logging.getLogger("triscan.simulator")
-
-SERVICE_NAME = "simulator"
-SUMMARY_PERIOD_S = 10.0
-DEFAULT_SEED = 1  # the shipped model was trained on seed 0's worlds; seed 1 shows it unseen ones
-
-
-@dataclass(frozen=True)
-class FleetOptions:
-    """What to simulate: independent of Zenoh, so a launcher can build it without argparse."""
-
-    robots: int = 1
-    rate_hz: float = 10.0
-    seed: int = DEFAULT_SEED
-    scenario_period_s: float = 30.0
-    padding: Padding = "zero"
-    robot_id_prefix: str = "robot"
-
-    def build(self) -> SimulatedFleet:
-        return SimulatedFleet(
-            robots=self.robots,
-            seed=self.seed,
-            scenario_period_s=self.scenario_period_s,
-            rate_hz=self.rate_hz,
-            robot_id_prefix=self.robot_id_prefix,
-            padding=self.padding,
-        )
+log = logging.getLogger(__package__)
 
 
 class RateSummary:
@@ -96,37 +69,25 @@ class RateSummary:
 
 
 def run(
-    settings: ZenohSettings, options: FleetOptions, stop: threading.Event, duration_s: float = 0.0
+    settings: ZenohSettings, fleet: SimulatedFleet, stop: threading.Event, duration_s: float = 0.0
 ) -> int:
-    """Simulate and publish until ``stop`` is set or ``duration_s`` (> 0) has passed; returns 0."""
-    period_s = 1.0 / options.rate_hz
-    with options.build() as fleet, open_session(settings) as session:
-        publishers = {
-            robot_id: (
-                session.declare_publisher(scan_key(robot_id)),
-                session.declare_publisher(truth_key(robot_id)),
-            )
-            for robot_id in fleet.robot_ids
-        }
-        health_token = declare_health(session, SERVICE_NAME)
-        stats = StatsPublisher(session, SERVICE_NAME)
+    """Publish ``fleet``'s scans and truth until ``stop`` is set or ``duration_s`` (> 0) has passed."""
+    period_s = 1.0 / fleet.rate_hz
+    with ServiceRuntime("simulator", settings, stop, duration_s=duration_s) as runtime:
+        scans = runtime.robot_publishers(scan_key)
+        truths = runtime.robot_publishers(truth_key)
         summary = RateSummary(fleet.robot_ids)
         log.info(
-            "publishing %d robot(s) at %.1f Hz (seed %d, new world every %.0f s, padding %s): %s",
-            len(publishers),
-            options.rate_hz,
-            options.seed,
-            options.scenario_period_s,
-            options.padding,
-            ", ".join(scan_key(robot_id) for robot_id in publishers),
+            "publishing %d robot(s) at %.1f Hz: %s",
+            len(fleet.robot_ids),
+            fleet.rate_hz,
+            ", ".join(scan_key(robot_id) for robot_id in fleet.robot_ids),
         )
         start = time.monotonic()
         tick = 0  # index of the next tick; it is due at start + tick * period_s
         try:
-            while not stop.is_set():
+            while not runtime.should_stop():
                 now = time.monotonic()
-                if duration_s > 0.0 and now - start >= duration_s:
-                    break
                 due = start + tick * period_s
                 if now < due:
                     stop.wait(min(due - now, SUMMARY_PERIOD_S))
@@ -137,26 +98,20 @@ def run(
                     summary.skipped_ticks += missed
                     tick += missed
                 for scan, truth in fleet.step(time.time_ns()):
-                    scan_publisher, truth_publisher = publishers[scan.robot_id]
-                    scan_publisher.put(encode_message(scan))
-                    truth_publisher.put(encode_message(truth))
+                    scans.put(scan.robot_id, encode_message(scan))
+                    truths.put(truth.robot_id, encode_message(truth))
                     summary.count(scan.robot_id)
                 tick += 1
                 summary.maybe_log()
-                stats.publish(
+                runtime.publish_stats(
                     {
                         "published": sum(summary.total.values()),
                         "skipped_ticks": summary.skipped_ticks,
-                        "robots": len(publishers),
+                        "robots": len(fleet.robot_ids),
                     }
                 )
         finally:
             summary.maybe_log(force=True)
-            stats.close()
-            health_token.undeclare()
-            for scan_publisher, truth_publisher in publishers.values():
-                scan_publisher.undeclare()
-                truth_publisher.undeclare()
     return 0
 
 
@@ -166,19 +121,21 @@ def build_parser() -> argparse.ArgumentParser:
         description="Publish simulated LiDAR scans and ground truth over Zenoh in real time.",
     )
     parser.add_argument("--robots", type=int, default=1, help="number of simulated robots (default: 1)")
-    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot")
-    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of worlds, motion and noise")
+    parser.add_argument(
+        "--rate", type=float, default=SCAN_RATE_HZ, metavar="HZ", help="scans per second per robot"
+    )
+    parser.add_argument("--seed", type=int, default=SIM_SEED, help="seed of worlds, motion and noise")
     parser.add_argument(
         "--scenario-period",
         type=float,
-        default=30.0,
+        default=SCENARIO_PERIOD_S,
         metavar="S",
         help="seconds of simulated time per world (0: never change)",
     )
     parser.add_argument(
         "--padding", choices=PADDINGS, default="zero", help="padding the ground-truth boxes are given for"
     )
-    parser.add_argument("--robot-prefix", default="robot", help="robot ids are PREFIX0, PREFIX1, ...")
+    parser.add_argument("--robot-prefix", default=ROBOT_ID_PREFIX, help="robot ids are PREFIX0, PREFIX1, ...")
     add_service_arguments(parser)
     return parser
 
@@ -197,21 +154,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(f"--robot-prefix: {exc}")
     configure_logging(args.verbose)
-    options = FleetOptions(
-        robots=args.robots,
-        rate_hz=args.rate,
-        seed=args.seed,
-        scenario_period_s=args.scenario_period,
-        padding=args.padding,
-        robot_id_prefix=args.robot_prefix,
-    )
     try:
         settings = settings_from_args(args)
-        return run(settings, options, stop_event_on_signals(), duration_s=args.duration)
+        fleet = SimulatedFleet(
+            robots=args.robots,
+            seed=args.seed,
+            scenario_period_s=args.scenario_period,
+            rate_hz=args.rate,
+            robot_id_prefix=args.robot_prefix,
+            padding=args.padding,
+        )
     except (ValueError, FileNotFoundError) as exc:
         log.error("%s", exc)
         return 2
+    with fleet:
+        return run(settings, fleet, stop_event_on_signals(), duration_s=args.duration)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -1,10 +1,10 @@
 """``python -m services.visualizer``: subscribe to every robot's triscan topics and show them in Rerun.
 
-Thin wiring only: argparse, the Rerun sink, the Zenoh subscribers and a clean shutdown. All drawing
-lives in ``services.visualizer.core``. The shutdown order matters: the Zenoh session is closed first
-(no callback can log any more), then the recording is flushed and disconnected, which is what writes
-the ``.rrd`` footer: a recording saved with ``--save`` is complete after Ctrl-C, SIGTERM or
-``--duration`` alike.
+Wiring only: argparse, the Rerun sink, and :class:`services.runtime.ServiceRuntime` for Zenoh and a
+clean shutdown. All drawing lives in ``services.visualizer.core``. The shutdown order matters: the
+Zenoh session is closed first (no callback can log any more), then the recording is flushed and
+disconnected, which is what writes the ``.rrd`` footer: a recording saved with ``--save`` is complete
+after Ctrl-C, SIGTERM or ``--duration`` alike.
 
 The viewer's gRPC URL flag is ``--viewer-url`` because ``--connect`` already names Zenoh endpoints, as
 in every triscan service.
@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
-import time
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 from urllib.parse import quote
 
 import rerun as rr
@@ -29,20 +28,12 @@ from common.keys import DETECTIONS, SCAN, TENSOR, TRUTH, validate_robot_id, wild
 from common.transport import (
     ZenohSettings,
     add_zenoh_arguments,
-    open_session,
-    payload_bytes,
     settings_from_args,
 )
-from services.runtime import (
-    STATS_PERIOD_S,
-    StatsPublisher,
-    configure_logging,
-    declare_health,
-    stop_event_on_signals,
-)
+from services.runtime import ServiceRuntime, configure_logging, stop_event_on_signals
 from services.visualizer.core import APPLICATION_ID, RerunVisualizer, VisualizerStats
 
-log = logging.getLogger("services.visualizer")
+log = logging.getLogger(__package__)
 
 SERVICE_NAME = "visualizer"
 SUBSCRIBED_TOPICS: tuple[str, ...] = (SCAN, TENSOR, DETECTIONS, TRUTH)
@@ -120,35 +111,20 @@ def run(
     try:
         visualizer = RerunVisualizer(rec, robot_ids)
 
-        def on_sample(sample: Any) -> None:
-            # Runs on a Zenoh thread: hand over and return; handle() never raises.
-            visualizer.handle(str(sample.key_expr), payload_bytes(sample))
+        def counters() -> dict[str, object]:
+            snapshot = visualizer.stats()
+            return {
+                "received": sum(snapshot.accepted.values()) + sum(snapshot.rejected.values()),
+                "processed": sum(snapshot.accepted.values()),
+                "rejected": snapshot.rejected,
+                "robots": len(snapshot.robots),
+            }
 
-        with open_session(settings) as session:
-            subscribers = [
-                session.declare_subscriber(wildcard_key(topic), on_sample) for topic in SUBSCRIBED_TOPICS
-            ]
-            health = declare_health(session, SERVICE_NAME)
+        with ServiceRuntime(SERVICE_NAME, settings, stop, duration_s=duration_s or 0.0) as runtime:
+            for topic in SUBSCRIBED_TOPICS:
+                runtime.subscribe(wildcard_key(topic), visualizer.handle)
             log.info("subscribed to %s", ", ".join(wildcard_key(t) for t in SUBSCRIBED_TOPICS))
-            stats_publisher = StatsPublisher(session, SERVICE_NAME)
-            started = time.monotonic()
-            while not stop.wait(STATS_PERIOD_S):
-                if duration_s is not None and time.monotonic() - started >= duration_s:
-                    break
-                snapshot = visualizer.stats()
-                stats_publisher.publish(
-                    {
-                        "received": sum(snapshot.accepted.values()) + sum(snapshot.rejected.values()),
-                        "processed": sum(snapshot.accepted.values()),
-                        "rejected": snapshot.rejected,
-                        "robots": len(snapshot.robots),
-                    }
-                )
-            log.info("stopping after %.1f s", time.monotonic() - started)
-            stats_publisher.close()
-            health.undeclare()
-            for subscriber in subscribers:
-                subscriber.undeclare()
+            runtime.serve(counters)
         stats = visualizer.stats()
         log.info("accepted %s; rejected %s; robots %s", stats.accepted, stats.rejected, list(stats.robots))
         return stats

@@ -31,8 +31,9 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from common.encoding import R_MAX_M, scan_points_xy
-from common.keys import DETECTIONS, SCAN, TENSOR, TRUTH, parse_key
+from common.keys import parse_key
 from common.messages import (
+    MESSAGE_TYPES,
     Detection,
     Detections,
     GroundTruth,
@@ -42,6 +43,7 @@ from common.messages import (
     StackedTensor,
     decode_message,
 )
+from common.model_spec import CLASS_COLOURS, CLASS_NAMES, UNKNOWN_CLASS_COLOUR, Rgb
 
 log = logging.getLogger(__name__)
 
@@ -50,15 +52,6 @@ STAMP_TIMELINE: Final[str] = "stamp"
 SEQ_TIMELINE: Final[str] = "seq"
 TIMING_NAMES: Final[tuple[str, ...]] = ("encode_ms", "inference_ms", "nms_ms")
 
-Rgb = tuple[int, int, int]
-
-CLASS_COLORS: Final[dict[int, Rgb]] = {
-    0: (255, 127, 14),  # chair: orange
-    1: (31, 119, 180),  # box: blue
-    2: (44, 160, 44),  # desk: green
-    3: (214, 39, 40),  # doorframe: red
-}
-"""One fixed colour per class (index = class id), the same in every view and every run."""
 
 SCAN_COLOR: Final[Rgb] = (230, 230, 230)
 SENSOR_COLOR: Final[Rgb] = (255, 255, 255)
@@ -75,16 +68,14 @@ DISPLAY_FROM_SENSOR: Final[tuple[tuple[float, ...], ...]] = (
 )
 """Screen (right, down) from REP-103 (forward, left): forward is drawn up and left is drawn left."""
 
-_MESSAGE_TYPES: Final[dict[str, type[Message]]] = {
-    SCAN: Scan,
-    TENSOR: StackedTensor,
-    DETECTIONS: Detections,
-    TRUTH: GroundTruth,
-}
+CLASS_ANNOTATIONS: Final[rr.AnnotationContext] = rr.AnnotationContext(
+    [rr.AnnotationInfo(id=i, label=name, color=CLASS_COLOURS[i]) for i, name in enumerate(CLASS_NAMES)]
+)
+"""Class labels and colours, logged once (static, at the root): detections carry only class ids."""
 
 
 def class_color(class_id: int) -> Rgb:
-    return CLASS_COLORS.get(class_id, (128, 128, 128))
+    return CLASS_COLOURS[class_id] if 0 <= class_id < len(CLASS_COLOURS) else UNKNOWN_CLASS_COLOUR
 
 
 def _faded(color: Rgb, toward: int = 255, amount: float = 0.5) -> Rgb:
@@ -253,6 +244,7 @@ class RerunVisualizer:
         self._accepted: Counter[str] = Counter()
         self._rejected: Counter[str] = Counter()
         initial = sorted(set(robot_ids))
+        self._rec.log("/", CLASS_ANNOTATIONS, static=True)
         for robot_id in initial:
             self._add_robot(robot_id)
         if self._send_blueprints:
@@ -319,7 +311,7 @@ class RerunVisualizer:
             self._reject("bad_key", str(exc))
             return False
         try:
-            message = decode_message(payload, _MESSAGE_TYPES[topic])
+            message = decode_message(payload, MESSAGE_TYPES[topic])
         except MessageError as exc:
             self._reject(exc.reason, f"{key}: {exc}")
             return False
@@ -372,8 +364,7 @@ class RerunVisualizer:
     def _log_detections(self, message: Detections) -> None:
         paths = RobotPaths(message.robot_id)
         dets = message.detections
-        class_ids = [d.class_id for d in dets]
-        colors = [class_color(d.class_id) for d in dets]
+        class_ids = [d.class_id for d in dets]  # colours come from CLASS_ANNOTATIONS
         labels = [_detection_label(d) for d in dets]
         self._rec.log(
             paths.raster_detections,
@@ -381,7 +372,6 @@ class RerunVisualizer:
                 array=np.array([d.box_px for d in dets], dtype=np.float32).reshape(-1, 4),
                 array_format=rr.Box2DFormat.XYXY,
                 labels=labels,
-                colors=colors,
                 class_ids=class_ids,
                 radii=RASTER_LINE_RADIUS_PX,
             ),
@@ -391,14 +381,13 @@ class RerunVisualizer:
             rr.Points2D(
                 np.array([(d.x_m, d.y_m) for d in dets], dtype=np.float64).reshape(-1, 2),
                 labels=labels,
-                colors=colors,
                 class_ids=class_ids,
                 radii=DETECTION_RADIUS_M,
             ),
         )
         self._rec.log(
             paths.map_detection_extents,
-            rr.LineStrips2D([sector_outline(d) for d in dets], colors=colors, radii=LINE_RADIUS_M),
+            rr.LineStrips2D([sector_outline(d) for d in dets], class_ids=class_ids, radii=LINE_RADIUS_M),
         )
         timings = message.timings
         for name in TIMING_NAMES:

@@ -25,7 +25,9 @@ import numpy as np
 
 from common.encoding import PADDINGS, Padding
 from common.keys import validate_robot_id
-from common.messages import CLASS_NAMES, GroundTruth, Scan, TruthObject
+from common.messages import GroundTruth, Scan, TruthObject
+from common.model_spec import CLASS_NAMES
+from services.simulator.defaults import ROBOT_ID_PREFIX, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
 from services.simulator.labels import Box, ObjectLabel, label_scan
 from services.simulator.lidar import DEFAULT_SPEC, Lidar, LidarSpec
 from services.simulator.robot import Pose, follow_waypoints
@@ -316,16 +318,6 @@ class SimulatedRobot:
         )
 
 
-def recorded_scans(count: int, seed: int = 1, rate_hz: float = 10.0) -> list[Scan]:
-    """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
-
-    For benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
-    """
-    period_ns = round(1e9 / rate_hz)
-    with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
-        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
-
-
 class SimulatedFleet:
     """``robots`` independent robots (``robot0``, ``robot1``, …) stepped together, one world each.
 
@@ -335,10 +327,10 @@ class SimulatedFleet:
     def __init__(
         self,
         robots: int = 1,
-        seed: int = 1,
-        scenario_period_s: float = 30.0,
-        rate_hz: float = 10.0,
-        robot_id_prefix: str = "robot",
+        seed: int = SIM_SEED,
+        scenario_period_s: float = SCENARIO_PERIOD_S,
+        rate_hz: float = SCAN_RATE_HZ,
+        robot_id_prefix: str = ROBOT_ID_PREFIX,
         padding: Padding = "zero",
         spec: LidarSpec = DEFAULT_SPEC,
     ) -> None:

@@ -1,0 +1,49 @@
+"""What benchmarks (and the tests of real processes) need around the services: start one by hand,
+read a process's memory, and real scans recorded up front so a timed loop simulates nothing."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from common.messages import Scan
+from common.transport import ZenohSettings
+from services.launcher import child_environment
+from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
+
+
+def start_loopback_service(
+    module: str, port: int, connect: Sequence[int], *extra: str, **popen_kwargs: Any
+) -> subprocess.Popen[bytes]:
+    """``python -m <module>`` as a loopback peer listening on ``port`` and connecting to ``connect``.
+
+    For benchmarks and tests that wire a few services by hand rather than through ``triscan up``.
+    """
+    settings = ZenohSettings.loopback(port, list(connect))
+    command = [sys.executable, "-m", module, *extra, *settings.to_cli()]
+    return subprocess.Popen(
+        command, cwd=Path(__file__).resolve().parents[1], env=child_environment(), **popen_kwargs
+    )
+
+
+def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:
+    """A memory figure of a live process from /proc (``VmRSS`` now, ``VmHWM`` its peak), in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(f"{field_name}:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
+
+
+def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
+    """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
+
+    For benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
+    """
+    from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
+
+    period_ns = round(1e9 / rate_hz)
+    with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
+        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]

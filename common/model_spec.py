@@ -1,0 +1,82 @@
+"""What a triscan model is: its classes, colours, input and output shapes, files and metadata.
+
+Everything that must agree between training, export, the detector, the wire messages, the viewer and
+the pictures lives here, so adding a class or changing the input is an edit of this one file (the
+class list and its colours below), and every other module imports these names instead of restating
+them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Final
+
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
+
+CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe")
+NUM_CLASSES: Final[int] = len(CLASS_NAMES)
+
+Rgb = tuple[int, int, int]
+# One palette for the viewer and the pictures. It avoids the pure and mixed channel colours (red,
+# green, blue, yellow, cyan, magenta, white) that lit scan pixels take in the R/G/B raster, so a box
+# or outline drawn over a scan is never mistaken for one.
+CLASS_COLOURS: Final[tuple[Rgb, ...]] = (
+    (255, 150, 30),  # chair: orange
+    (180, 130, 255),  # box: lavender
+    (255, 95, 170),  # desk: pink
+    (215, 205, 130),  # doorframe: khaki
+)
+UNKNOWN_CLASS_COLOUR: Final[Rgb] = (128, 128, 128)
+assert len(CLASS_COLOURS) == NUM_CLASSES, "one colour per class"
+
+# The network's input: the stacked tensor as HWC uint8 on the wire, NCHW float32 in the model.
+TENSOR_SHAPE: Final[tuple[int, int, int]] = (RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH)
+INPUT_SHAPE: Final[tuple[int, int, int, int]] = (1, STACK_DEPTH, RANGE_ROWS, IMAGE_WIDTH)
+STRIDES: Final[tuple[int, ...]] = (8, 16, 32)  # YOLOv8's three detection scales
+NUM_ANCHORS: Final[int] = sum((RANGE_ROWS // s) * (IMAGE_WIDTH // s) for s in STRIDES)  # 504
+MAX_DETECTIONS: Final[int] = 300  # per frame: the detector's cap, the wire limit and Ultralytics' max_det
+
+# ONNX metadata written by `triscan export` and read by the detector and the launcher.
+META_PREFIX: Final[str] = "triscan."
+META_PADDING: Final[str] = f"{META_PREFIX}padding"
+META_INVALID: Final[str] = f"{META_PREFIX}invalid"
+META_CLASSES: Final[str] = f"{META_PREFIX}classes"
+
+# Files: <stem>.onnx (fp32), <stem>-int8.onnx, and each with a free batch axis as <...>-batch.onnx.
+MODEL_PREFIX: Final[str] = "triscan-"
+INT8_SUFFIX: Final[str] = "-int8"
+BATCH_SUFFIX: Final[str] = "-batch"
+MODELS_DIR: Final[Path] = Path(__file__).resolve().parents[1] / "models"
+MODEL_ENV: Final[str] = "TRISCAN_MODEL"
+SHIPPED_MODEL: Final[Path] = MODELS_DIR / "triscan-yolov8n-zero.onnx"
+SHIPPED_BATCH_MODEL: Final[Path] = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}{BATCH_SUFFIX}.onnx")
+
+
+def model_stem(network: str, padding: str) -> str:
+    """``triscan-yolov8p-zero``: the file stem that names the network and the padding."""
+    return f"{MODEL_PREFIX}{network}-{padding}"
+
+
+def batch_variant_path(model_path: Path) -> Path:
+    """Where the free-batch-axis copy of a model goes: ``<stem>-batch.onnx`` beside it."""
+    return model_path.with_name(f"{model_path.stem}{BATCH_SUFFIX}{model_path.suffix}")
+
+
+def default_model_path(batched: bool = False) -> Path:
+    """``$TRISCAN_MODEL`` if set, else the shipped model (its batch variant when ``batched``)."""
+    if os.environ.get(MODEL_ENV):
+        return Path(os.environ[MODEL_ENV])
+    return SHIPPED_BATCH_MODEL if batched else SHIPPED_MODEL
+
+
+def file_sha256(path: Path) -> str:
+    """Hex SHA-256 of a file: model ids, the card and the batch variants name weights by it."""
+    with path.open("rb") as handle:
+        return hashlib.file_digest(handle, "sha256").hexdigest()
+
+
+def file_model_id(path: Path) -> str:
+    """``<stem>@<12 hex of sha256>``: names the exact weights, so a result can be traced to its file."""
+    return f"{path.stem}@{file_sha256(path)[:12]}"
