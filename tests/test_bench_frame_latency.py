@@ -33,6 +33,9 @@ THREADS = (1, 2)
 FRAMES, PAPER_FRAMES = 5, 3
 
 
+pytestmark = pytest.mark.slow
+
+
 @pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """One tiny run of the real benchmark (grid at 320 px: the same export and code path, cheaper)."""

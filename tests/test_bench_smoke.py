@@ -16,6 +16,8 @@ from bench import (
     robot_footprint,
 )
 
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
+
 
 def test_pipeline_latency_reports_every_field() -> None:
     report = pipeline_latency.run(robots=1, rate_hz=10.0, duration_s=2.0, from_scans=False, threads=1)

@@ -16,18 +16,15 @@ import numpy as np
 import pytest
 
 from common.encoding import to_model_input
-from common.model_spec import CLASS_NAMES, file_sha256
+from common.model_spec import CLASS_NAMES, INPUT_SHAPE, NUM_ANCHORS, batch_variant_path, file_sha256
 from training.dataset import DatasetConfig, generate_dataset
 from training.export import (
-    ANCHORS,
     BATCH_AXIS,
     BOX_CHANNELS,
-    INPUT_SHAPE,
     ExportError,
     _calibration_reader,
     _check_io,
     add_batch_axis,
-    batch_variant_path,
     calibration_images,
     compare_outputs,
     export_models,
@@ -47,6 +44,9 @@ ort = pytest.importorskip("onnxruntime")
 torch = pytest.importorskip("torch")
 
 CALIB_COUNT = 8
+
+
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_fp32_file_is_valid_with_fixed_input_and_output(fp32: Path) -> None:
     assert graph_input.type.tensor_type.elem_type == onnx.TensorProto.FLOAT
     assert _dims(graph_input) == list(INPUT_SHAPE) == [1, 3, 64, 384]
     assert all(d.HasField("dim_value") for d in graph_input.type.tensor_type.shape.dim), "no dynamic axes"
-    assert _dims(model.graph.output[0]) == [1, BOX_CHANNELS + len(CLASS_NAMES), ANCHORS] == [1, 8, 504]
+    assert _dims(model.graph.output[0]) == [1, BOX_CHANNELS + len(CLASS_NAMES), NUM_ANCHORS] == [1, 8, 504]
 
 
 def test_shape_check_rejects_dynamic_axes_and_other_outputs(fp32: Path) -> None:
@@ -230,7 +230,7 @@ def test_int8_runs_and_tracks_fp32(int8: Path, fp32: Path, dataset: Path) -> Non
     # quantised output concat (one scale for 0–480 px and 0–1 scores) would be off by ~0.5.
     assert diff["box_max_abs_px"] < 1.0, diff
     assert diff["score_max_abs"] < 0.02, diff
-    assert diff["confident_anchors"] == len(images) * ANCHORS, "every score is near 0.5 here"
+    assert diff["confident_anchors"] == len(images) * NUM_ANCHORS, "every score is near 0.5 here"
     assert diff["confident_class_agreement"] > 0.5, diff
 
 

@@ -7,7 +7,11 @@ ever mixes frames from before and after a restart, and that the launcher still s
 
 from __future__ import annotations
 
+import pytest
+
 from bench.fault_recovery import VICTIMS, run
+
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
 
 def test_every_killed_service_is_restarted_and_no_tensor_mixes_streams() -> None:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
+
 from bench.fuzz_services import run
+
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
 
 def test_services_survive_fuzz_count_every_bad_payload_and_answer_every_good_scan() -> None:

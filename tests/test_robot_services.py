@@ -33,6 +33,9 @@ ROBOTS = ("alpha", "bravo")
 PROBE = "probe"
 
 
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
+
+
 def start_service(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
     return start_loopback_service(
         module, port, connect, *extra, stdout=subprocess.PIPE, stderr=subprocess.STDOUT

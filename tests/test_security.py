@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import stat
 import subprocess
 import threading
@@ -50,12 +49,6 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def zenoh_config(config: dict[str, Any]) -> Any:
     result = zenoh.Config()
     for key, value in config.items():
@@ -85,10 +78,10 @@ class Inbox:
 class Mesh:
     """Secured sessions on loopback, all closed at the end (a callback subscriber otherwise hangs exit)."""
 
-    def __init__(self, certs: Path, stack: ExitStack) -> None:
+    def __init__(self, certs: Path, stack: ExitStack, port: int) -> None:
         self.certs = certs
         self.stack = stack
-        self.port = free_port()
+        self.port = port
 
     def open(self, config: dict[str, Any]) -> Any:
         session = zenoh.open(zenoh_config(config))
@@ -114,9 +107,9 @@ class Mesh:
 
 
 @pytest.fixture
-def mesh(certs: Path) -> Iterator[Mesh]:
+def mesh(certs: Path, free_port: Callable[[], int]) -> Iterator[Mesh]:
     with ExitStack() as stack:
-        yield Mesh(certs, stack)
+        yield Mesh(certs, stack, free_port())
 
 
 def scan(robot_id: str) -> bytes:

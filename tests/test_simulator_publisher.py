@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -161,12 +162,6 @@ def test_bad_arguments_are_refused() -> None:
 # --- end to end: the service process on a loopback Zenoh ------------------------------------------
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def wait_until_listening(port: int, process: subprocess.Popen[Any], timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -180,7 +175,9 @@ def wait_until_listening(port: int, process: subprocess.Popen[Any], timeout_s: f
     raise AssertionError(f"simulator did not listen on port {port} within {timeout_s} s")
 
 
-def test_service_publishes_scans_and_truth_over_zenoh(tmp_path: Path) -> None:
+@pytest.mark.slow
+@pytest.mark.integration
+def test_service_publishes_scans_and_truth_over_zenoh(tmp_path: Path, free_port: Callable[[], int]) -> None:
     port = free_port()
     log_path = tmp_path / "simulator.log"
     command = [sys.executable, "-m", "services.simulator", "--robots", "2", "--rate", "20", "--duration", "3"]

@@ -12,6 +12,8 @@ from common.inference import OnnxDetector
 from training.dataset import DatasetConfig, generate_dataset
 from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:

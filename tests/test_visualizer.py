@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import math
 import signal
-import socket
 import subprocess
 import sys
 import time
 import uuid
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -325,12 +325,6 @@ def test_blueprint_has_a_tab_per_robot() -> None:
 # --------------------------------------------------------------------------------------------------
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def start_service(port: int, rrd: Path, duration_s: float) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [
@@ -372,7 +366,11 @@ def publish_frames(session: Any, robot_ids: list[str]) -> None:
                 session.put(key, payload)
 
 
-def test_service_records_two_robots_and_exits_after_duration(tmp_path: Path) -> None:
+@pytest.mark.slow
+@pytest.mark.integration
+def test_service_records_two_robots_and_exits_after_duration(
+    tmp_path: Path, free_port: Callable[[], int]
+) -> None:
     port, rrd = free_port(), tmp_path / "e2e.rrd"
     proc = start_service(port, rrd, duration_s=4.0)
     try:
@@ -398,7 +396,11 @@ def test_service_records_two_robots_and_exits_after_duration(tmp_path: Path) -> 
     assert RrdReader(rrd).blueprints(), output
 
 
-def test_service_leaves_a_complete_recording_after_sigterm(tmp_path: Path) -> None:
+@pytest.mark.slow
+@pytest.mark.integration
+def test_service_leaves_a_complete_recording_after_sigterm(
+    tmp_path: Path, free_port: Callable[[], int]
+) -> None:
     port, rrd = free_port(), tmp_path / "sigterm.rrd"
     proc = start_service(port, rrd, duration_s=120.0)
     try:
