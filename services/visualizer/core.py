@@ -42,6 +42,7 @@ from common.messages import (
     StackedTensor,
     decode_message,
 )
+from common.palette import CLASS_COLORS, Rgb, class_color  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -50,15 +51,6 @@ STAMP_TIMELINE: Final[str] = "stamp"
 SEQ_TIMELINE: Final[str] = "seq"
 TIMING_NAMES: Final[tuple[str, ...]] = ("encode_ms", "inference_ms", "nms_ms")
 
-Rgb = tuple[int, int, int]
-
-CLASS_COLORS: Final[dict[int, Rgb]] = {
-    0: (255, 127, 14),  # chair: orange
-    1: (31, 119, 180),  # box: blue
-    2: (44, 160, 44),  # desk: green
-    3: (214, 39, 40),  # doorframe: red
-}
-"""One fixed colour per class (index = class id), the same in every view and every run."""
 
 SCAN_COLOR: Final[Rgb] = (230, 230, 230)
 SENSOR_COLOR: Final[Rgb] = (255, 255, 255)
@@ -81,10 +73,6 @@ _MESSAGE_TYPES: Final[dict[str, type[Message]]] = {
     DETECTIONS: Detections,
     TRUTH: GroundTruth,
 }
-
-
-def class_color(class_id: int) -> Rgb:
-    return CLASS_COLORS.get(class_id, (128, 128, 128))
 
 
 def _faded(color: Rgb, toward: int = 255, amount: float = 0.5) -> Rgb:
