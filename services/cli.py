@@ -420,6 +420,44 @@ def _run_status(args: argparse.Namespace) -> int:
     return 0 if statuses else 1
 
 
+def _add_replay(sub: argparse._SubParsersAction) -> None:
+    from common.transport import add_zenoh_arguments
+
+    p = sub.add_parser(
+        "replay", help="publish the LaserScans of ROS 1/2 bags (.bag, .db3, .mcap) as triscan scans"
+    )
+    p.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="ROS 1 .bag files, or one ROS 2 bag")
+    p.add_argument("--topic", action="append", default=[], help="LaserScan topic to replay (default: all)")
+    p.add_argument("--robot", default=None, help="robot id of a single replayed topic (default: replay)")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed relative to the recording")
+    p.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
+    p.add_argument("--wait", type=float, default=10.0, help="seconds to wait for a subscriber first")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_zenoh_arguments(p)
+    p.set_defaults(run=_run_replay)
+
+
+def _run_replay(args: argparse.Namespace) -> int:
+    from common.transport import settings_from_args
+    from services.bag_replay import ReplayConfig, run_replay
+    from services.runtime import stop_event_on_signals
+
+    config = ReplayConfig(
+        bags=tuple(args.bags),
+        topics=tuple(args.topic),
+        robot=args.robot,
+        speed=args.speed,
+        loop=args.loop,
+        progress=not args.no_progress,
+    )
+    summary = run_replay(settings_from_args(args), config, wait_s=args.wait, stop=stop_event_on_signals())
+    robots = ", ".join(f"{topic} → {robot}" for topic, robot in summary.robots.items())
+    print(f"published {summary.published} scans in {summary.passes} pass(es): {robots}")
+    if summary.rejected:
+        print(f"skipped: {dict(summary.rejected)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="triscan", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -433,6 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_card(sub)
     _add_up(sub)
     _add_status(sub)
+    _add_replay(sub)
     return parser
 
 

@@ -222,6 +222,15 @@ class ServiceRuntime:
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
+    def subscribe_samples(self, key: str, callback: Callable[[Any], None]) -> None:
+        """Call ``callback(sample)`` with the raw ``zenoh.Sample`` (for services that read attachments)."""
+        self._declared.append(self.session.declare_subscriber(key, callback))
+
+    def keep(self, entity: Any) -> Any:
+        """Undeclare ``entity`` (a publisher, a liveliness token) when the service stops; returns it."""
+        self._declared.append(entity)
+        return entity
+
     def robot_publishers(self, key_of: Callable[[str], str]) -> RobotPublishers:
         publishers = RobotPublishers(self.session, key_of)
         self._robot_publishers.append(publishers)

@@ -1,0 +1,224 @@
+"""``triscan replay BAG...``: the LaserScans of recorded ROS bags, as triscan Scans, at recorded pace.
+
+A robot's recorded drives are the cheapest test data there is; replaying them through the encoder and
+detector shows what triscan would have seen, with no ROS install. rosbags' ``AnyReader`` reads all
+three formats through one interface: ROS 1 ``.bag`` files, and ROS 2 ``.db3`` (SQLite) and ``.mcap``
+recordings (a file or its directory).
+
+* **Topics**: every ``sensor_msgs/LaserScan`` topic of the bags, or those named with ``--topic``.
+* **Robots**: one topic replays as ``--robot`` (default ``replay``); several topics each become their
+  own robot, named after the topic (``/robot1/scan`` → ``robot1_scan``), so their FIFOs never mix.
+* **Scans**: seq counts from 0 per robot in replay order; stamp_ns is the header stamp; frame_id is
+  kept. With ``--loop`` each pass shifts the stamps by the bag's length, so they keep increasing and
+  the encoder sees one continuous stream. LaserScans the bridge would refuse are counted by reason and
+  skipped (the same rules as :mod:`services.ros2_bridge.laser_scan`).
+* **Pace**: messages go out at their recorded (bag) times divided by ``--speed``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+from common.keys import scan_key, validate_robot_id
+from common.messages import Scan, encode_message
+from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
+from services.ros2_bridge.ros_types import LASER_SCAN, ros_types
+
+log = logging.getLogger("triscan.replay")
+
+DEFAULT_ROBOT: Final[str] = "replay"
+_NOT_IN_ID: Final[re.Pattern[str]] = re.compile(r"[^A-Za-z0-9_-]+")
+
+
+class ReplayError(ValueError):
+    """A replay that cannot start (no scans in the bags, unknown topic, ambiguous robot)."""
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    bags: tuple[Path, ...]
+    topics: tuple[str, ...] = ()  # empty: every LaserScan topic
+    robot: str | None = None
+    speed: float = 1.0
+    loop: bool = False
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.bags:
+            raise ReplayError("no bag given")
+        if not self.speed > 0.0:
+            raise ReplayError(f"speed must be > 0, got {self.speed}")
+
+
+@dataclass
+class ReplaySummary:
+    published: int = 0
+    passes: int = 0
+    robots: dict[str, str] = field(default_factory=dict)  # topic → robot id
+    rejected: Counter[str] = field(default_factory=Counter)
+
+
+def robot_id_of_topic(topic: str) -> str:
+    """``/robot1/scan`` → ``robot1_scan``: a robot id that names the topic it came from."""
+    return validate_robot_id(_NOT_IN_ID.sub("_", topic.strip("/")).strip("_") or DEFAULT_ROBOT)
+
+
+def robots_for(topics: Sequence[str], robot: str | None) -> dict[str, str]:
+    if len(topics) == 1:
+        return {topics[0]: validate_robot_id(robot or DEFAULT_ROBOT)}
+    if robot is not None:
+        raise ReplayError(
+            f"--robot names one robot, the bags have {len(topics)} scan topics: pick one with --topic"
+        )
+    robots = {topic: robot_id_of_topic(topic) for topic in topics}
+    if len(set(robots.values())) != len(robots):
+        raise ReplayError(f"scan topics {sorted(topics)} map to the same robot id; pick one with --topic")
+    return robots
+
+
+def _open_reader(bags: Sequence[Path]) -> Any:
+    from rosbags.highlevel import AnyReader
+
+    return AnyReader(list(bags), default_typestore=ros_types("jazzy").store)
+
+
+def scan_connections(reader: Any, topics: Sequence[str]) -> list[Any]:
+    """The LaserScan connections of an open reader, restricted to ``topics`` if any are named."""
+    scans = [c for c in reader.connections if c.msgtype == LASER_SCAN]
+    if topics:
+        known = {c.topic for c in scans}
+        missing = [t for t in topics if t not in known]
+        if missing:
+            raise ReplayError(
+                f"no LaserScan topic {missing} in the bags; they have {sorted(known) or 'none'}"
+            )
+        scans = [c for c in scans if c.topic in topics]
+    if not scans:
+        raise ReplayError("the bags hold no sensor_msgs/LaserScan topic")
+    return scans
+
+
+def replay(
+    config: ReplayConfig,
+    publish: Callable[[str, bytes], None],
+    *,
+    stop: threading.Event | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> ReplaySummary:
+    """Publish the bags' scans through ``publish(key, payload)`` at recorded pace; returns what it did."""
+    summary = ReplaySummary()
+    stop = stop or threading.Event()
+    with _open_reader(config.bags) as reader:
+        connections = scan_connections(reader, config.topics)
+        summary.robots = robots_for(sorted({c.topic for c in connections}), config.robot)
+        next_seq = dict.fromkeys(summary.robots.values(), 0)
+        span_ns = reader.end_time - reader.start_time + 1
+        total = sum(c.msgcount for c in connections)
+        bar = _progress(None if config.loop else total, config.progress)
+        try:
+            while not stop.is_set():
+                for scan in _one_pass(reader, connections, summary, next_seq, config, clock, sleep, stop,
+                                      stamp_offset_ns=summary.passes * span_ns):  # fmt: skip
+                    publish(scan_key(scan.robot_id), encode_message(scan))
+                    summary.published += 1
+                    bar.update(1)
+                summary.passes += 1
+                if not config.loop:
+                    break
+        finally:
+            bar.close()
+    if summary.rejected:
+        log.warning("skipped LaserScans by reason: %s", dict(summary.rejected))
+    return summary
+
+
+def _one_pass(
+    reader: Any,
+    connections: list[Any],
+    summary: ReplaySummary,
+    next_seq: dict[str, int],
+    config: ReplayConfig,
+    clock: Callable[[], float],
+    sleep: Callable[[float], None],
+    stop: threading.Event,
+    *,
+    stamp_offset_ns: int,
+) -> Iterator[Scan]:
+    started = clock()
+    first_ns: int | None = None
+    for connection, log_time_ns, raw in reader.messages(connections=connections):
+        if stop.is_set():
+            return
+        first_ns = log_time_ns if first_ns is None else first_ns
+        delay = started + (log_time_ns - first_ns) / 1e9 / config.speed - clock()
+        if delay > 0:
+            sleep(delay)
+        robot_id = summary.robots[connection.topic]
+        try:
+            scan = to_triscan_scan(fields_of_message(reader.deserialize(raw, connection.msgtype)), robot_id,
+                                   next_seq[robot_id])  # fmt: skip
+        except ScanRejectedError as exc:
+            summary.rejected[exc.reason] += 1
+            log.debug("%s at %d: %s", connection.topic, log_time_ns, exc)
+            continue
+        if stamp_offset_ns:
+            scan = scan.model_copy(update={"stamp_ns": scan.stamp_ns + stamp_offset_ns})
+        next_seq[robot_id] += 1
+        yield scan
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int | None, enabled: bool) -> Any:
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="scan", desc="replay")
+
+
+def run_replay(
+    settings: Any, config: ReplayConfig, *, wait_s: float = 10.0, stop: threading.Event | None = None
+) -> ReplaySummary:
+    """Open a Zenoh session, wait up to ``wait_s`` for a subscriber of the first robot, and replay."""
+    import zenoh
+
+    from common.transport import open_session, wait_for_subscriber
+
+    with _open_reader(config.bags) as reader:
+        topics = sorted({c.topic for c in scan_connections(reader, config.topics)})
+    robots = robots_for(topics, config.robot)
+    with open_session(settings) as session:
+        try:
+            wait_for_subscriber(session, scan_key(next(iter(robots.values()))), wait_s)
+        except TimeoutError as exc:
+            log.warning("%s: replaying anyway", exc)
+        publishers: dict[str, Any] = {}
+
+        def publish(key: str, payload: bytes) -> None:
+            publisher = publishers.get(key)
+            if publisher is None:
+                publisher = publishers[key] = session.declare_publisher(
+                    key, congestion_control=zenoh.CongestionControl.BLOCK
+                )
+            publisher.put(payload)
+
+        summary = replay(config, publish, stop=stop)
+        for publisher in publishers.values():
+            publisher.undeclare()
+    return summary
