@@ -66,9 +66,6 @@ DEFAULT_CONF: Final[float] = 0.25
 DEFAULT_IOU: Final[float] = 0.45
 # A box is a seam duplicate when this share of the smaller box lies inside the other box's copy.
 SEAM_CONTAINMENT: Final[float] = 0.7
-# Above this many candidates the K×K IoU matrix would cost more memory than it saves time, so NMS
-# switches to computing one row per kept box (only reachable with a very low threshold).
-_MATRIX_NMS_MAX: Final[int] = 1024
 _NS_PER_MS: Final[float] = 1e6
 _IMAGE_XYXY: Final[np.ndarray] = np.array([IMAGE_WIDTH, RANGE_ROWS, IMAGE_WIDTH, RANGE_ROWS], np.float32)
 
@@ -188,29 +185,6 @@ def _nms_matrix(
     return keep
 
 
-def _nms_rows(
-    x1: np.ndarray,
-    y1: np.ndarray,
-    x2: np.ndarray,
-    y2: np.ndarray,
-    areas: np.ndarray,
-    classes: np.ndarray,
-    iou_threshold: np.float64,
-    max_detections: int,
-) -> list[int]:
-    """Greedy NMS computing one IoU row per kept box: O(K) memory for very many candidates."""
-    keep: list[int] = []
-    remaining = np.arange(x1.size)
-    while remaining.size and len(keep) < max_detections:
-        i = int(remaining[0])
-        keep.append(i)
-        rest = remaining[1:]
-        kept = (x1[i], y1[i], x2[i], y2[i], areas[i])
-        suppressed = _iou_above(kept, (x1[rest], y1[rest], x2[rest], y2[rest], areas[rest]), iou_threshold)
-        remaining = rest[~(suppressed & (classes[rest] == classes[i]))]
-    return keep
-
-
 def nms(
     boxes: np.ndarray,
     scores: np.ndarray,
@@ -240,8 +214,8 @@ def nms(
     ordered = boxes[order]
     x1, y1, x2, y2 = (np.ascontiguousarray(ordered[:, k]) for k in range(4))
     areas = (x2 - x1) * (y2 - y1)
-    greedy = _nms_matrix if order.size <= _MATRIX_NMS_MAX else _nms_rows
-    keep = greedy(x1, y1, x2, y2, areas, class_ids[order], threshold, max_detections)
+    # One K×K matrix: K is at most the 504 anchors of a triscan model (more only for other heads).
+    keep = _nms_matrix(x1, y1, x2, y2, areas, class_ids[order], threshold, max_detections)
     return order[np.asarray(keep, dtype=np.int64)].astype(np.int64, copy=False)
 
 
@@ -376,14 +350,6 @@ def detections_from_boxes(boxes: np.ndarray, scores: np.ndarray, class_ids: np.n
         )
         for cid, score, box, mid, lo, hi, rlo, rhi, x, y in columns
     ]
-
-
-def detection_from_box(box_xyxy: np.ndarray | tuple[float, ...], score: float, class_id: int) -> Detection:
-    """One ``Detection`` (see :func:`detections_from_boxes` for the geometry and the wrap caveat)."""
-    box = np.asarray(box_xyxy, dtype=np.float64)
-    if box.shape != (4,):
-        raise ValueError(f"box_xyxy must have 4 values (x1, y1, x2, y2), got shape {list(box.shape)}")
-    return detections_from_boxes(box[None], np.array([score]), np.array([class_id], dtype=np.int64))[0]
 
 
 def postprocess(

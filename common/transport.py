@@ -37,7 +37,9 @@ class ZenohSettings:
     listen: tuple[str, ...] = ()
     multicast_scouting: bool | None = None
     config_file: Path | None = None
-    extra_json5: dict[str, Any] = field(default_factory=dict)  # dotted key → value, e.g. for TLS
+    extra_json5: dict[str, Any] = field(default_factory=dict)  # config path (a/b/c) → value, e.g. for TLS
+    # zenoh's own ``--cfg KEY:VALUE``: a config path and a JSON5 value, applied last, as given.
+    cfg: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
@@ -66,6 +68,8 @@ class ZenohSettings:
             args += ["--listen", endpoint]
         if self.multicast_scouting is False:
             args.append("--no-multicast")
+        for key, value in self.cfg:
+            args += ["--cfg", f"{key}:{value}"]
         return args
 
     def to_config(self) -> Any:
@@ -91,6 +95,11 @@ class ZenohSettings:
             config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         for key, value in self.extra_json5.items():
             config.insert_json5(key, json.dumps(value))
+        for key, value in self.cfg:
+            try:
+                config.insert_json5(key, value)
+            except Exception as exc:  # zenoh raises its own error type for a bad path or value
+                raise ValueError(f"--cfg {key}:{value}: {exc}") from exc
         return config
 
 
@@ -111,11 +120,30 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--zenoh-config",
+        "-c",
+        "--config",
+        dest="zenoh_config",
         type=Path,
         default=None,
         metavar="FILE",
         help=f"zenoh JSON5 config file (default: ${ZENOH_CONFIG_ENV} if set)",
     )
+    group.add_argument(
+        "--cfg",
+        action="append",
+        default=[],
+        type=_cfg_entry,
+        metavar="KEY:VALUE",
+        help="one zenoh config entry as zenoh's tools take it, e.g. 'scouting/multicast/enabled:false'",
+    )
+
+
+def _cfg_entry(text: str) -> tuple[str, str]:
+    """``KEY:VALUE`` of zenoh's ``--cfg`` flag: a config path and a JSON5 value."""
+    key, sep, value = text.partition(":")
+    if not sep or not key or not value:
+        raise argparse.ArgumentTypeError(f'--cfg takes KEY:VALUE (e.g. mode:"client"), got {text!r}')
+    return key, value
 
 
 def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
@@ -125,6 +153,7 @@ def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
         listen=tuple(args.listen),
         multicast_scouting=False if args.no_multicast else None,
         config_file=args.zenoh_config,
+        cfg=tuple(args.cfg),
     )
 
 

@@ -62,11 +62,14 @@ if __name__ == "__main__":
     parser.add_argument(
         "--connect", "-e", action="append", default=[], help="zenoh endpoint(s) to connect to"
     )
+    parser.add_argument(
+        "--zenoh-config", "-c", default=None, help="zenoh JSON5 config file (e.g. the secure mode's)"
+    )
     parser.add_argument("--key", default="triscan/*/detections", help="one robot: triscan/<id>/detections")
     parser.add_argument("--count", type=int, default=0, help="exit after this many messages (0: never)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    config = zenoh.Config()
+    config = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
     if args.connect:
         config.insert_json5("connect/endpoints", json.dumps(args.connect))
         config.insert_json5("scouting/multicast/enabled", "false")

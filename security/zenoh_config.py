@@ -31,7 +31,18 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from common.keys import PREFIX, validate_robot_id
+from common.keys import (
+    DETECTIONS,
+    PREFIX,
+    SCAN,
+    TENSOR,
+    TRUTH,
+    everything_key,
+    scan_key,
+    service_keys,
+    validate_robot_id,
+    wildcard_key,
+)
 
 log = logging.getLogger(__name__)
 
@@ -71,9 +82,8 @@ def access_control(robots: Sequence[str], *, simulator: bool = True, prefix: str
     members = [common_name(identity) for identity in SERVICE_IDENTITIES] + list(robot_cns.values())
     if not simulator:
         members.remove(common_name("simulator"))
-    data = f"{prefix}/**"
-    health = f"{prefix}/@health/**"
-    stats = f"{prefix}/@stats/**"
+    data = everything_key(prefix)
+    health, stats = service_keys(prefix)
 
     rules: list[dict[str, Any]] = [
         # Declaring interest and watching health: every member, both ways, so subscriptions propagate.
@@ -82,8 +92,8 @@ def access_control(robots: Sequence[str], *, simulator: bool = True, prefix: str
         # A node may send (and forward) every publication it holds; receivers check the source.
         _rule("send", ["put"], ["egress"], [data, stats]),
         _rule("stats-in", ["put"], ["ingress"], [stats]),
-        _rule("detections-in", ["put"], ["ingress"], [f"{prefix}/*/detections"]),
-        _rule("tensor-in", ["put"], ["ingress"], [f"{prefix}/*/tensor"]),
+        _rule("detections-in", ["put"], ["ingress"], [wildcard_key(DETECTIONS, prefix=prefix)]),
+        _rule("tensor-in", ["put"], ["ingress"], [wildcard_key(TENSOR, prefix=prefix)]),
     ]
     subjects: list[dict[str, Any]] = [
         {"id": "members", "cert_common_names": members},
@@ -96,13 +106,20 @@ def access_control(robots: Sequence[str], *, simulator: bool = True, prefix: str
         {"id": "encoder", "rules": ["tensor-in"], "subjects": ["encoder"]},
     ]
     for robot, cn in robot_cns.items():
-        rules.append(_rule(f"scan-{robot}-in", ["put"], ["ingress"], [f"{prefix}/{robot}/scan"]))
+        rules.append(_rule(f"scan-{robot}-in", ["put"], ["ingress"], [scan_key(robot, prefix=prefix)]))
         subjects.append({"id": f"robot-{robot}", "cert_common_names": [cn]})
         policies.append(
             {"id": f"robot-{robot}", "rules": [f"scan-{robot}-in"], "subjects": [f"robot-{robot}"]}
         )
     if simulator:
-        rules.append(_rule("simulator-in", ["put"], ["ingress"], [f"{prefix}/*/scan", f"{prefix}/*/truth"]))
+        rules.append(
+            _rule(
+                "simulator-in",
+                ["put"],
+                ["ingress"],
+                [wildcard_key(SCAN, prefix=prefix), wildcard_key(TRUTH, prefix=prefix)],
+            )
+        )
         subjects.append({"id": "simulator", "cert_common_names": [common_name("simulator")]})
         policies.append({"id": "simulator", "rules": ["simulator-in"], "subjects": ["simulator"]})
     return {

@@ -38,37 +38,43 @@ def replayed_tensors() -> list[tuple[StackedTensor, list]]:
     return out
 
 
+def take_one(box: LatestPerRobot[int], timeout: float) -> tuple[str, int] | None:
+    """The single-item take a one-at-a-time worker does (``take_many`` with a limit of 1)."""
+    taken = box.take_many(1, timeout)
+    return taken[0] if taken else None
+
+
 def test_mailbox_keeps_only_the_newest_per_robot() -> None:
     box: LatestPerRobot[int] = LatestPerRobot()
     assert box.put("a", 1) is False
     assert box.put("b", 10) is False
     assert box.put("a", 2) is True  # 1 was never taken: dropped
     assert box.dropped == 1 and len(box) == 2
-    assert box.take(0) == ("a", 2)  # a waited longest; its place in line survived the replacement
-    assert box.take(0) == ("b", 10)
-    assert box.take(0.01) is None
+    assert take_one(box, 0) == ("a", 2)  # a waited longest; its place in line survived the replacement
+    assert take_one(box, 0) == ("b", 10)
+    assert take_one(box, 0.01) is None
 
 
 def test_mailbox_serves_robots_in_turn() -> None:
     box: LatestPerRobot[int] = LatestPerRobot()
     box.put("a", 1)
     box.put("b", 1)
-    assert box.take(0) == ("a", 1)
+    assert take_one(box, 0) == ("a", 1)
     box.release("a")
     box.put("a", 2)  # a is back, behind b
-    assert [box.take(0), box.take(0)] == [("b", 1), ("a", 2)]
+    assert [take_one(box, 0), take_one(box, 0)] == [("b", 1), ("a", 2)]
 
 
 def test_mailbox_never_hands_one_robot_to_two_workers_at_once() -> None:
     box: LatestPerRobot[int] = LatestPerRobot()
     box.put("a", 1)
-    assert box.take(0) == ("a", 1)  # worker 1 is busy with a
+    assert take_one(box, 0) == ("a", 1)  # worker 1 is busy with a
     box.put("a", 2)
     box.put("b", 1)
-    assert box.take(0) == ("b", 1)  # worker 2 skips a: its frames must come out in order
-    assert box.take(0.01) is None
+    assert take_one(box, 0) == ("b", 1)  # worker 2 skips a: its frames must come out in order
+    assert take_one(box, 0.01) is None
     box.release("a")
-    assert box.take(0) == ("a", 2)
+    assert take_one(box, 0) == ("a", 2)
 
 
 def test_mailbox_take_many_takes_what_is_ready_without_waiting_to_fill_the_batch() -> None:
@@ -92,7 +98,7 @@ def test_mailbox_take_many_takes_what_is_ready_without_waiting_to_fill_the_batch
 def test_mailbox_close_wakes_a_waiting_taker() -> None:
     box: LatestPerRobot[int] = LatestPerRobot()
     result: list[object] = []
-    taker = threading.Thread(target=lambda: result.append(box.take(30)))
+    taker = threading.Thread(target=lambda: result.append(take_one(box, 30)))
     taker.start()
     time.sleep(0.05)
     box.close()
@@ -113,7 +119,7 @@ def test_detections_on_replayed_scans_find_the_labelled_objects(
     core = DetectorCore(detector)
     found = labelled = 0
     for tensor, labels in replayed_tensors:
-        message = core.detect(tensor)
+        message = core.detect_many([tensor])[0]
         assert message.robot_id == "tb3" and message.seq == tensor.seq
         assert message.scan_stamp_ns == tensor.scan_stamps_ns[2]
         assert message.model_id == detector.model_id
@@ -161,7 +167,7 @@ def test_a_batch_gives_each_robot_what_it_would_get_alone(
         tensor.model_copy(update={"robot_id": f"r{i}"})
         for i, (tensor, _) in enumerate(replayed_tensors[::7][:8])
     ]
-    alone = [DetectorCore(detector).detect(tensor) for tensor in tensors]
+    alone = [DetectorCore(detector).detect_many([tensor])[0] for tensor in tensors]
     core = DetectorCore(batch_detector)
     together = core.detect_many(tensors)
     assert core.counters.to_dict() | {"rejected": {}} == {

@@ -31,7 +31,6 @@ from training.export import (
     export_onnx,
     head_decode_nodes,
     median_latency_ms,
-    onnx_metadata,
     quantize_int8,
     read_tensor_png,
 )
@@ -47,6 +46,11 @@ CALIB_COUNT = 8
 
 
 pytestmark = pytest.mark.slow
+
+
+def onnx_metadata(path: Path) -> dict[str, str]:
+    """All ``metadata_props`` of an ONNX file (Ultralytics' and ours)."""
+    return {prop.key: prop.value for prop in onnx.load(str(path)).metadata_props}
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-import common.inference as inference
 from common.encoding import R_MAX_M, polar_to_xy, to_model_input
 from common.inference import (
     DEFAULT_CONF,
@@ -27,13 +26,13 @@ from common.inference import (
     MAX_DETECTIONS,
     OnnxDetector,
     decode_yolov8,
-    detection_from_box,
     detections_from_boxes,
     nms,
     postprocess,
     unwrap_seam_duplicates,
 )
 from common.messages import Detection, StageTimings
+from tests.detection_builders import one_detection
 
 ROW_M = R_MAX_M / 63.0  # metres per raster row
 TENSOR_SHAPE = (64, 384, 3)
@@ -119,16 +118,11 @@ def test_decode_rejects_wrong_outputs(
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("matrix", [True, False], ids=["matrix", "rows"])
 @pytest.mark.parametrize("iou", [0.3, 0.45, 0.7])
 @pytest.mark.parametrize("seed", range(4))
-def test_nms_equals_torchvision_batched_nms(
-    seed: int, iou: float, matrix: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_nms_equals_torchvision_batched_nms(seed: int, iou: float) -> None:
     torch = pytest.importorskip("torch")
     torchvision = pytest.importorskip("torchvision")
-    if not matrix:
-        monkeypatch.setattr(inference, "_MATRIX_NMS_MAX", 0)  # force the row-by-row path
     boxes, scores, class_ids = clustered_boxes(np.random.default_rng(seed), 200)
     expected = torchvision.ops.batched_nms(
         torch.from_numpy(boxes), torch.from_numpy(scores), torch.from_numpy(class_ids), iou
@@ -249,7 +243,7 @@ def test_seam_chain_of_three_copies() -> None:
 
 
 def test_detection_from_box_hand_computed() -> None:
-    det = detection_from_box(np.array([81.0, 20.0, 100.0, 27.0]), 0.75, 2)
+    det = one_detection(np.array([81.0, 20.0, 100.0, 27.0]), 0.75, 2)
     assert det.class_id == 2 and det.class_name == "desk" and det.score == 0.75
     assert det.box_px == (81.0, 20.0, 100.0, 27.0)
     assert det.bearing_min_deg == pytest.approx(80.5)
@@ -262,7 +256,7 @@ def test_detection_from_box_hand_computed() -> None:
 
 
 def test_detection_in_padding_columns_wraps() -> None:
-    det = detection_from_box((365.0, 10.0, 375.0, 12.0), 0.5, 0)
+    det = one_detection((365.0, 10.0, 375.0, 12.0), 0.5, 0)
     assert (det.bearing_min_deg, det.bearing_deg, det.bearing_max_deg) == pytest.approx((4.5, 9.5, 14.5))
     x, y = polar_to_xy(9.5, 11 * ROW_M)
     assert (det.x_m, det.y_m) == pytest.approx((x, y))
@@ -270,13 +264,13 @@ def test_detection_in_padding_columns_wraps() -> None:
 
 
 def test_detection_straddling_wrap_boundaries() -> None:
-    across_zero = detection_from_box((346.0, 10.0, 365.0, 12.0), 0.5, 1)
+    across_zero = one_detection((346.0, 10.0, 365.0, 12.0), 0.5, 1)
     assert (
         across_zero.bearing_min_deg,
         across_zero.bearing_deg,
         across_zero.bearing_max_deg,
     ) == pytest.approx((-14.5, -5.0, 4.5))
-    behind = detection_from_box((170.0, 0.0, 200.0, 2.0), 0.5, 1)  # straddles ±180°: min > max
+    behind = one_detection((170.0, 0.0, 200.0, 2.0), 0.5, 1)  # straddles ±180°: min > max
     assert (behind.bearing_min_deg, behind.bearing_deg, behind.bearing_max_deg) == pytest.approx(
         (169.5, -175.5, -160.5)
     )
@@ -284,7 +278,7 @@ def test_detection_straddling_wrap_boundaries() -> None:
 
 
 def test_detection_ranges_are_clipped_at_zero() -> None:
-    det = detection_from_box((10.0, -2.0, 20.0, 3.0), 0.5, 3)
+    det = one_detection((10.0, -2.0, 20.0, 3.0), 0.5, 3)
     assert det.range_min_m == 0.0 and det.range_max_m == pytest.approx(3 * ROW_M)
 
 
@@ -294,13 +288,11 @@ def test_detections_from_boxes_matches_one_by_one() -> None:
     classes = np.array([0, 1, 3])
     batch = detections_from_boxes(boxes, scores, classes)
     assert batch == [
-        detection_from_box(b, float(s), int(c)) for b, s, c in zip(boxes, scores, classes, strict=True)
+        one_detection(b, float(s), int(c)) for b, s, c in zip(boxes, scores, classes, strict=True)
     ]
     assert detections_from_boxes(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64)) == []
     with pytest.raises(ValueError, match="class ids"):
         detections_from_boxes(boxes, scores, np.array([0, 1, 4]))
-    with pytest.raises(ValueError, match="4 values"):
-        detection_from_box((1.0, 2.0, 3.0), 0.5, 0)
 
 
 def test_postprocess_clips_and_merges() -> None:
@@ -376,7 +368,7 @@ def test_detector_wiring_on_constant_graph(tmp_path: Path) -> None:
     detector.warmup()
     np.testing.assert_array_equal(detector.infer(tensor()), known_output())
     detections, timings = detector.detect(tensor())
-    assert detections == [detection_from_box((81.0, 20.0, 100.0, 27.0), float(np.float32(0.9)), 2)]
+    assert detections == [one_detection((81.0, 20.0, 100.0, 27.0), float(np.float32(0.9)), 2)]
     assert isinstance(timings, StageTimings)
     assert min(timings.encode_ms, timings.inference_ms, timings.nms_ms) >= 0.0
     boxes, scores, classes, frame = detector.detect_boxes(tensor())

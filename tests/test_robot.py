@@ -10,7 +10,6 @@ import pytest
 
 from services.simulator.robot import (
     DiffDriveLimits,
-    DiffDriveRobot,
     follow_waypoints,
     integrate,
     wrap_angle,
@@ -171,26 +170,8 @@ def test_follow_waypoints_rejects_bad_arguments() -> None:
         follow_waypoints((0.0, 0.0, 0.0), [(1.0, 0.0)], substeps=0)
 
 
-# --- DiffDriveRobot ----------------------------------------------------------------------------------
-
-
-def test_robot_step_clips_commands_to_limits() -> None:
-    robot = DiffDriveRobot((0.0, 0.0, 0.0))
-    pose = robot.step(1.0, -10.0, 0.1)
-    assert robot.last_command == (0.22, -2.84)
-    assert pose == robot.pose == pytest.approx(integrate((0.0, 0.0, 0.0), 0.22, -2.84, 0.1))
-    robot.step(-1.0, 0.5, 0.1)
-    assert robot.last_command == (-0.22, 0.5)
-
-
-def test_robot_step_accumulates_like_integrate() -> None:
-    robot = DiffDriveRobot((1.0, -1.0, 0.2))
-    expected = (1.0, -1.0, 0.2)
-    for _ in range(50):
-        robot.step(0.1, 0.3, 0.02)
-        expected = integrate(expected, 0.1, 0.3, 0.02)
-    assert robot.pose == pytest.approx(expected, abs=1e-12)
-    assert robot.pose == pytest.approx(integrate((1.0, -1.0, 0.2), 0.1, 0.3, 1.0), abs=1e-12)
-    robot.reset((0.0, 0.0, 7.0))
-    assert robot.pose == pytest.approx((0.0, 0.0, 7.0 - 2 * math.pi))
-    assert robot.last_command == (0.0, 0.0)
+def test_limits_clip_commands_to_a_burger() -> None:
+    limits = DiffDriveLimits()
+    assert limits.clip(1.0, -10.0) == (0.22, -2.84)
+    assert limits.clip(-1.0, 0.5) == (-0.22, 0.5)
+    assert limits.clip(0.1, 0.3) == (0.1, 0.3)

@@ -13,7 +13,6 @@ import pytest
 from zenoh.ext import Int64, z_serialize
 
 from common.encoding import ANGLE_COLUMNS, ScanStacker, angle_columns, beam_bearings_rad, encode_scan
-from common.inference import detection_from_box
 from common.keys import detections_key, scan_key
 from common.messages import Detections, Scan, StageTimings, decode_message, encode_message
 from services.ros2_bridge.core import BridgeConfig, BridgeCore
@@ -46,6 +45,7 @@ from services.ros2_bridge.ros_types import (
     dds_type_name,
     ros_types,
 )
+from tests.detection_builders import one_detection
 from tests.ros2_scans import laser_scan_cdr
 
 JAZZY_LASER_SCAN_HASH = "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924bd828"
@@ -98,10 +98,8 @@ def test_cdr_reader_reads_what_rosbags_writes(little_endian: bool, frame_id: str
 
 
 def test_detection_encoders_write_rosbags_bytes_on_both_distros() -> None:
-    detections = [
-        detection_from_box((10 + 40 * i, 5, 30 + 40 * i, 30), 0.5 + 0.1 * i, i % 4) for i in range(4)
-    ]
-    detections.append(detection_from_box((370, 3, 380, 9), 0.9, 2))  # straddles 0°: min > max after wrapping
+    detections = [one_detection((10 + 40 * i, 5, 30 + 40 * i, 30), 0.5 + 0.1 * i, i % 4) for i in range(4)]
+    detections.append(one_detection((370, 3, 380, 9), 0.9, 2))  # straddles 0°: min > max after wrapping
     for distro in ("jazzy", "humble"):
         fast, reference = DetectionMessages(ros_types(distro)), ReferenceDetectionMessages(ros_types(distro))
         for count in (0, 1, 5):
@@ -314,9 +312,7 @@ def test_core_counts_every_bad_scan_by_reason_and_never_raises() -> None:
 
 
 def _detections(robot_id: str, stamp_ns: int, count: int = 3) -> Detections:
-    items = [
-        detection_from_box((20 + 60 * i, 10, 40 + 60 * i, 30), 0.6 + 0.1 * i, i % 4) for i in range(count)
-    ]
+    items = [one_detection((20 + 60 * i, 10, 40 + 60 * i, 30), 0.6 + 0.1 * i, i % 4) for i in range(count)]
     return Detections(
         robot_id=robot_id, seq=2, stamp_ns=stamp_ns, detections=items,
         timings=StageTimings(encode_ms=0.1, inference_ms=1.0, nms_ms=0.1), model_id="m",

@@ -96,3 +96,24 @@ def test_two_loopback_sessions_exchange_a_sample() -> None:
             time.sleep(0.02)
         sub.undeclare()
     assert got == [b"hello"]
+
+
+def test_zenoh_own_flag_names_are_accepted(tmp_path: Path) -> None:
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    config_file = tmp_path / "z.json5"
+    config_file.write_text('{ mode: "peer" }')
+    args = parser.parse_args(
+        ["-c", str(config_file), "--cfg", "scouting/multicast/enabled:false", "--cfg", 'mode:"client"']
+    )
+    settings = settings_from_args(args)
+    assert settings.config_file == config_file
+    assert settings.cfg == (("scouting/multicast/enabled", "false"), ("mode", '"client"'))
+    assert settings_from_args(parser.parse_args(settings.to_cli())) == settings  # survives a child's argv
+    config = settings.to_config()
+    assert json.loads(config.get_json("mode")) == "client"  # --cfg wins over the file
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--cfg", "no-colon"])
+    with pytest.raises(ValueError, match="--cfg"):
+        ZenohSettings(cfg=(("no/such/key", "1"),)).to_config()

@@ -151,14 +151,6 @@ def _save_checked(model: Any, out: Path, batch: int | str = 1) -> None:
     onnx.save(model, str(out))
 
 
-def onnx_metadata(path: Path) -> dict[str, str]:
-    """All ``metadata_props`` of an ONNX file (Ultralytics' and ours)."""
-    import onnx
-
-    model = onnx.load(str(path), load_external_data=False)
-    return {prop.key: prop.value for prop in model.metadata_props}
-
-
 def _set_metadata(model: Any, values: dict[str, str]) -> None:
     """Add or overwrite metadata entries, keeping every other entry (Ultralytics' included)."""
     existing = {prop.key: prop for prop in model.metadata_props}

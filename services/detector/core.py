@@ -70,14 +70,6 @@ class LatestPerRobot(Generic[T]):
     def _first_ready(self) -> str | None:
         return next((robot_id for robot_id in self._slots if robot_id not in self._busy), None)
 
-    def take(self, timeout: float | None = None) -> tuple[str, T] | None:
-        """The oldest-waiting free robot's newest item, or None after ``timeout`` or once closed.
-
-        The robot stays busy until :meth:`release`.
-        """
-        taken = self.take_many(1, timeout)
-        return taken[0] if taken else None
-
     def take_many(self, limit: int, timeout: float | None = None) -> list[tuple[str, T]]:
         """Up to ``limit`` free robots' newest items, longest-waiting first; empty after ``timeout``
         or once closed.
@@ -178,17 +170,12 @@ class DetectorCore:
         with self._lock:
             self.counters.dropped_stale += 1
 
-    def detect(self, tensor: StackedTensor, detector: OnnxDetector | None = None) -> Detections:
-        """Run the model on one tensor; ``encode_ms`` adds the encoder's own time from the tensor.
-
-        ``detector`` is a worker's own session of the same model (``--workers``); default: the core's.
-        """
-        return self.detect_many([tensor], detector)[0]
-
     def detect_many(
         self, tensors: Sequence[StackedTensor], detector: OnnxDetector | None = None
     ) -> list[Detections]:
-        """:meth:`detect` for several robots' tensors, in one model call with a batch model."""
+        """Run the model on several robots' tensors (one call with a batch model); ``encode_ms`` adds the
+        encoder's own time from each tensor. ``detector`` is a worker's own session of the same model
+        (``--workers``); default: the core's."""
         if not tensors:
             return []
         model = detector or self.detector

@@ -152,33 +152,3 @@ def follow_waypoints(
             "robot did not reach waypoint %d of %d in %.1f s", current + 1, len(targets), max_duration_s
         )
     return np.asarray(poses, dtype=np.float64)
-
-
-class DiffDriveRobot:
-    """A robot state advanced by velocity commands, for the real-time simulator service.
-
-    Commands are clipped to the limits before integration, so a teleop or planner asking for more than
-    a Burger can do gets what a Burger would do; the clipped command is kept for publishing odometry.
-    """
-
-    def __init__(self, pose: Pose = (0.0, 0.0, 0.0), limits: DiffDriveLimits | None = None) -> None:
-        self.limits = limits or DiffDriveLimits()
-        self._pose: Pose = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
-        self.last_command: tuple[float, float] = (0.0, 0.0)
-
-    @property
-    def pose(self) -> Pose:
-        return self._pose
-
-    def reset(self, pose: Pose) -> None:
-        """Teleport (new scenario or episode) and forget the last command."""
-        self._pose = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
-        self.last_command = (0.0, 0.0)
-
-    def step(self, v: float, w: float, dt: float) -> Pose:
-        """Drive the clipped (v, w) for dt seconds and return the new pose."""
-        if dt < 0.0:
-            raise ValueError(f"dt must be >= 0, got {dt}")
-        self.last_command = self.limits.clip(v, w)
-        self._pose = integrate(self._pose, *self.last_command, dt)
-        return self._pose

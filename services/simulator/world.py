@@ -163,10 +163,6 @@ class World:
         out[hit] = self.object_index_of_body[ids[hit]]
         return out
 
-    @property
-    def is_open(self) -> bool:
-        return self.client_id >= 0
-
     def require_open(self) -> None:
         """Fail loudly: PyBullet calls on a closed client raise an unhelpful "not connected" error."""
         if self.client_id < 0:
