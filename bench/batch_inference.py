@@ -27,7 +27,7 @@ from common.encoding import to_model_input
 from common.inference import session_options
 from services.encoder.core import EncoderCore
 
-log = logging.getLogger("bench.batch_inference")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = (

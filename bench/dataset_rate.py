@@ -20,7 +20,7 @@ from pathlib import Path
 from bench.report import write_report
 from training.dataset import DatasetConfig, generate_dataset
 
-log = logging.getLogger("bench.dataset_rate")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 PAPER_SCENARIOS = 160
 PAPER_POSITIONS = 90

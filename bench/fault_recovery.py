@@ -33,7 +33,7 @@ from common.messages import Detections, StackedTensor, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
 
-log = logging.getLogger("bench.fault_recovery")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 ROOT = Path(__file__).resolve().parents[1]
 VICTIMS = ("encoder", "detector", "simulator")

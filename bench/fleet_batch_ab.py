@@ -23,7 +23,7 @@ from bench.harness import recorded_scans
 from bench.machine import machine_info
 from bench.report import write_report
 
-log = logging.getLogger("bench.fleet_batch_ab")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = {

@@ -39,7 +39,7 @@ from common.messages import Detections, Scan, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports, stop_processes
 
-log = logging.getLogger("bench.fleet_capacity")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 ROOT = Path(__file__).resolve().parents[1]
 WARM_UP_S = 3.0  # at least this, and until every robot has been answered (peers connect on retry)

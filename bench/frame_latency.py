@@ -1,6 +1,6 @@
 """Per-frame latency, batch 1, of triscan and the runtimes it is compared with — side by side, one run.
 
-What one *frame* is (SPEC §6, Algorithm 1): a new scan arrives → it is encoded and pushed into the
+What one *frame* is (the paper's Algorithm 1): a new scan arrives → it is encoded and pushed into the
 three-scan FIFO (``ScanStacker.push_scan``) → the model input is built → the model runs → its raw
 output is decoded and NMS'd into boxes. Every pipeline is timed over exactly that, wall clock, one
 frame at a time, on the same pre-generated real simulated scans (``SimulatedFleet``, PyBullet);
@@ -41,7 +41,6 @@ import argparse
 import gc
 import logging
 import os
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -67,7 +66,7 @@ DEFAULT_OUT: Final[Path] = ROOT / "bench" / "results" / "frame_latency.json"
 DEFAULT_CACHE: Final[Path] = ROOT / "runs" / "bench_cache"
 MODELS: Final[Path] = ROOT / "models"
 
-log = logging.getLogger("bench.frame_latency")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 TRISCAN_FP32: Final[str] = "triscan_fp32"
 TRISCAN_INT8: Final[str] = "triscan_int8"
@@ -554,4 +553,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

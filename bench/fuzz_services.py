@@ -57,7 +57,7 @@ from common.transport import ZenohSettings, open_session, payload_bytes, wait_fo
 from services.encoder.core import EncoderCore, EncoderCounters
 from services.launcher import free_tcp_ports, stop_processes
 
-log = logging.getLogger("bench.fuzz_services")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 GOOD_ROBOT = "good"
 FUZZ_ROBOT = "fuzz"  # the key (and, where not mutated, the payload) robot of every fuzz payload

@@ -2,7 +2,7 @@
 
 The paper's contrast is between its 64×384 three-scan raster and the common alternative: draw the
 scan into a robot-centred square occupancy-grid image and run a stock YOLOv8n on it at 640×640
-(846.5 ms against 47.8 ms on a Raspberry Pi 5, SPEC §1). This module rebuilds that alternative so
+(846.5 ms against 47.8 ms on a Raspberry Pi 5, in the paper). This module rebuilds that alternative so
 both can be timed on the same scans, with the same runtime and the same post-processing:
 
 * :func:`rasterise_occupancy_grid`: a scan → ``uint8[640, 640, 3]`` image, robot at the centre,

@@ -35,7 +35,7 @@ from services.simulator.fleet import SimulatedFleet
 
 ROOT = Path(__file__).resolve().parents[1]
 
-log = logging.getLogger("bench.pipeline_latency")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 WARM_UP_S = 3.0  # at least this, and until the first detections came back (peers connect on retry)
 MAX_WARM_UP_S = 60.0

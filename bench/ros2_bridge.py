@@ -44,7 +44,7 @@ from services.ros2_bridge.rmw_zenoh import encode_attachment
 from services.ros2_bridge.ros_messages import ReferenceDetectionMessages
 from services.ros2_bridge.ros_types import LASER_SCAN, dds_type_name, ros_types
 
-log = logging.getLogger("bench.ros2_bridge")
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 ROBOT: Final[str] = "robot1"
 GOAL_MS: Final[float] = 0.3

@@ -1,4 +1,4 @@
-"""Three-frame RGB scan encoding of the paper, and its inverse (SPEC §2).
+"""Three-frame RGB scan encoding of the paper, and its inverse (README, "The encoding").
 
 A 2D scan (bearings θ, ranges ρ) becomes a sparse binary image: 64 range rows × 360 one-degree angle
 columns, padded to 384 columns so the width is a multiple of YOLO's stride 32. The last three images,

@@ -1,4 +1,4 @@
-"""The one place where YOLOv8 output becomes detections (SPEC §6, Algorithm 1 of the paper).
+"""The one place where YOLOv8 output becomes detections (README "The encoding", Algorithm 1 of the paper).
 
 The detector service, ``triscan eval`` and the benchmarks all call this module, so the numbers they
 report come from the same decode, the same NMS and the same pixel → bearing/range → x/y mapping. It
@@ -396,7 +396,7 @@ def _declared_padding(session: ort.InferenceSession, path: Path | str) -> Paddin
     padding = session.get_modelmeta().custom_metadata_map.get(META_PADDING)
     if padding is not None and padding not in PADDINGS:
         raise ValueError(f"{path} declares an unknown {META_PADDING} {padding!r}")
-    return padding  # type: ignore[return-value]
+    return padding
 
 
 def session_options(intra_op_threads: int | None = None, *, optimise: bool = True) -> ort.SessionOptions:
@@ -533,7 +533,7 @@ class OnnxDetector:
                 f"{path} was trained with {trained!r} padding; running it on {requested!r} tensors would "
                 "misplace every object near the seam"
             )
-        return requested or trained or "zero"  # type: ignore[return-value]
+        return requested or trained or "zero"
 
     def _check_model(self, path: Path) -> tuple[str, list[str], int, int, bool]:
         """Refuse, with the reason, any model this pipeline would misread rather than fail later."""
@@ -676,8 +676,8 @@ class OnnxDetector:
     def warmup(self, max_batch: int = 1) -> None:
         """Run blank frames through the whole path, so the first real frame's timing is honest.
 
-        ONNX Runtime allocates its arenas and plans memory on the first run of each input shape; SPEC
-        §6 measures after one warm-up. With a batch model every batch size up to ``max_batch`` is run
+        ONNX Runtime allocates its arenas and plans memory on the first run of each input shape; the
+        benchmarks measure after one warm-up. With a batch model every batch size up to ``max_batch`` is run
         once, so the first batch of each size in service does not pay for it.
         """
         if max_batch < 1:

@@ -1,6 +1,6 @@
 """Every Zenoh key expression of triscan, built and parsed in one place.
 
-Data flows on ``<prefix>/<robot_id>/<topic>`` (README, "Services"); each service also announces itself
+Data flows on ``<prefix>/<robot_id>/<topic>`` (README, "The loop"); each service also announces itself
 with a liveliness token on ``triscan/@health/<service>/<instance>`` and publishes JSON counters on
 ``triscan/@stats/<service>/<instance>``. Building and parsing all of them here keeps publishers,
 subscribers, the launcher, ``triscan status`` and the access-control rules of the secure mode from

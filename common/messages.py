@@ -1,4 +1,4 @@
-"""Wire messages of triscan: pydantic v2 models plus a msgpack codec (SPEC §7).
+"""Wire messages of triscan: pydantic v2 models plus a msgpack codec (README, "The loop").
 
 Every payload that crosses Zenoh is a msgpack map carrying ``kind`` and ``schema_version`` next to
 the model's fields. Numeric arrays travel as ``{"dtype", "shape", "data"}`` with raw little-endian
@@ -393,7 +393,7 @@ class TruthObject(WireModel):
     def _consistent(self) -> TruthObject:
         _check_class(self.class_id, self.class_name)
         _check_box(self.box_px)
-        # Labels exist exactly for visible objects (SPEC §4); anything else is a simulator bug.
+        # Labels exist exactly for visible objects (README, "Labels"); anything else is a simulator bug.
         if self.visible and self.box_px is None:
             raise ValueError("a visible object must carry box_px")
         if not self.visible and self.box_px is not None:

@@ -1,1 +1,4 @@
-"""triscan's processes: simulator-publisher, encoder, detector, visualizer; each thin wiring of a core."""
+"""triscan's processes: simulator, encoder, detector, visualizer, ROS 2 bridge, and the launcher.
+
+Each service is a pure core (tests call it directly) wired to Zenoh by ``services.runtime``.
+"""

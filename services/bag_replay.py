@@ -32,7 +32,7 @@ from common.messages import Scan, encode_message
 from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
 from services.ros2_bridge.ros_types import LASER_SCAN, ros_types
 
-log = logging.getLogger("triscan.replay")
+log = logging.getLogger(__name__)
 
 DEFAULT_ROBOT: Final[str] = "replay"
 _NOT_IN_ID: Final[re.Pattern[str]] = re.compile(r"[^A-Za-z0-9_-]+")

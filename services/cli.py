@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import sys
 from pathlib import Path
 
 from common.encoding import INVALID_RULES, PADDINGS
@@ -79,7 +78,8 @@ def _run_dataset(args: argparse.Namespace) -> int:
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)
     samples = summary["samples"]
     print(f"samples: {samples}  ({summary['samples_per_s']:.0f} samples/s, {summary['elapsed_s']:.1f} s)")
-    for split, per_class in summary["boxes_per_class"].items():  # type: ignore[union-attr]
+    boxes_per_class: dict[str, dict[str, int]] = summary["boxes_per_class"]
+    for split, per_class in boxes_per_class.items():
         print(f"  {split:5s} boxes: " + ", ".join(f"{k} {v}" for k, v in per_class.items()))
     return 0
 
@@ -193,7 +193,8 @@ def _add_batch_model(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_batch_model(args: argparse.Namespace) -> int:
-    from training.export import add_batch_axis, batch_variant_path
+    from common.model_spec import batch_variant_path
+    from training.export import add_batch_axis
 
     out = add_batch_axis(args.model, args.out or batch_variant_path(args.model))
     print(f"wrote {out}: the same network, frames in one call equal frames one by one")
@@ -484,9 +485,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.run(args))
     except (FileExistsError, FileNotFoundError, ValueError) as exc:
-        logging.getLogger("triscan").error("%s", exc)
+        logging.getLogger(__name__).error("%s", exc)
         return 2
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

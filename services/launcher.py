@@ -32,7 +32,7 @@ from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session
 from services.runtime import EXIT_WITH_PARENT_ENV
 
-log = logging.getLogger("triscan.up")
+log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # where other apps on this machine join the loop
 SERVICES = ("simulator", "encoder", "detector", "visualizer")

@@ -164,7 +164,7 @@ class RobotPublishers:
         self.forget(robot_ids)
 
 
-SampleHandler = Callable[[str, bytes], None]
+SampleHandler = Callable[[str, bytes], object]  # the return value, if any, is ignored
 
 
 class ServiceRuntime:
@@ -181,7 +181,6 @@ class ServiceRuntime:
         self.settings = settings
         self.stop = stop
         self.duration_s = duration_s
-        self.log = logging.getLogger(f"services.{service}")
         self.session: Any = None
         self._session_cm: Any = None
         self._declared: list[Any] = []  # subscribers and publishers, undeclared in reverse order
@@ -263,11 +262,11 @@ class ServiceRuntime:
             self.publish_stats(counters)
             now = time.monotonic()
             if now - last_summary >= SUMMARY_PERIOD_S:
-                self.log.info("%s", counters)
+                log.info("%s: %s", self.service, counters)
                 last_summary = now
             if self.should_stop():
                 break
-        self.log.info("stopping after %.1f s: %s", self.elapsed_s, counters or housekeeping())
+        log.info("%s stopping after %.1f s: %s", self.service, self.elapsed_s, counters or housekeeping())
 
 
 def robot_of_key(key: str) -> str:

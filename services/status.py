@@ -66,7 +66,7 @@ def collect_status(settings: ZenohSettings, wait_s: float = 2.5 * STATS_PERIOD_S
 
 
 def format_status(statuses: list[ServiceStatus]) -> str:
-    """One line per service: alive, and its counters flattened (``rejected.bad_msgpack=3``)."""
+    """One line per service: alive, and its counters flattened (``rejected.not_msgpack=3``)."""
     if not statuses:
         return "no triscan services found (check --connect)"
     lines = []

@@ -24,7 +24,7 @@ REPLAY_SEED = 4242  # not a training seed: scenarios the model has not seen
 @dataclass(frozen=True)
 class ReplayedScan:
     scan: Scan
-    labels: list[ObjectLabel]  # SPEC §4 labels of this scan (zero padding)
+    labels: list[ObjectLabel]  # README "Labels" labels of this scan (zero padding)
     motion: int  # which drive it belongs to: the robot jumps between drives
 
 

@@ -1,4 +1,4 @@
-"""Each formula of SPEC §2 against pixels computed by hand."""
+"""Each formula of README "The encoding" against pixels computed by hand."""
 
 from __future__ import annotations
 

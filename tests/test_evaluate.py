@@ -108,7 +108,7 @@ def test_circular_iou_sees_the_copy_across_the_seam() -> None:
 
 
 def test_wrap_label_copies_merge_to_the_whole_object() -> None:
-    # Labels of SPEC §4 for a box across the seam under wrap: the partial copy at 0–5 and the whole box.
+    # The labels of a box across the seam under wrap: the partial copy at 0–5 and the whole box.
     boxes = np.array([[0.0, 20.0, 5.0, 27.0], [346.0, 20.0, 365.0, 27.0], [100.0, 5.0, 130.0, 15.0]])
     sample = EvalSample(
         "s", np.zeros((64, 384, 3), np.uint8), boxes, np.array([1, 1, 2]), np.array([1, 1, 0], bool)

@@ -1,4 +1,4 @@
-"""Label rules of SPEC §4 on hand-computed geometry (no simulator: the beams are given)."""
+"""Label rules of README "Labels" on hand-computed geometry (no simulator: the beams are given)."""
 
 from __future__ import annotations
 

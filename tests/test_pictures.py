@@ -1,7 +1,7 @@
 """``triscan show``: the raster picture and the top-down map of one data-set sample.
 
 The expectations are computed here from the data set's own files (PNG, YOLO lines, poses) with the
-formulas of SPEC §2, not with the module's helpers, so a wrong magnification, a mirrored bearing, a
+formulas of README "The encoding", not the module's helpers, so a wrong magnification, a mirrored bearing, a
 wrong channel or a misplaced box makes a test fail.
 """
 

@@ -1,4 +1,4 @@
-"""Seeded generator of YOLO data sets from the simulated room (SPEC §3, §4).
+"""Seeded generator of YOLO data sets from the simulated room (README, "The simulated world" and "Labels").
 
 Per scenario: build the world, draw up to M robot positions, let the robot drive a short motion from
 each while the LiDAR scans at 10 Hz, and turn every three consecutive scans into one sample — the
@@ -134,7 +134,7 @@ def split_of_scenarios(scenarios: int, seed: int) -> list[str]:
 
 @dataclass(frozen=True)
 class Motion:
-    """One robot position of a scenario and the short drive made from it (SPEC §3)."""
+    """One robot position of a scenario and the short drive made from it (README, "The simulated world")."""
 
     start_xy: tuple[float, float]
     heading_rad: float

@@ -7,7 +7,7 @@ arithmetic is Ultralytics' own (``ap_per_class`` via ``DetMetrics``, its ``Confu
 predictions are matched to labels with the same greedy policy as its validator, so the figures can be
 compared with ``yolo val`` — a test checks they agree within 0.01.
 
-Two additions serve the ``zero`` vs ``wrap`` ablation (SPEC §2):
+Two additions serve the ``zero`` vs ``wrap`` ablation (README, "The encoding"):
 
 * With ``wrap`` padding one object can be labelled twice (whole across the seam and as the copy in
   columns 0–23 or 360–383), while the detector merges such copies into one detection. Labels are

@@ -5,7 +5,7 @@ will always see: ``float32[1, 3, 64, 384]`` (batch 1, no dynamic axes: a fixed g
 plan memory once and keeps the INT8 calibration valid for every input). Besides Ultralytics' own
 metadata (names, imgsz, stride) each file carries ``triscan.*`` metadata — padding mode, class list,
 source weights — so a detector can refuse a model trained on the other padding instead of silently
-mixing ``zero`` and ``wrap`` (SPEC §2).
+mixing ``zero`` and ``wrap`` (README, "The encoding").
 
 The INT8 model is ONNX Runtime static quantisation in QDQ format with per-channel weight scales and
 percentile activation ranges, calibrated on validation PNGs fed through exactly the run-time

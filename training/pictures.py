@@ -81,7 +81,7 @@ MAP_PANEL_WIDTH = 320
 MAP_BOTTOM_MARGIN = 64
 HIT_RADIUS_PX = 2
 
-# Robot geometry of SPEC §3 (TurtleBot3 Burger): the LDS-01 sits 3 cm behind the robot centre.
+# Robot geometry (TurtleBot3 Burger, README "The simulated world"): the LDS-01 sits 3 cm behind the centre.
 ROBOT_RADIUS_M = 0.105
 LIDAR_BEHIND_CENTRE_M = 0.03
 

@@ -26,7 +26,7 @@ from services.detector.core import DetectorCore, InferencePipeline
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
 from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
-log = logging.getLogger(__package__)
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 
 def run(

@@ -18,7 +18,7 @@ from common.transport import ZenohSettings, settings_from_args
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
-log = logging.getLogger(__package__)
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 
 def run(

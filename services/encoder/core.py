@@ -223,7 +223,7 @@ class EncoderCore:
             stamp_ns=scan.stamp_ns,
             tensor=tensor,
             padding=self.padding,
-            scan_seqs=tuple(stream.seqs),
-            scan_stamps_ns=tuple(stream.stamps_ns),
+            scan_seqs=(stream.seqs[0], stream.seqs[1], stream.seqs[2]),
+            scan_stamps_ns=(stream.stamps_ns[0], stream.stamps_ns[1], stream.stamps_ns[2]),
             encode_ms=(time.perf_counter_ns() - started) / 1e6,
         )

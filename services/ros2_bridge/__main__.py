@@ -22,7 +22,7 @@ from services.ros2_bridge.rmw_zenoh import STYLES
 from services.ros2_bridge.ros_types import DEFAULT_DISTRO, DISTROS
 from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
-log = logging.getLogger(__package__)
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 SERVICE = "ros2_bridge"
 

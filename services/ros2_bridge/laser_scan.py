@@ -97,7 +97,9 @@ def parse_laser_scan_cdr(payload: bytes | memoryview) -> LaserScanFields:
     pos = (12 + name_len + 3) & ~3
     if pos + 32 > size:
         raise ScanRejectedError("truncated", "LaserScan: ends inside its fixed fields")
-    *floats, beams = _FLOATS[order].unpack_from(body, pos)
+    angle_min, angle_max, angle_increment, time_increment, scan_time, range_min, range_max, beams = _FLOATS[
+        order
+    ].unpack_from(body, pos)
     pos += 32
     if beams > MAX_BEAMS:
         raise ScanRejectedError("too_many_beams", f"LaserScan: {beams} beams, the limit is {MAX_BEAMS}")
@@ -112,7 +114,20 @@ def parse_laser_scan_cdr(payload: bytes | memoryview) -> LaserScanFields:
     end += 4 * intensities
     if size - end > 3:  # CDR allows up to 3 bytes of final padding, nothing more
         raise ScanRejectedError("bad_cdr", f"LaserScan: {size - end} bytes after the message")
-    return LaserScanFields(sec, nanosec, frame_id, *floats, ranges=ranges, intensities_count=intensities)
+    return LaserScanFields(
+        sec,
+        nanosec,
+        frame_id,
+        angle_min,
+        angle_max,
+        angle_increment,
+        time_increment,
+        scan_time,
+        range_min,
+        range_max,
+        ranges=ranges,
+        intensities_count=intensities,
+    )
 
 
 def fields_of_message(message: Any) -> LaserScanFields:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import struct
-from typing import Final, NamedTuple
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 
@@ -274,20 +274,20 @@ class ReferenceDetectionMessages:
         self.types = types
         self.t = types.store.types
 
-    def _header(self, stamp_ns: int, frame_id: str) -> object:
+    def _header(self, stamp_ns: int, frame_id: str) -> Any:
         sec, nanosec = _stamp(stamp_ns)
         return self.t["std_msgs/msg/Header"](
             stamp=self.t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
         )
 
-    def _pose(self, position: tuple[float, float, float], yaw: float) -> object:
+    def _pose(self, position: tuple[float, float, float], yaw: float) -> Any:
         qx, qy, qz, qw = _yaw_quaternion(yaw)
         return self.t["geometry_msgs/msg/Pose"](
             position=self.t["geometry_msgs/msg/Point"](x=position[0], y=position[1], z=position[2]),
             orientation=self.t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
         )
 
-    def _vector3(self, xyz: tuple[float, float, float]) -> object:
+    def _vector3(self, xyz: tuple[float, float, float]) -> Any:
         return self.t["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2])
 
     def detection_array(self, detections: list[Detection], stamp_ns: int, frame_id: str) -> bytes:

@@ -1,1 +1,1 @@
-"""The PyBullet world of SPEC §3: scenarios, world building, the LDS-01 LiDAR, robot motion, labels."""
+"""README "The simulated world": scenarios, the PyBullet world, the LDS-01 LiDAR, robot motion, labels."""

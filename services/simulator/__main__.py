@@ -35,7 +35,7 @@ from services.runtime import (
 from services.simulator.defaults import ROBOT_ID_PREFIX, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
 from services.simulator.fleet import SimulatedFleet
 
-log = logging.getLogger(__package__)
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 
 class RateSummary:

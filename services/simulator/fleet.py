@@ -7,7 +7,7 @@ random streams, and wanders: it picks a random free goal, plans a route to it ov
 grid (``free_grid_cells``, the same free space the data set samples from), drives it with the data
 set's waypoint controller (``follow_waypoints``) and, on arrival, picks the next goal. Every
 ``scenario_period_s`` of *simulated* time it moves to a new world. Each tick yields the ``Scan`` the
-encoder consumes and the ``GroundTruth`` (labels of SPEC §4) a visualiser or evaluator compares with.
+encoder consumes and the ``GroundTruth`` (labels of README "Labels") a visualiser or evaluator compares with.
 
 This module knows nothing about Zenoh or wall-clock time: the caller passes the stamp, so the same seed
 gives the same scans whatever the host's speed, and tests can step it as fast as they like.
@@ -47,9 +47,9 @@ log = logging.getLogger(__name__)
 # GroundTruth message names the world exactly (``sample_scenario(scenario_id, seed)``) and no two
 # robots of a fleet ever share a world. At the default 30 s period a robot needs a year to run out.
 SCENARIOS_PER_ROBOT = 1_000_000
-HEADINGS_DEG = np.arange(0, 360, 45)  # start headings k·45°, as the data set (SPEC §3)
+HEADINGS_DEG = np.arange(0, 360, 45)  # start headings k·45°, as the data set (README, "The simulated world")
 MIN_GOAL_DISTANCE_M = 0.5  # goals nearer than this make the robot spin more than it drives
-CRUISE_MPS = 0.1  # the data set's motion speed (SPEC §3), so live scans look like the training scans
+CRUISE_MPS = 0.1  # the data set's motion speed, so live scans look like the training scans
 TURN_RADPS = 1.5
 WAYPOINT_TOLERANCE_M = 0.05
 FRAME_ID = "laser"

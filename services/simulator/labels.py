@@ -1,4 +1,4 @@
-"""Ground-truth boxes for one sample, by SPEC §4.
+"""Ground-truth boxes for one sample, by README "Labels".
 
 A sample's labels describe its middle scan (t−1), seen from the true LiDAR pose at that scan. Each
 object's footprint is projected into (bearing, range): the box spans the arc that covers its corners
@@ -83,7 +83,7 @@ def arc_crosses_seam(center_deg: float, lo_deg: float, hi_deg: float) -> bool:
 def _pixel_boxes(
     center_deg: float, lo_deg: float, hi_deg: float, range_min: float, range_max: float, padding: Padding
 ) -> tuple[Box, ...]:
-    """Boxes of one arc in the padded image, applying the seam rule of SPEC §4."""
+    """Boxes of one arc in the padded image, applying the seam rule of README "Labels"."""
     x1 = math.floor(lo_deg + 0.5)  # column of the arc's first bearing
     x2 = math.floor(hi_deg + 0.5) + 1  # one past the column of its last bearing
     y1 = float(min(math.floor(range_min * ROW_SCALE), RANGE_ROWS - 1))

@@ -1,10 +1,10 @@
-"""A 2D LiDAR (ROBOTIS LDS-01 by default, SPEC §3) ray-cast in a :class:`~services.simulator.world.World`.
+"""A 2D LiDAR (ROBOTIS LDS-01 by default, README "The simulated world") ray-cast in a ``World``.
 
 The reading mirrors ROS ``sensor_msgs/LaserScan``: beam i has bearing ``angle_min + i·angle_increment``,
 counter-clockwise from the sensor's forward axis (REP-103), and a return that is missing or outside
 [range_min, range_max] is published as ``inf``, as real drivers do; the encoder maps those to its
 sentinel row. Besides the noisy ranges the reading keeps the noise-free ranges and the id of the object
-each beam hit, which the labeller needs ("at least 2 beams hit it", SPEC §4).
+each beam hit, which the labeller needs ("at least 2 beams hit it", README "Labels").
 
 All beams of one scan go to PyBullet in one ``rayTestBatch`` call; noise comes from the caller's seeded
 generator and is drawn for every beam on every scan, so the random stream advances identically
@@ -37,7 +37,7 @@ RAY_BATCH_LIMIT = int(getattr(p, "MAX_RAY_INTERSECTION_BATCH_SIZE", 1024)) - 1
 
 @dataclass(frozen=True)
 class LidarSpec:
-    """Sensor geometry and noise. Defaults: LDS-01 on a TurtleBot3 Burger (SPEC §3)."""
+    """Sensor geometry and noise. Defaults: LDS-01 on a TurtleBot3 Burger (README, "The simulated world")."""
 
     beams: int = 360
     angle_min: float = 0.0

@@ -1,4 +1,4 @@
-"""Kinematic TurtleBot3-Burger-like differential drive (SPEC §3): no physics body, only poses.
+"""Kinematic TurtleBot3-Burger-like drive (README, "The simulated world"): no physics body, only poses.
 
 The robot never collides with anything and has no collision shape, so LiDAR rays never hit it; scan
 positions are sampled in free space by the scenario code, and the short motions between two nearby

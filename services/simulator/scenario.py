@@ -1,4 +1,4 @@
-"""Scenario sampling for the simulated room of SPEC §3, as plain geometry (no PyBullet).
+"""Scenario sampling for the simulated room of README "The simulated world", as plain geometry (no PyBullet).
 
 A :class:`Scenario` is everything random about one world: the doorway (width and which wall) and the
 pose and size of the chair, box and desk. Keeping it pure numpy lets the labeller, the world builder and
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-# Class ids of SPEC §4; the doorframe is a label only, never a body.
+# Class ids of README "Labels"; the doorframe is a label only, never a body.
 CHAIR, BOX, DESK, DOORFRAME = 0, 1, 2, 3
 
 ROOM_HALF_M = 2.0  # inner faces of the room walls
@@ -22,7 +22,7 @@ WALL_THICKNESS_M = 0.1
 WALL_HEIGHT_M = 0.5
 OUTER_HALF_M = 3.1  # inner faces of the outer enclosure
 PLACEMENT_HALF_M = 1.8  # object centres and inflated footprints stay inside [-1.8, 1.8]^2
-# SPEC §3 inflates each footprint by 0.7 m before the containment and overlap tests. We read that as
+# The world inflates each footprint by 0.7 m before the containment and overlap tests. We read that as
 # 0.7 m added to each dimension (0.35 m per side): two inflated footprints that do not overlap leave a
 # 0.7 m corridor between the objects, wide enough for the robot. A 0.7 m margin per side cannot place
 # three objects in the room at all for most desk sizes.
@@ -72,7 +72,7 @@ class Rect:
 
 @dataclass(frozen=True)
 class Furniture:
-    """One object of SPEC §3. Chairs and desks are four legs under a top; the box is solid."""
+    """One piece of furniture. Chairs and desks are four legs under a top; the box is solid."""
 
     class_id: int
     footprint: Rect
@@ -84,7 +84,7 @@ class Furniture:
         return self.leg_size_m > 0.0
 
     def leg_rects(self) -> list[Rect]:
-        """Legs flush in the footprint's corners (SPEC §3), in the world frame."""
+        """Legs flush in the footprint's corners (README, "The simulated world"), in the world frame."""
         if not self.has_legs:
             return []
         hx = (self.footprint.size[0] - self.leg_size_m) / 2.0
@@ -170,7 +170,7 @@ class Scenario:
         objects = tuple(
             Furniture(
                 class_id=int(o["class_id"]),
-                footprint=Rect(tuple(o["center"]), tuple(o["size"]), float(o["yaw"])),  # type: ignore[arg-type]
+                footprint=Rect(tuple(o["center"]), tuple(o["size"]), float(o["yaw"])),
                 height_m=float(o["height_m"]),
                 leg_size_m=float(o["leg_size_m"]),
             )
@@ -257,7 +257,7 @@ def _sample_yaw(rng: np.random.Generator, axis_aligned: bool) -> float:
 
 
 def _sample_furniture(rng: np.random.Generator, class_id: int, yaw: float) -> Furniture:
-    """Draw one object's size (SPEC §3) at a random centre; placement is checked by the caller."""
+    """Draw one object's size at a random centre; placement is checked by the caller."""
     center = (
         float(rng.uniform(-PLACEMENT_HALF_M, PLACEMENT_HALF_M)),
         float(rng.uniform(-PLACEMENT_HALF_M, PLACEMENT_HALF_M)),
@@ -313,7 +313,7 @@ def sample_scenario(index: int, seed: int) -> Scenario:
 
 
 def free_grid_cells(scenario: Scenario) -> np.ndarray:
-    """Robot centres on the 0.1 m grid over [-1.75, 1.75]^2 that keep SPEC §3's clearances.
+    """Robot centres on the 0.1 m grid over [-1.75, 1.75]^2 that keep the world's clearances.
 
     Besides 0.22 m from every leg and 0.175 m from the box, the robot also stays out from under the
     chair and desk tops: from inside a footprint the object surrounds the sensor and its label box
@@ -357,7 +357,7 @@ def sample_waypoints(
     min_step_m: float = 0.1,
     max_step_m: float = 0.2,
 ) -> list[tuple[float, float]]:
-    """``count`` waypoints, each a free cell 0.1–0.2 m from the previous one (the short motion of SPEC §3)."""
+    """``count`` waypoints, each a free cell 0.1–0.2 m from the previous one (the data set's short motion)."""
     cells = free_grid_cells(scenario)
     points: list[tuple[float, float]] = []
     current = np.asarray(start, dtype=np.float64)

@@ -1,4 +1,4 @@
-"""The PyBullet scene of SPEC §3: room with a doorway, outer enclosure and one chair, box and desk.
+"""The PyBullet scene of README "The simulated world": room, doorway, enclosure, one chair, box and desk.
 
 PyBullet is used here only as a ray caster: every body is static (mass 0), there is no floor, no
 gravity and no robot body, so the scan plane at 0.173 m sees exactly the wall faces, the chair and

@@ -33,7 +33,7 @@ from common.transport import (
 from services.runtime import ServiceRuntime, configure_logging, stop_event_on_signals
 from services.visualizer.core import APPLICATION_ID, RerunVisualizer, VisualizerStats
 
-log = logging.getLogger(__package__)
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 SERVICE_NAME = "visualizer"
 SUBSCRIBED_TOPICS: tuple[str, ...] = (SCAN, TENSOR, DETECTIONS, TRUTH)
