@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from common.keys import DETECTIONS, SCAN, parse_key, wildcard_key
 from common.messages import Detections, Scan, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
+from tests.health import service_pids
 from tests.waiting import wait_for
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
@@ -179,12 +179,11 @@ def test_up_restarts_a_killed_service_and_detections_flow_again(tmp_path: Path) 
         with open_session(ZenohSettings.loopback(None, [port])) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), log.on_detections)
             assert wait_for(lambda: len(log.detections) >= 20, 60), "no detections before the kill"
-            pid = next(
-                int(m.group(1)) for line in lines if (m := re.search(r"started encoder \(pid (\d+)\)", line))
-            )
+            (pid,) = service_pids(session, "encoder")
             os.kill(pid, signal.SIGKILL)
             before = len(log.detections)
             assert wait_for(lambda: len(log.detections) >= before + 10, 20), "detections did not resume"
+            assert wait_for(lambda: len(service_pids(session, "encoder") - {pid}) == 1, 20), "no new encoder"
             sub.undeclare()
         launcher.terminate()
         launcher.wait(30)

@@ -6,7 +6,9 @@ What a person sees in the viewer is only as good as what is in the recording, so
 
 from __future__ import annotations
 
+import json
 import math
+import queue
 import signal
 import subprocess
 import sys
@@ -27,6 +29,7 @@ from common.keys import (  # noqa: E402
     detections_key,
     health_key,
     scan_key,
+    stats_key,
     tensor_key,
     truth_key,
 )
@@ -42,7 +45,7 @@ from common.messages import (  # noqa: E402
     encode_message,
 )
 from common.model_spec import CLASS_COLOURS, CLASS_NAMES  # noqa: E402
-from common.transport import ZenohSettings, open_session  # noqa: E402
+from common.transport import ZenohSettings, open_session, payload_bytes  # noqa: E402
 from services.visualizer.core import (  # noqa: E402
     TIMING_NAMES,
     RerunVisualizer,
@@ -359,6 +362,30 @@ def wait_for_health(session: Any, proc: subprocess.Popen[str], timeout_s: float 
     pytest.fail("visualizer never announced itself:\n" + proc.communicate()[0])
 
 
+def wait_for_processed(
+    session: Any, proc: subprocess.Popen[str], count: int, timeout_s: float = 60.0
+) -> None:
+    """Block until the visualizer's own counters (``triscan/@stats/visualizer/<pid>``) say it has
+    processed ``count`` messages: what it logged is then in the recording, whatever the machine's load."""
+    processed = queue.Queue[int]()
+
+    def on_stats(sample: Any) -> None:
+        processed.put(int(json.loads(payload_bytes(sample)).get("processed", 0)))
+
+    subscriber = session.declare_subscriber(stats_key("visualizer", str(proc.pid)), on_stats)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            try:
+                if processed.get(timeout=remaining) >= count:
+                    return
+            except queue.Empty:
+                break
+        pytest.fail(f"the visualizer did not process {count} messages within {timeout_s:.0f} s")
+    finally:
+        subscriber.undeclare()
+
+
 def publish_frames(session: Any, robot_ids: list[str]) -> None:
     for seq in (2, 3):
         for robot_id in robot_ids:
@@ -372,13 +399,14 @@ def test_service_records_two_robots_and_exits_after_duration(
     tmp_path: Path, free_port: Callable[[], int]
 ) -> None:
     port, rrd = free_port(), tmp_path / "e2e.rrd"
-    proc = start_service(port, rrd, duration_s=4.0)
+    proc = start_service(port, rrd, duration_s=20.0)  # ample on a loaded machine: the test waits on counters
     try:
         with open_session(ZenohSettings.loopback(None, [port])) as session:
             wait_for_health(session, proc)
             publish_frames(session, ["alpha", "beta"])
             session.put(scan_key("alpha"), b"garbage")
-            output, _ = proc.communicate(timeout=30)
+            wait_for_processed(session, proc, 2 * 2 * 4)  # 2 robots × 2 frames × 4 topics
+            output, _ = proc.communicate(timeout=30)  # it stops by itself when --duration is over
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -407,7 +435,7 @@ def test_service_leaves_a_complete_recording_after_sigterm(
         with open_session(ZenohSettings.loopback(None, [port])) as session:
             wait_for_health(session, proc)
             publish_frames(session, ["gamma"])
-            time.sleep(1.0)
+            wait_for_processed(session, proc, 2 * 4)  # 2 frames × 4 topics
             proc.send_signal(signal.SIGTERM)
             output, _ = proc.communicate(timeout=20)
     finally:
