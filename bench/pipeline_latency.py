@@ -4,11 +4,18 @@ Three processes, as on a robot: this one simulates the robots (PyBullet, real sc
 their scans at ``--rate`` Hz; ``python -m services.encoder`` and ``python -m services.detector`` run
 as children (or one ``--from-scans`` detector). Each scan is stamped when it is published; the latency
 of a scan is the wall time at which its detections arrive back here minus that stamp (same clock, one
-machine). The per-stage split comes from the timings the detector puts in every message; the rest
-(``transport_ms``) is Zenoh, serialisation and waiting. Peak RSS of the children is their ``VmHWM``.
+machine). The per-stage split comes from the timings the detector puts in every message (encode,
+decode and validation of the tensor, queue = accepted → inference start, inference, NMS); the rest
+(``transport``) is the two Zenoh hops with their serialisation and the encoder's own receive. Peak RSS
+of the children is their ``VmHWM``.
+
+The network's bare cost is measured in the same run, first: the same model and thread setting on the
+same recorded tensors, one frame every 1/rate s in this process (``bare_ms``), so ``overhead_ms`` =
+pipeline − bare is what the pipeline adds, free of this VM's drift between runs.
 
     python -m bench.pipeline_latency --duration 60                # 3 processes: sim, encoder, detector
     python -m bench.pipeline_latency --duration 60 --from-scans   # encoder + detector in one process
+    python -m bench.pipeline_latency --duration 30 --trace trace.csv   # per-frame stage rows too
 """
 
 from __future__ import annotations
@@ -54,7 +61,12 @@ class LatencyReport:
     scans_answered: int = 0
     answered_share: float = 0.0
     latency_ms: dict[str, float] = field(default_factory=dict)  # p50, p95, p99, max, mean
-    stage_ms_mean: dict[str, float] = field(default_factory=dict)  # encode, inference, nms, transport
+    # encode, decode, queue, inference, nms, transport (the remainder): mean, p50, p99
+    stage_ms_mean: dict[str, float] = field(default_factory=dict)
+    stage_ms_p50: dict[str, float] = field(default_factory=dict)
+    stage_ms_p99: dict[str, float] = field(default_factory=dict)
+    bare_ms: dict[str, float] = field(default_factory=dict)  # the network alone, same model and threads
+    overhead_ms: dict[str, float] = field(default_factory=dict)  # pipeline − bare: p50, p99
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
     machine: MachineInfo = field(default_factory=machine_info)
 
@@ -66,6 +78,8 @@ def run(
     from_scans: bool,
     threads: int | None,
     model: Path | None = None,
+    trace: Path | None = None,
+    bare_frames: int = 300,
 ) -> LatencyReport:
     report = LatencyReport(
         "from-scans (2 processes)" if from_scans else "3 processes",
@@ -74,6 +88,7 @@ def run(
         rate_hz,
         duration_s,
     )
+    report.bare_ms = bare_frame_latency(model or default_model_path(), threads, rate_hz, bare_frames)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
     detector_args = ["--threads", str(threads)] if threads else []
     if model is not None:
@@ -136,7 +151,8 @@ def run(
             sub.undeclare()
     finally:
         stop_processes(children, grace_s=20)
-    latencies, stages = [], {"encode": [], "inference": [], "nms": [], "transport": []}
+    latencies: list[float] = []
+    stages: dict[str, list[float]] = {name: [] for name in STAGES}
     for key, stamp in published.items():
         if key not in received:
             continue
@@ -144,16 +160,68 @@ def run(
         total = (arrived - stamp) / 1e6
         latencies.append(total)
         t = message.timings
-        stages["encode"].append(t.encode_ms)
-        stages["inference"].append(t.inference_ms)
-        stages["nms"].append(t.nms_ms)
-        stages["transport"].append(total - t.encode_ms - t.inference_ms - t.nms_ms)
+        measured = {
+            "encode": t.encode_ms,
+            "decode": t.decode_ms,
+            "queue": t.queue_ms,
+            "inference": t.inference_ms,
+            "nms": t.nms_ms,
+        }
+        measured["transport"] = total - sum(measured.values())
+        for name, value in measured.items():
+            stages[name].append(value)
     report.scans_published, report.scans_answered = len(published), len(latencies)
     report.answered_share = round(len(latencies) / max(1, len(published)), 4)
     if latencies:
         report.latency_ms = {**latency_quantiles_ms(latencies), "mean": round(float(np.mean(latencies)), 2)}
         report.stage_ms_mean = {k: round(float(np.mean(v)), 3) for k, v in stages.items()}
+        report.stage_ms_p50 = {k: round(float(np.percentile(v, 50)), 3) for k, v in stages.items()}
+        report.stage_ms_p99 = {k: round(float(np.percentile(v, 99)), 3) for k, v in stages.items()}
+        report.overhead_ms = {
+            q: round(report.latency_ms[q] - report.bare_ms[q], 3)
+            for q in ("p50", "p99")
+            if q in report.bare_ms
+        }
+    if trace is not None:
+        write_trace(trace, latencies, stages)
     return report
+
+
+STAGES = ("encode", "decode", "queue", "inference", "nms", "transport")
+
+
+def bare_frame_latency(model: Path, threads: int | None, rate_hz: float, frames: int) -> dict[str, float]:
+    """The network alone: ``OnnxDetector.detect`` on recorded tensors, one frame every 1/rate s.
+
+    Paced like the pipeline (not back to back), so the ONNX Runtime thread pool idles between frames
+    exactly as it does in the detector; the difference to the pipeline is what the pipeline adds.
+    """
+    from bench.harness import recorded_scans
+    from common.inference import OnnxDetector
+    from services.encoder.core import EncoderCore
+
+    encoder = EncoderCore("zero")
+    tensors = [t.tensor for scan in recorded_scans(60) if (t := encoder.push(scan)) is not None]
+    detector = OnnxDetector(model, intra_op_threads=threads)
+    detector.warmup()
+    period_s, times = 1.0 / rate_hz, []
+    next_due = time.monotonic()
+    for i in range(frames):
+        next_due += period_s
+        started = time.perf_counter()
+        detector.detect(tensors[i % len(tensors)])
+        times.append((time.perf_counter() - started) * 1e3)
+        time.sleep(max(0.0, next_due - time.monotonic()))
+    return {**latency_quantiles_ms(times), "frames": frames}
+
+
+def write_trace(path: Path, latencies: list[float], stages: dict[str, list[float]]) -> None:
+    """One row per answered scan: total and each stage in ms, for anyone to slice further."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows = ["total_ms," + ",".join(f"{name}_ms" for name in STAGES)]
+    for i, total in enumerate(latencies):
+        rows.append(f"{total:.3f}," + ",".join(f"{stages[name][i]:.3f}" for name in STAGES))
+    path.write_text("\n".join(rows) + "\n")
 
 
 def main() -> int:
@@ -165,9 +233,20 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=None, help="detector ONNX Runtime threads")
     parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
+    parser.add_argument("--trace", type=Path, default=None, help="also write per-frame stage times (CSV)")
+    parser.add_argument("--bare-frames", type=int, default=300, help="frames of the bare-network baseline")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    report = run(args.robots, args.rate, args.duration, args.from_scans, args.threads, args.model)
+    report = run(
+        args.robots,
+        args.rate,
+        args.duration,
+        args.from_scans,
+        args.threads,
+        args.model,
+        trace=args.trace,
+        bare_frames=args.bare_frames,
+    )
     write_report(report, args.out)
     return 0 if report.scans_answered else 1
 

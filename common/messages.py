@@ -365,6 +365,10 @@ class StageTimings(WireModel):
     encode_ms: NonNegFloat
     inference_ms: NonNegFloat
     nms_ms: NonNegFloat
+    # Where a frame waits outside the network (bench.pipeline_latency --trace): the detector's decode
+    # and validation of the tensor payload, and accepted → inference start (mailbox and thread hand-off).
+    decode_ms: NonNegFloat = 0.0
+    queue_ms: NonNegFloat = 0.0
 
 
 class Detections(Message):

@@ -19,12 +19,21 @@ from bench import (
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
 
-def test_pipeline_latency_reports_every_field() -> None:
-    report = pipeline_latency.run(robots=1, rate_hz=10.0, duration_s=2.0, from_scans=False, threads=1)
+def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
+    trace = tmp_path / "trace.csv"
+    report = pipeline_latency.run(
+        robots=1, rate_hz=10.0, duration_s=2.0, from_scans=False, threads=1, trace=trace, bare_frames=20
+    )
     assert report.scans_published > 0 and report.scans_answered > 0
     assert set(report.latency_ms) == {"p50", "p95", "p99", "max", "mean"}
     assert all(v > 0 for v in report.latency_ms.values())
-    assert set(report.stage_ms_mean) == {"encode", "inference", "nms", "transport"}
+    stages = {"encode", "decode", "queue", "inference", "nms", "transport"}
+    assert set(report.stage_ms_mean) == set(report.stage_ms_p50) == set(report.stage_ms_p99) == stages
+    assert report.stage_ms_p50["decode"] > 0 and report.stage_ms_p50["queue"] > 0  # measured, not defaulted
+    assert report.bare_ms["frames"] == 20 and report.bare_ms["p50"] > 0
+    assert set(report.overhead_ms) == {"p50", "p99"}
+    rows = trace.read_text().splitlines()
+    assert rows[0].startswith("total_ms,encode_ms") and len(rows) == report.scans_answered + 1
     assert set(report.peak_rss_mb) == {"encoder", "detector"} and all(
         v > 0 for v in report.peak_rss_mb.values()
     )

@@ -18,7 +18,7 @@ import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Generic, NamedTuple, TypeVar
 
 from common.inference import OnnxDetector, check_batch
 from common.keys import parse_key
@@ -35,6 +35,22 @@ from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+
+class Arrival(NamedTuple):
+    """When a tensor was accepted (``perf_counter_ns``) and how long decoding it took."""
+
+    accepted_ns: int
+    decode_ms: float
+
+
+class Pending(NamedTuple):
+    """A tensor waiting in the mailbox, with its arrival."""
+
+    tensor: StackedTensor
+    arrival: Arrival
+
+
 TAKE_TIMEOUT_S = 0.5  # how often an idle inference thread looks at the stop flag
 
 
@@ -171,25 +187,37 @@ class DetectorCore:
             self.counters.dropped_stale += 1
 
     def detect_many(
-        self, tensors: Sequence[StackedTensor], detector: OnnxDetector | None = None
+        self,
+        tensors: Sequence[StackedTensor],
+        detector: OnnxDetector | None = None,
+        *,
+        arrivals: Sequence[Arrival] | None = None,
     ) -> list[Detections]:
         """Run the model on several robots' tensors (one call with a batch model); ``encode_ms`` adds the
         encoder's own time from each tensor. ``detector`` is a worker's own session of the same model
-        (``--workers``); default: the core's."""
+        (``--workers``); default: the core's. ``arrivals`` (one per tensor) fill the decode and queue
+        timings."""
         if not tensors:
             return []
+        started_ns = time.perf_counter_ns()
         model = detector or self.detector
         results = model.detect_many([tensor.tensor for tensor in tensors])
         with self._lock:
             self.counters.processed += len(results)
             self.counters.inference_calls += 1 if model.batched else len(results)
+        waits = arrivals or [Arrival(started_ns, 0.0)] * len(tensors)
         return [
-            self._message(tensor, detections, timings)
-            for tensor, (detections, timings) in zip(tensors, results, strict=True)
+            self._message(tensor, detections, timings, arrival, started_ns)
+            for tensor, (detections, timings), arrival in zip(tensors, results, waits, strict=True)
         ]
 
     def _message(
-        self, tensor: StackedTensor, detections: list[Detection], timings: StageTimings
+        self,
+        tensor: StackedTensor,
+        detections: list[Detection],
+        timings: StageTimings,
+        arrival: Arrival,
+        started_ns: int,
     ) -> Detections:
         return Detections(
             robot_id=tensor.robot_id,
@@ -200,6 +228,8 @@ class DetectorCore:
                 encode_ms=timings.encode_ms + tensor.encode_ms,
                 inference_ms=timings.inference_ms,
                 nms_ms=timings.nms_ms,
+                decode_ms=arrival.decode_ms,
+                queue_ms=max(0.0, (started_ns - arrival.accepted_ns) / 1e6),
             ),
             model_id=self.detector.model_id,
             scan_stamp_ns=tensor.scan_stamps_ns[2],
@@ -236,7 +266,7 @@ class InferencePipeline:
         )
         self.batch = batch
         self._publish = publish
-        self._mailbox: LatestPerRobot[StackedTensor] = LatestPerRobot()
+        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot()
         self._stop = threading.Event()
         self._workers: list[threading.Thread] = []
 
@@ -259,6 +289,7 @@ class InferencePipeline:
 
     def handle_sample(self, key: str, payload: bytes) -> None:
         """A tensor (or, ``from_scans``, a scan) sample from Zenoh; cheap, never blocks on inference."""
+        started_ns = time.perf_counter_ns()
         try:
             robot_id, _ = parse_key(key)
         except ValueError as exc:
@@ -269,7 +300,11 @@ class InferencePipeline:
             accepted = self.core.accept(tensor) if tensor is not None else None
         else:
             accepted = self.core.decode(payload, robot_id)
-        if accepted is not None and self._mailbox.put(accepted.robot_id, accepted):
+        if accepted is None:
+            return
+        accepted_ns = time.perf_counter_ns()
+        pending = Pending(accepted, Arrival(accepted_ns, (accepted_ns - started_ns) / 1e6))
+        if self._mailbox.put(accepted.robot_id, pending):
             self.core.note_dropped()
 
     def snapshot(self) -> dict[str, object]:
@@ -287,11 +322,15 @@ class InferencePipeline:
                 continue
             try:
                 try:
-                    results = self.core.detect_many([tensor for _, tensor in taken], detector)
+                    results = self.core.detect_many(
+                        [pending.tensor for _, pending in taken],
+                        detector,
+                        arrivals=[pending.arrival for _, pending in taken],
+                    )
                 except Exception as exc:  # one failed model call must not end this worker
                     log.exception("inference failed for %s", [robot_id for robot_id, _ in taken])
-                    for robot_id, tensor in taken:
-                        self.core.reject("inference_error", f"{robot_id} seq {tensor.seq}: {exc}")
+                    for robot_id, pending in taken:
+                        self.core.reject("inference_error", f"{robot_id} seq {pending.tensor.seq}: {exc}")
                     results = []
                 for detections in results:
                     self._publish(detections)
