@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 from common.encoding import INVALID_RULES, PADDINGS
+from services.runtime import LOG_FORMAT
 from training.architectures import ARCHS, DEFAULT_ARCH
 
 
@@ -239,6 +240,13 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--positions", type=int, default=90, help="positions per --fresh scenario")
     p.add_argument("--frame-stride", type=int, default=15, help="window stride of --fresh motions")
     p.add_argument(
+        "--noise",
+        default="clean",
+        metavar="CONDITION",
+        help="LiDAR imperfections of the --fresh worlds: clean, sigma3, drop5, drop5+sigma3, "
+        "drop10+sigma3+spur1, or sigma=S,dropout=D,spurious=P",
+    )
+    p.add_argument(
         "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
     )
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
@@ -269,8 +277,15 @@ def _run_eval(args: argparse.Namespace) -> int:
     if args.data is not None:
         samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
     else:
-        samples = fresh_samples(args.seed, args.fresh, args.positions, detector.padding, args.frame_stride)
-        source = f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions}"
+        from services.simulator.lidar import with_imperfections
+
+        spec = with_imperfections(args.noise)  # a bad condition is a ValueError: one line, exit 2
+        samples = fresh_samples(
+            args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec
+        )
+        source = (
+            f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions},noise={args.noise}"
+        )
     report = evaluate(detector, samples, args.out, source=source)
     print(format_table(report))
     print(f"images {report.images}; mean ms: {report.mean_timings_ms}; written to {args.out}/metrics.json")
@@ -480,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        format=LOG_FORMAT,
     )
     try:
         return int(args.run(args))

@@ -202,3 +202,32 @@ def test_randomised_set_records_its_settings_and_keeps_true_geometry_labels(
         differing += int(not np.array_equal(a, b))
         sentinel_gain += int(b[63].sum()) - int(a[63].sum())
     assert differing > 0 and sentinel_gain > 0
+
+
+def test_named_and_written_imperfections_make_the_same_sensor() -> None:
+    from services.simulator.lidar import NAMED_IMPERFECTIONS, with_imperfections
+
+    worst = with_imperfections("drop10+sigma3+spur1")
+    assert (worst.noise_sigma_m, worst.dropout_rate, worst.spurious_rate) == (0.03, 0.10, 0.01)
+    assert with_imperfections("sigma=0.03, dropout=0.1,spurious=0.01") == worst
+    assert with_imperfections("clean") == DEFAULT_SPEC
+    assert with_imperfections("drop5").noise_sigma_m == DEFAULT_SPEC.noise_sigma_m  # only what is named
+    assert set(NAMED_IMPERFECTIONS) == {"clean", "sigma3", "drop5", "drop5+sigma3", "drop10+sigma3+spur1"}
+    for bad in ("bogus", "sigma=abc", "dropout=1.5", "colour=3"):
+        with pytest.raises(ValueError):
+            with_imperfections(bad)
+
+
+def test_fresh_worlds_under_a_condition_keep_their_labels_and_change_their_scans() -> None:
+    from services.simulator.lidar import with_imperfections
+    from training.evaluate import fresh_samples
+
+    clean = list(fresh_samples(2024, 1, 3, "zero", 6))
+    noisy = list(fresh_samples(2024, 1, 3, "zero", 6, spec=with_imperfections("drop10+sigma3+spur1")))
+    assert [s.name for s in clean] == [s.name for s in noisy] and len(clean) > 2
+    for a, b in zip(clean, noisy, strict=True):
+        np.testing.assert_array_equal(a.boxes, b.boxes)
+        np.testing.assert_array_equal(a.classes, b.classes)
+    assert (
+        sum(int(b.tensor[63].sum()) - int(a.tensor[63].sum()) for a, b in zip(clean, noisy, strict=True)) > 0
+    )

@@ -26,7 +26,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,6 +34,9 @@ from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding
 from common.inference import OnnxDetector, unwrap_seam_duplicates
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS
 from training.export import read_tensor_png
+
+if TYPE_CHECKING:
+    from services.simulator.lidar import LidarSpec
 
 log = logging.getLogger(__name__)
 
@@ -131,10 +134,20 @@ def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSamp
 
 
 def fresh_samples(
-    seed: int, scenarios: int, positions: int, padding: Padding, frame_stride: int
+    seed: int,
+    scenarios: int,
+    positions: int,
+    padding: Padding,
+    frame_stride: int,
+    spec: LidarSpec | None = None,
 ) -> Iterator[EvalSample]:
-    """Newly simulated scenarios, straight through ScanStacker: data no model has seen."""
+    """Newly simulated scenarios, straight through ScanStacker: data no model has seen.
+
+    ``spec`` is the sensor (default: the clean LDS-01); the same seed gives the same worlds, motions and
+    Gaussian noise draws under every imperfection setting, with labels of the true geometry.
+    """
     from services.simulator.labels import arc_crosses_seam
+    from services.simulator.lidar import DEFAULT_SPEC
     from services.simulator.scenario import sample_scenario
     from services.simulator.world import World
     from training.dataset import plan_motions, simulate_samples
@@ -143,7 +156,10 @@ def fresh_samples(
         for index in range(scenarios):
             scenario = sample_scenario(index, seed)
             motions = plan_motions(scenario, seed, positions)
-            for sample in simulate_samples(world, scenario, motions, seed, padding, frame_stride):
+            samples = simulate_samples(
+                world, scenario, motions, seed, padding, frame_stride, spec=spec or DEFAULT_SPEC
+            )
+            for sample in samples:
                 boxes = [box for label in sample.labels for box in label.boxes_px]
                 classes = [label.class_id for label in sample.labels for _ in label.boxes_px]
                 crosses = [

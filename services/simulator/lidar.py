@@ -21,7 +21,7 @@ imperfection settings differs only by the imperfections.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pybullet as p
@@ -73,6 +73,40 @@ class LidarSpec:
 
 
 DEFAULT_SPEC = LidarSpec()
+
+# The LiDAR imperfections ``triscan eval --noise`` measures a model under (the model card's conditions):
+# a name here, or the same ``key=value`` text directly.
+IMPERFECTION_KEYS: dict[str, str] = {
+    "sigma": "noise_sigma_m",
+    "dropout": "dropout_rate",
+    "spurious": "spurious_rate",
+}
+NAMED_IMPERFECTIONS: dict[str, str] = {
+    "clean": "",
+    "sigma3": "sigma=0.03",
+    "drop5": "dropout=0.05",
+    "drop5+sigma3": "sigma=0.03,dropout=0.05",
+    "drop10+sigma3+spur1": "sigma=0.03,dropout=0.10,spurious=0.01",
+}
+
+
+def with_imperfections(text: str, spec: LidarSpec = DEFAULT_SPEC) -> LidarSpec:
+    """``spec`` with the imperfections of ``text``: a name of :data:`NAMED_IMPERFECTIONS` or
+    ``sigma=0.03,dropout=0.05,spurious=0.01`` (any subset; σ in metres, rates as shares)."""
+    text = NAMED_IMPERFECTIONS.get(text, text)
+    changes: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep or key.strip() not in IMPERFECTION_KEYS:
+            raise ValueError(
+                f"imperfection {item!r}: use one of {sorted(NAMED_IMPERFECTIONS)} or "
+                f"key=value with keys {sorted(IMPERFECTION_KEYS)} (e.g. sigma=0.03,dropout=0.05)"
+            )
+        try:
+            changes[IMPERFECTION_KEYS[key.strip()]] = float(value)
+        except ValueError:
+            raise ValueError(f"imperfection {item!r}: {value!r} is not a number") from None
+    return replace(spec, **changes)  # LidarSpec checks the ranges
 
 
 @dataclass(frozen=True)
