@@ -37,9 +37,11 @@ import onnxruntime as ort
 from common.encoding import (
     ANGLE_COLUMNS,
     IMAGE_WIDTH,
+    INVALID_RULES,
     PADDINGS,
     RANGE_ROWS,
     STACK_DEPTH,
+    InvalidRule,
     Padding,
     pixel_x_to_bearing_deg,
     pixel_y_to_range_m,
@@ -53,6 +55,7 @@ from common.model_spec import (
     INPUT_SHAPE,
     MAX_DETECTIONS,
     META_CLASSES,
+    META_INVALID,
     META_PADDING,
     NUM_ANCHORS,
     NUM_CLASSES,
@@ -417,6 +420,20 @@ def session_options(intra_op_threads: int | None = None, *, optimise: bool = Tru
     return options
 
 
+def _declared_invalid_rule(session: ort.InferenceSession, path: Path | str) -> InvalidRule:
+    """The model's ``triscan.invalid`` metadata (``sentinel``, the paper's rule, when it does not say)."""
+    rule = session.get_modelmeta().custom_metadata_map.get(META_INVALID, "sentinel")
+    if rule not in INVALID_RULES:
+        raise ValueError(f"{path} declares an unknown {META_INVALID} {rule!r}")
+    return rule
+
+
+def model_invalid_rule(path: Path | str) -> InvalidRule:
+    """The invalid-return rule a triscan ONNX model was trained with, so the launcher can start the
+    encoder to match the detector's model."""
+    return _declared_invalid_rule(_unoptimised_session(path), path)
+
+
 def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
     """A session only to read a model's metadata and signature: no graph optimisation, so it is cheap."""
     return ort.InferenceSession(
@@ -514,6 +531,7 @@ class OnnxDetector:
         # A free batch axis (the ``-batch`` model files): ``detect_many`` runs several frames per call.
         self.batched: bool = batched
         self.padding: Padding = self._padding_of_model(path, padding)
+        self.invalid: InvalidRule = _declared_invalid_rule(self._session, path)
         log.info(
             "loaded %s (%d classes, %d anchors, %s) on %s, padding=%s conf=%.3g iou=%.3g",
             self.model_id,

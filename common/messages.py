@@ -319,6 +319,7 @@ class StackedTensor(Message):
 
     tensor: TensorArray
     padding: Literal["zero", "wrap"]
+    invalid: Literal["sentinel", "empty"] = "sentinel"  # where invalid returns went (common.encoding)
     scan_seqs: tuple[NonNegInt, NonNegInt, NonNegInt]
     scan_stamps_ns: tuple[NonNegInt, NonNegInt, NonNegInt]
     encode_ms: NonNegFloat = 0.0  # the encoder's time for the newest scan (raster + stack), for Detections

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import check_batch, model_padding, model_takes_batches
+from common.inference import check_batch, model_invalid_rule, model_padding, model_takes_batches
 from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session
@@ -122,7 +122,7 @@ def service_commands(
             *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
             *("--padding", padding),
         ],
-        "encoder": ["--padding", padding],
+        "encoder": ["--padding", padding, "--invalid", model_invalid_rule(model)],
         "detector": [*(("--model", str(config.model)) if config.model else ()), "--batch", str(config.batch)],
         "visualizer": sink,
     }

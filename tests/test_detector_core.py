@@ -151,9 +151,12 @@ def test_bad_tensors_are_rejected_with_a_reason(
     assert core.decode(b"\xc1", "tb3") is None
     wrapped = tensor.model_copy(update={"padding": "wrap"})
     assert core.decode(encode_message(wrapped), "tb3") is None
+    emptied = tensor.model_copy(update={"invalid": "empty"})  # the shipped model was trained on sentinel
+    assert core.decode(encode_message(emptied), "tb3") is None
     assert core.counters.rejected["robot_id_mismatch"] == 1
     assert core.counters.rejected["padding_mismatch"] == 1
-    assert sum(core.counters.rejected.values()) == 3 and core.counters.received == 4
+    assert core.counters.rejected["invalid_rule_mismatch"] == 1
+    assert sum(core.counters.rejected.values()) == 4 and core.counters.received == 5
 
 
 def test_a_batch_gives_each_robot_what_it_would_get_alone(

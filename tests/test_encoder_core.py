@@ -171,3 +171,17 @@ def test_clock_jump_back_restarts_the_fifo() -> None:
     tensor = core.push(scan("r", 5, stamp_ns=502))
     assert tensor is not None and tensor.scan_stamps_ns == (500, 501, 502)
     assert core.counters.restarts == 1
+
+
+def test_tensors_carry_the_invalid_rule_they_were_made_with() -> None:
+    from common.encoding import SENTINEL_ROW
+
+    scans = [scan("r1", seq, distance=np.inf) for seq in range(3)]  # blind but for one 0.5 m return
+    sentinel, empty = EncoderCore("zero"), EncoderCore("zero", invalid="empty")
+    a = next(t for s in scans if (t := sentinel.push(s)) is not None)
+    b = next(t for s in scans if (t := empty.push(s)) is not None)
+    assert (a.invalid, b.invalid) == ("sentinel", "empty")
+    assert a.tensor[SENTINEL_ROW, :360].sum() > 0 and not b.tensor[SENTINEL_ROW].any()
+    assert b.tensor.any()  # the valid 0.5 m returns are drawn under both rules
+    with pytest.raises(ScanError, match="invalid must be one of"):
+        EncoderCore("zero", invalid="drop")  # type: ignore[arg-type]

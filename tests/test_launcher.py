@@ -43,20 +43,23 @@ def test_viewer_choices() -> None:
     assert "visualizer" not in service_commands(UpConfig(viewer="none"), ports, None)
 
 
-def test_encoder_padding_follows_the_model(tmp_path: Path) -> None:
+def test_encoder_padding_and_invalid_rule_follow_the_model(tmp_path: Path) -> None:
     onnx = pytest.importorskip("onnx")
     model = onnx.load(str(MODELS / "triscan-yolov8n-zero.onnx"))
     for prop in model.metadata_props:
         if prop.key == "triscan.padding":
             prop.value = "wrap"
+    model.metadata_props.add(key="triscan.invalid", value="empty")
     wrap_model = tmp_path / "wrap.onnx"
     onnx.save(model, str(wrap_model))
     ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
     commands = service_commands(UpConfig(model=wrap_model, viewer="none"), ports, None)
     assert flag_values(commands["encoder"], "--padding") == ["wrap"]
+    assert flag_values(commands["encoder"], "--invalid") == ["empty"]
     assert flag_values(commands["detector"], "--model") == [str(wrap_model)]
     default = service_commands(UpConfig(viewer="none"), ports, None)
     assert flag_values(default["encoder"], "--padding") == ["zero"]
+    assert flag_values(default["encoder"], "--invalid") == ["sentinel"]  # a model that does not say
 
 
 def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything_starts() -> None:

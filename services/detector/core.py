@@ -180,6 +180,13 @@ class DetectorCore:
                 f"expects {self.detector.padding!r}",
             )
             return None
+        if tensor.invalid != self.detector.invalid:
+            self.reject(
+                "invalid_rule_mismatch",
+                f"{tensor.robot_id}: tensor with invalid returns {tensor.invalid!r}, model "
+                f"{self.detector.model_id} expects {self.detector.invalid!r}",
+            )
+            return None
         return tensor
 
     def note_dropped(self) -> None:
@@ -262,7 +269,11 @@ class InferencePipeline:
         self.detectors = list(detectors)
         self.core = DetectorCore(self.detectors[0])
         self.encoder = (
-            EncoderCore(self.core.detector.padding, forget_after_s=forget_after_s) if from_scans else None
+            EncoderCore(
+                self.core.detector.padding, invalid=self.core.detector.invalid, forget_after_s=forget_after_s
+            )
+            if from_scans
+            else None
         )
         self.batch = batch
         self._publish = publish

@@ -11,7 +11,7 @@ import argparse
 import logging
 import threading
 
-from common.encoding import PADDINGS, Padding
+from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding
 from common.keys import ALL_SCANS, tensor_key
 from common.messages import encode_message
 from common.transport import ZenohSettings, settings_from_args
@@ -26,11 +26,12 @@ def run(
     stop: threading.Event,
     *,
     padding: Padding = "zero",
+    invalid: InvalidRule = "sentinel",
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
 ) -> EncoderCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
-    core = EncoderCore(padding, forget_after_s=forget_after_s)
+    core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s)
     with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
         tensors = runtime.robot_publishers(tensor_key)
 
@@ -44,7 +45,7 @@ def run(
             return core.snapshot()
 
         runtime.subscribe(ALL_SCANS, on_scan)
-        log.info("encoder ready (padding %s): %s → tensor", padding, ALL_SCANS)
+        log.info("encoder ready (padding %s, invalid returns %s): %s → tensor", padding, invalid, ALL_SCANS)
         runtime.serve(housekeeping)
     return core
 
@@ -52,6 +53,12 @@ def run(
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.encoder", description=__doc__.splitlines()[0])
     parser.add_argument("--padding", choices=PADDINGS, default="zero", help="must match the detector's model")
+    parser.add_argument(
+        "--invalid",
+        choices=INVALID_RULES,
+        default="sentinel",
+        help="invalid returns: sentinel row (paper) or empty; must match the detector's model",
+    )
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
@@ -59,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         settings_from_args(args),
         stop_event_on_signals(),
         padding=args.padding,
+        invalid=args.invalid,
         forget_after_s=args.forget_after,
         duration_s=args.duration,
     )

@@ -26,7 +26,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from common.encoding import Padding, ScanError, ScanStacker
+from common.encoding import InvalidRule, Padding, ScanError, ScanStacker
 from common.keys import parse_key
 from common.messages import MessageError, Scan, StackedTensor, decode_message
 
@@ -84,12 +84,14 @@ class EncoderCore:
         self,
         padding: Padding = "zero",
         *,
+        invalid: InvalidRule = "sentinel",
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
         max_robots: int = DEFAULT_MAX_ROBOTS,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        ScanStacker(padding)  # validates the padding name early, with the encoder's own message
+        ScanStacker(padding, invalid)  # validates both names early, with the encoder's own message
         self.padding: Padding = padding
+        self.invalid: InvalidRule = invalid
         self.forget_after_s = forget_after_s
         self.max_robots = max_robots
         self.clock = clock
@@ -165,7 +167,7 @@ class EncoderCore:
             if len(self._streams) >= self.max_robots:
                 self._reject("too_many_robots", f"{robot_id}: already tracking {self.max_robots} robots")
                 return None
-            stream = self._streams[robot_id] = _Stream(ScanStacker(self.padding))
+            stream = self._streams[robot_id] = _Stream(ScanStacker(self.padding, self.invalid))
         return stream
 
     def _push(self, scan: Scan) -> StackedTensor | None:
@@ -223,6 +225,7 @@ class EncoderCore:
             stamp_ns=scan.stamp_ns,
             tensor=tensor,
             padding=self.padding,
+            invalid=self.invalid,
             scan_seqs=(stream.seqs[0], stream.seqs[1], stream.seqs[2]),
             scan_stamps_ns=(stream.stamps_ns[0], stream.stamps_ns[1], stream.stamps_ns[2]),
             encode_ms=(time.perf_counter_ns() - started) / 1e6,

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import pybullet as p
@@ -94,7 +95,7 @@ def with_imperfections(text: str, spec: LidarSpec = DEFAULT_SPEC) -> LidarSpec:
     """``spec`` with the imperfections of ``text``: a name of :data:`NAMED_IMPERFECTIONS` or
     ``sigma=0.03,dropout=0.05,spurious=0.01`` (any subset; σ in metres, rates as shares)."""
     text = NAMED_IMPERFECTIONS.get(text, text)
-    changes: dict[str, float] = {}
+    changes: dict[str, Any] = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
         key, sep, value = item.partition("=")
         if not sep or key.strip() not in IMPERFECTION_KEYS:
