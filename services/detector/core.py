@@ -169,24 +169,19 @@ class DetectorCore:
             self.counters.received += 1
 
     def _checked(self, tensor: StackedTensor, key_robot_id: str | None) -> StackedTensor | None:
-        """Checks that need the model or the key: robot id and padding."""
+        """Checks that need the model or the key: robot id, and the encoding the model was trained on."""
         if key_robot_id is not None and tensor.robot_id != key_robot_id:
             self.reject("robot_id_mismatch", f"key says {key_robot_id!r}, payload says {tensor.robot_id!r}")
             return None
-        if tensor.padding != self.detector.padding:
-            self.reject(
-                "padding_mismatch",
-                f"{tensor.robot_id}: {tensor.padding!r} tensor, model {self.detector.model_id} "
-                f"expects {self.detector.padding!r}",
-            )
-            return None
-        if tensor.invalid != self.detector.invalid:
-            self.reject(
-                "invalid_rule_mismatch",
-                f"{tensor.robot_id}: tensor with invalid returns {tensor.invalid!r}, model "
-                f"{self.detector.model_id} expects {self.detector.invalid!r}",
-            )
-            return None
+        for setting, reason in (("padding", "padding_mismatch"), ("invalid", "invalid_rule_mismatch")):
+            made_with, trained_on = getattr(tensor, setting), getattr(self.detector, setting)
+            if made_with != trained_on:
+                self.reject(
+                    reason,
+                    f"{tensor.robot_id}: tensor made with {setting} {made_with!r}, model "
+                    f"{self.detector.model_id} expects {trained_on!r}",
+                )
+                return None
         return tensor
 
     def note_dropped(self) -> None:
