@@ -106,3 +106,15 @@ def test_batch_inference_reports_per_image_cost_for_each_batch(tmp_path: Path) -
     ]
     assert report["models"] == ["triscan-yolov8n-zero-batch.onnx", "triscan-yolov8n-zero-int8-batch.onnx"]
     assert rows[0]["speedup_per_image"] == 1.0 and all(r["ms_per_image"] > 0 for r in rows)
+
+
+def test_replay_answered_reports_share_and_latency(tmp_path: Path) -> None:
+    from bench import replay_answered
+
+    out = tmp_path / "replay.json"
+    replay_answered.main(["--scans", "20", "--out", str(out)])  # exit code: the 99 % goal, not judged here
+    report = json.loads(out.read_text())
+    assert report["scans_published"] == 20 and report["scans_answerable"] == 18
+    assert 0 < report["scans_answered"] <= 18 and report["answered_share"] > 0
+    assert set(report["latency_ms"]) == {"p50", "p95", "p99", "max"}
+    assert report["detector_counters"]["processed"] > 0 and report["machine"]["logical_cpus"] > 0
