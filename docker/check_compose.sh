@@ -2,8 +2,11 @@
 # End-to-end check of compose.yaml with podman on Debian bookworm (root): install podman and friends,
 # build the local base image and the three triscan images, `podman-compose up` the full loop, subscribe
 # from the host to triscan/*/detections through the detector's published port for $DURATION seconds,
-# `podman-compose down`, print a summary. Exits non-zero unless every simulated robot delivered
-# detections to the host, every container is still running, and the web viewer answers.
+# act as a ROS 2 node on rmw_zenoh inside the ros2_bridge container (docker/check_ros2_bridge.py:
+# LaserScans in, Detection3DArrays back), `podman-compose down`, print a summary. Exits non-zero unless
+# every simulated robot delivered detections to the host, the bridge answered the ROS 2 node, the robot
+# image holds rosbags but no torch/pybullet/rerun, every container is still running, and the web viewer
+# answers.
 #   docker/check_compose.sh        env: DURATION=30 ROBOTS=2 BASE_IMAGE=triscan-base:bookworm
 #                                       CA_BUNDLE=/etc/ssl/certs/ca-certificates.crt PIP_INDEX_URL= KEEP_UP=0
 #
@@ -65,6 +68,10 @@ pkgs=$(podman run --rm --entrypoint python triscan-robot:latest -c \
     'import importlib.metadata as m; print(" ".join(sorted(d.metadata["Name"].lower() for d in m.distributions())))')
 echo "robot image packages: $pkgs"
 if grep -qwE 'torch|pybullet|rerun-sdk|ultralytics' <<<"$pkgs"; then echo "FAIL: robot image is not slim"; exit 1; fi
+# the ros2_bridge service runs from the robot image: it needs the `ros2` extra (rosbags)
+if ! grep -qw rosbags <<<"$pkgs"; then echo "FAIL: robot image lacks rosbags (ros2 extra)"; exit 1; fi
+podman run --rm --entrypoint python triscan-robot:latest -m services.ros2_bridge --help >/dev/null \
+    || { echo "FAIL: services.ros2_bridge does not start in the robot image"; exit 1; }
 
 log "host subscriber environment"
 PY=/tmp/venvtest/t/bin/python
@@ -94,8 +101,12 @@ status=0
 $PY docker/check_subscriber.py --connect tcp/127.0.0.1:7447 --duration "$DURATION" --robots "$ROBOTS" \
     | tee /tmp/triscan-check-subscriber.txt || status=1
 
+log "ROS 2 node on rmw_zenoh -> ros2_bridge -> encoder -> detector -> Detection3DArray"
+podman exec -i "${PROJECT}_ros2_bridge_1" python - --connect tcp/127.0.0.1:7447 < docker/check_ros2_bridge.py \
+    | tee /tmp/triscan-check-ros2.txt || status=1
+
 log "containers after the run"
-for svc in simulator encoder detector visualizer; do
+for svc in simulator encoder detector ros2_bridge visualizer; do
     name="${PROJECT}_${svc}_1"
     state=$(podman inspect -f '{{.State.Status}} restarts={{.RestartCount}}' "$name" 2>/dev/null || echo missing)
     echo "$name: $state"
@@ -105,7 +116,7 @@ web=$(curl -s -o /dev/null -w '%{http_code}' http://127.0.0.1:9090/ || true)
 echo "web viewer http://127.0.0.1:9090/ -> HTTP $web"
 [[ $web == 200 ]] || status=1
 if ((status)); then
-    for svc in simulator encoder detector visualizer; do
+    for svc in simulator encoder detector ros2_bridge visualizer; do
         echo "--- logs ${PROJECT}_${svc}_1"; podman logs --tail 20 "${PROJECT}_${svc}_1" 2>&1 || true
     done
 else
@@ -131,5 +142,6 @@ fi
 log "summary"
 podman images --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep -E 'triscan-(base|robot|simulator|visualizer)'
 grep -E '^(TOTAL|  robot|OK|FAIL)' /tmp/triscan-check-subscriber.txt || true
+grep -E '^(published|OK|FAIL)' /tmp/triscan-check-ros2.txt || true
 echo "total time $(( $(date +%s) - START )) s; result: $( ((status)) && echo FAIL || echo PASS)"
 exit $status
