@@ -15,10 +15,14 @@ measures it without the launcher and the viewer, so the figure is the pipeline's
 
 A scan is *answerable* from its robot's third scan on (the encoder's FIFO stacks three); it is
 *answered* when detections with its seq come back. Reported: the share answered (goal ≥ 99 %),
-scan-put → detections-received latency p50/p95/p99/max, the detector's own counters (``dropped_stale``
-says whether it kept up), and the machine.
+scan-put → detections-received latency p50/p95/p99/max, the detector's own stage timings (p50), its
+counters (``dropped_stale`` says whether it kept up), and the machine.
+
+With ``--connect ENDPOINT`` nothing is started here: the bag goes to a detector already running there
+(``services.detector --from-scans``, e.g. in an emulated arm64 container: ``docker/check_arm64.sh``).
 
     python -m bench.replay_answered --scans 300
+    python -m bench.replay_answered --bag BAG --connect tcp/127.0.0.1:7460 --wait 600
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+import numpy as np
 import zenoh
 
 from bench.harness import start_loopback_service
@@ -55,7 +60,7 @@ ROBOT: Final[str] = "bagbot"
 PRIMING_ROBOT: Final[str] = "warmup"
 GOAL_SHARE: Final[float] = 0.99
 FIRST_ANSWERABLE_SEQ: Final[int] = 2  # scans 0 and 1 only fill the encoder's FIFO
-PRIMING_TIMEOUT_S: Final[float] = 120.0
+DEFAULT_WAIT_S: Final[float] = 120.0  # for the services' subscriptions, then for the first detections
 DRAIN_TIMEOUT_S: Final[float] = 10.0
 
 
@@ -71,6 +76,7 @@ class ReplayAnsweredReport:
     goal_share: float = GOAL_SHARE
     passed: bool = False
     latency_ms: dict[str, float] = field(default_factory=dict)  # p50, p95, p99, max
+    detector_stage_ms_p50: dict[str, float] = field(default_factory=dict)  # encode, inference, nms
     objects_per_frame: float = 0.0
     detector_counters: dict[str, Any] = field(default_factory=dict)
     encoder_counters: dict[str, Any] = field(default_factory=dict)
@@ -83,6 +89,7 @@ class Answers:
     def __init__(self) -> None:
         self.arrived_ns: dict[tuple[str, int], int] = {}
         self.objects: dict[tuple[str, int], int] = {}
+        self.stage_ms: dict[tuple[str, int], tuple[float, float, float]] = {}
         self.stats: dict[str, dict[str, Any]] = {}
         self.first_priming_answer = threading.Event()
         self._lock = threading.Lock()
@@ -93,6 +100,12 @@ class Answers:
         with self._lock:
             self.arrived_ns[(message.robot_id, message.seq)] = arrived_ns
             self.objects[(message.robot_id, message.seq)] = len(message.detections)
+            timings = message.timings
+            self.stage_ms[(message.robot_id, message.seq)] = (
+                timings.encode_ms,
+                timings.inference_ms,
+                timings.nms_ms,
+            )
         if message.robot_id == PRIMING_ROBOT:
             self.first_priming_answer.set()
 
@@ -106,27 +119,40 @@ class Answers:
             return [key for key in keys if key in self.arrived_ns]
 
 
-def run(bag: Path, speed: float = 1.0, model: Path | None = None) -> ReplayAnsweredReport:
-    """Replay ``bag`` once (after priming) into fresh encoder and detector processes; see the docstring."""
-    report = ReplayAnsweredReport(bag=str(bag), model=(model or default_model_path()).name, speed=speed)
+def run(
+    bag: Path,
+    speed: float = 1.0,
+    model: Path | None = None,
+    *,
+    connect: str | None = None,
+    wait_s: float = DEFAULT_WAIT_S,
+) -> ReplayAnsweredReport:
+    """Replay ``bag`` once (after priming) into fresh encoder and detector processes, or into the
+    pipeline already running at ``connect``; see the module docstring."""
+    model_name = "(the external detector's)" if connect else (model or default_model_path()).name
+    report = ReplayAnsweredReport(bag=str(bag), model=model_name, speed=speed)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
     detector_args = ["--model", str(model)] if model is not None else []
-    children = {
+    children = {} if connect else {
         "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
         "detector": start_loopback_service(
             "services.detector", detector_port, [bench_port, encoder_port], *detector_args
         ),
-    }
+    }  # fmt: skip
+    settings = ZenohSettings.loopback(bench_port)
+    if connect:
+        settings = ZenohSettings(mode="peer", connect=(connect,), multicast_scouting=False)
     answers = Answers()
     published_ns: dict[tuple[str, int], int] = {}
     try:
-        with open_session(ZenohSettings.loopback(bench_port)) as session:
+        with open_session(settings) as session:
             subscribers = [
                 session.declare_subscriber(wildcard_key(DETECTIONS), answers.on_detections),
                 session.declare_subscriber(ALL_STATS, answers.on_stats),
             ]
-            wait_for_subscriber(session, scan_key(ROBOT), 60)
-            wait_for_subscriber(session, tensor_key(ROBOT), 60)
+            wait_for_subscriber(session, scan_key(ROBOT), wait_s)
+            if not connect:  # an external detector may run --from-scans: no tensor subscriber then
+                wait_for_subscriber(session, tensor_key(ROBOT), wait_s)
             publishers: dict[str, Any] = {}
 
             def put(key: str, payload: bytes) -> None:
@@ -137,7 +163,7 @@ def run(bag: Path, speed: float = 1.0, model: Path | None = None) -> ReplayAnswe
                     )
                 publisher.put(payload)
 
-            _prime(bag, put, answers)
+            _prime(bag, put, answers, wait_s)
             log.info("pipeline answered the priming replay: measuring %s at speed %g", bag, speed)
 
             def timed_put(key: str, payload: bytes) -> None:
@@ -169,6 +195,11 @@ def run(bag: Path, speed: float = 1.0, model: Path | None = None) -> ReplayAnswe
     if latencies_ms:
         report.latency_ms = latency_quantiles_ms(latencies_ms)
         report.objects_per_frame = round(sum(answers.objects[k] for k in answered) / len(answered), 2)
+        stages = np.array([answers.stage_ms[k] for k in answered])
+        report.detector_stage_ms_p50 = {
+            name: round(float(np.median(stages[:, i])), 2)
+            for i, name in enumerate(("encode", "inference", "nms"))
+        }
     for service in ("detector", "encoder"):
         counters = {k: v for k, v in answers.stats.get(service, {}).items() if k not in ("pid", "stamp_ns")}
         setattr(report, f"{service}_counters", counters)
@@ -176,10 +207,10 @@ def run(bag: Path, speed: float = 1.0, model: Path | None = None) -> ReplayAnswe
     return report
 
 
-def _prime(bag: Path, put: Callable[[str, bytes], None], answers: Answers) -> None:
+def _prime(bag: Path, put: Callable[[str, bytes], None], answers: Answers, timeout_s: float) -> None:
     """Replay ``bag`` as another robot, looping, until its first detections come back."""
     stop = threading.Event()
-    deadline = time.monotonic() + PRIMING_TIMEOUT_S
+    deadline = time.monotonic() + timeout_s
 
     def priming_put(key: str, payload: bytes) -> None:
         put(key, payload)
@@ -189,7 +220,7 @@ def _prime(bag: Path, put: Callable[[str, bytes], None], answers: Answers) -> No
     config = ReplayConfig(bags=(bag,), robot=PRIMING_ROBOT, speed=1.0, loop=True, progress=False)
     replay(config, priming_put, stop=stop)
     if not answers.first_priming_answer.is_set():
-        raise TimeoutError(f"no detections within {PRIMING_TIMEOUT_S:.0f} s: is the pipeline up?")
+        raise TimeoutError(f"no detections within {timeout_s:.0f} s: is the pipeline up?")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -200,12 +231,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scans", type=int, default=300, help="scans of the simulated 10 Hz bag")
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed (1: recorded pace)")
     parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
+    parser.add_argument(
+        "--connect", default=None, metavar="ENDPOINT", help="an already running detector's Zenoh endpoint"
+    )
+    parser.add_argument(
+        "--wait", type=float, default=DEFAULT_WAIT_S, help="seconds to wait for the pipeline, then its answer"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results/replay_answered.json"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     with tempfile.TemporaryDirectory(prefix="triscan-replay-") as tmp:
         bag = args.bag or write_sim_bag(Path(tmp) / "sim_drive", args.scans)
-        report = run(bag, args.speed, args.model)
+        report = run(bag, args.speed, args.model, connect=args.connect, wait_s=args.wait)
         if args.bag is None:
             report.bag = f"simulated: {args.scans} scans at {SCAN_RATE_HZ:g} Hz (bench.sim_bag)"
     write_report(report, args.out)
