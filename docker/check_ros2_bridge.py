@@ -1,8 +1,9 @@
 """ROS 2 side of docker/check_compose.sh: act as a ROS 2 node on rmw_zenoh and get detections back.
 
-Publishes LaserScans as the node ``/checkbot`` would with ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` (its data
-key with the Jazzy type hash, CDR written by rosbags, rmw_zenoh's 33-byte attachment) to the bridge's
-Zenoh endpoint, and subscribes to ``/checkbot/triscan/detections`` (``vision_msgs/Detection3DArray``).
+Publishes LaserScans as a node in ``/checkbot`` (``--namespace``) would with
+``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` (its data key with the Jazzy type hash, CDR written by rosbags,
+rmw_zenoh's 33-byte attachment) to the bridge's Zenoh endpoint, and subscribes to
+``<namespace>/triscan/detections`` (``vision_msgs/Detection3DArray``).
 Passes when the bridge, the encoder and the detector turned the scans into Detection3DArrays stamped
 with the scans' own stamps. Needs the base install plus rosbags (the robot image has both):
 
@@ -30,7 +31,7 @@ from services.ros2_bridge.core import DEFAULT_SCAN_TOPIC, DETECTIONS_TOPIC
 from services.ros2_bridge.rmw_zenoh import GID_SIZE, data_key, encode_attachment, qualified_topic
 from services.ros2_bridge.ros_types import DETECTION3D_ARRAY, LASER_SCAN, RosTypes, dds_type_name, ros_types
 
-NAMESPACE = "/checkbot"
+DEFAULT_NAMESPACE = "/checkbot"
 BEAMS = 360
 
 
@@ -54,17 +55,18 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--connect", default="tcp/127.0.0.1:7447", help="the bridge's Zenoh endpoint")
     parser.add_argument("--domain", type=int, default=0, help="ROS_DOMAIN_ID the bridge serves")
+    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE, help="the node's ROS namespace")
     parser.add_argument("--scans", type=int, default=50, help="LaserScans to publish at 10 Hz")
     parser.add_argument("--min-arrays", type=int, default=5, help="Detection3DArrays needed to pass")
     args = parser.parse_args()
 
     types = ros_types("jazzy")
     scan_key = data_key(
-        "rmw_zenoh", args.domain, qualified_topic(NAMESPACE, DEFAULT_SCAN_TOPIC), dds_type_name(LASER_SCAN),
-        types.type_hash(LASER_SCAN),
+        "rmw_zenoh", args.domain, qualified_topic(args.namespace, DEFAULT_SCAN_TOPIC),
+        dds_type_name(LASER_SCAN), types.type_hash(LASER_SCAN),
     )  # fmt: skip
     detections_key = data_key(
-        "rmw_zenoh", args.domain, qualified_topic(NAMESPACE, DETECTIONS_TOPIC),
+        "rmw_zenoh", args.domain, qualified_topic(args.namespace, DETECTIONS_TOPIC),
         dds_type_name(DETECTION3D_ARRAY), types.type_hash(DETECTION3D_ARRAY),
     )  # fmt: skip
     sent_stamps: set[int] = set()
