@@ -1,4 +1,4 @@
-"""Fuzz the running encoder and detector with malformed payloads over real Zenoh, interleaved with good ones.
+"""Fuzz the running encoder, detector and ROS 2 bridge with malformed payloads over real Zenoh.
 
 The services must survive everything (no crash), process every good message, and count every bad one
 under a reason. This process publishes, on the real keys:
@@ -7,16 +7,28 @@ under a reason. This process publishes, on the real keys:
 * **bad payloads** on scan and tensor keys of other robots: random bytes, truncated msgpack of real
   messages, wrong types, wrong shapes and dtypes, NaN/inf in every numeric field, arrays far beyond the
   limits, payloads over the 4 MiB cap, unknown kinds and schema versions, payloads whose robot id
-  differs from the key's, and keys that are not valid robot ids.
+  differs from the key's, and keys that are not valid robot ids;
+* **bad ROS 2 payloads** on the ROS 2 bridge's scan key (rmw_zenoh style, ``0/rosfuzz/scan/<type>/
+  <hash>``): bytes that are not CDR, truncated CDR, trailing bytes, a wrong type hash, a missing or
+  malformed rmw_zenoh attachment, absurd and lying beam counts, NaN/inf/zero angles, too many beams
+  for a turn, bad range limits and stamps, bad frame ids; and valid-by-design ones (a Humble hash, a
+  big-endian scan, a 1,440-beam sensor, a blind scan), which the bridge forwards to the encoder;
+* a **good ROS 2 robot** (``rosgood``): the same real scans as LaserScans with a proper attachment; each
+  must come back, through bridge, encoder and detector, as detections.
 
 What the services should count is worked out here as the payloads are sent: scan payloads go through
 a local :class:`EncoderCore` (the encoder's own rules, including its stream rules: a valid scan that
-repeats a seq is rejected as out of order), tensor payloads through the message decoder. A few "bad"
-inputs are valid by design (a scan full of NaN is a blind sensor, not an error). At the end the
-services' own JSON counters (``triscan/@stats``), published by the separate processes, must equal
-those expectations reason by reason, every good scan must have come back as detections, and both
-processes must still be alive. Puts use Zenoh's blocking congestion control, so nothing is lost on
-the way and any difference is the services'.
+repeats a seq is rejected as out of order), tensor payloads through the message decoder, ROS payloads
+through a local :class:`BridgeCore` (whose forwarded scans then go through the local encoder too). A
+few "bad" inputs are valid by design (a scan full of NaN is a blind sensor, not an error). At the end
+the services' own JSON counters (``triscan/@stats``), published by the separate processes, must equal
+those expectations reason by reason (the bridge's ``rejected_scans`` and ``scans_published`` too),
+every good scan must have come back as detections (or, at most as many as the detector counted as
+``dropped_stale``, been replaced in its mailbox by its robot's next scan, which is the detector's design
+when a process of the chain stalls for a scan period on a loaded machine), and all three processes
+must still be alive. Puts
+use Zenoh's blocking congestion control, so nothing is lost on the way and any difference is the
+services'.
 
     python -m bench.fuzz_services --bad 10000
 """
@@ -24,10 +36,13 @@ the way and any difference is the services'.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
 import logging
 import math
 import random
+import struct
 import subprocess
 import threading
 import time
@@ -43,7 +58,8 @@ import zenoh
 
 from bench.harness import recorded_scans, start_loopback_service
 from bench.report import write_report
-from common.keys import ALL_STATS, DETECTIONS, scan_key, tensor_key, wildcard_key
+from bench.sim_bag import T0_NS, laser_scan_message
+from common.keys import ALL_STATS, DETECTIONS, parse_key, scan_key, tensor_key, wildcard_key
 from common.messages import (
     MAX_PAYLOAD_BYTES,
     Detections,
@@ -56,11 +72,20 @@ from common.messages import (
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.encoder.core import EncoderCore, EncoderCounters
 from services.launcher import free_tcp_ports, stop_processes
+from services.ros2_bridge.core import DEFAULT_SCAN_TOPIC, BridgeConfig, BridgeCore
+from services.ros2_bridge.rmw_zenoh import GID_SIZE, data_key, encode_attachment, qualified_topic
+from services.ros2_bridge.ros_types import LASER_SCAN, TYPE_HASH_NOT_SUPPORTED, dds_type_name, ros_types
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 GOOD_ROBOT = "good"
 FUZZ_ROBOT = "fuzz"  # the key (and, where not mutated, the payload) robot of every fuzz payload
+ROS_GOOD_ROBOT = "rosgood"  # ROS namespaces /rosgood and /rosfuzz: the bridge names robots after them
+ROS_FUZZ_ROBOT = "rosfuzz"
+BRIDGE_ARGS = ("--namespace", "*")  # every one-segment namespace, rmw_zenoh style: BRIDGE_CONFIG
+BRIDGE_CONFIG = BridgeConfig(style="rmw_zenoh", namespace=None)
+REJECTED_FIELD = {"encoder": "rejected", "detector": "rejected", "ros2_bridge": "rejected_scans"}
+RosSample = tuple[str, bytes, bytes | None]  # key, CDR payload, rmw_zenoh attachment
 
 
 @dataclass
@@ -70,6 +95,12 @@ class FuzzReport:
     valid_by_design: int = 0  # "fuzz" that decodes fine (NaN ranges, foreign but valid scans)
     good_scans: int = 0
     good_answered: int = 0
+    ros_bad_sent: int = 0
+    ros_bad_sent_by_kind: dict[str, int] = field(default_factory=dict)
+    ros_good_scans: int = 0
+    ros_good_answered: int = 0
+    bridge_scans_published: dict[str, int] = field(default_factory=dict)  # expected, counted
+    detector_dropped_stale: int = 0  # tensors replaced by a newer one of their robot: a good scan lost
     expected_rejected: dict[str, int] = field(default_factory=dict)  # per service
     counted_rejected: dict[str, int] = field(default_factory=dict)
     rejected_by_reason: dict[str, dict[str, int]] = field(default_factory=dict)
@@ -170,9 +201,140 @@ def bad_payloads(
         yield name, topic, FUZZ_ROBOT, make()
 
 
-def run(bad: int, good_every: int, seed: int) -> FuzzReport:
+def ros_scan_key(robot: str, type_hash: str | None = None) -> str:
+    """The rmw_zenoh key a ROS 2 node in namespace ``/<robot>`` publishes its LaserScans on."""
+    c = BRIDGE_CONFIG
+    fq_topic = qualified_topic(f"/{robot}", DEFAULT_SCAN_TOPIC)
+    type_hash = type_hash or ros_types(c.distro).type_hash(LASER_SCAN)
+    return data_key(c.style, c.domain, fq_topic, dds_type_name(LASER_SCAN), type_hash)
+
+
+def with_beam_count(cdr: bytes, count: int) -> bytes:
+    """A little-endian LaserScan CDR whose ranges count says ``count`` (the ranges stay as they are)."""
+    body = 4  # after the encapsulation header: sec, nanosec, frame_id length + bytes, pad, 7 floats
+    (name_len,) = struct.unpack_from("<I", cdr, body + 8)
+    out = bytearray(cdr)
+    struct.pack_into("<I", out, body + ((12 + name_len + 3) & ~3) + 28, count)
+    return bytes(out)
+
+
+class RosScans:
+    """rmw_zenoh samples of one ROS 2 node: CDR LaserScans of real scans, fresh stamps, own attachments.
+
+    Stamps rise by 100 ms per message, so the scans the bridge forwards form one stream, or, with
+    ``falling_stamps``, fall: then each forwarded scan is the next seq with an older stamp, which the
+    encoder takes as a clock jump and restarts its FIFO on (counted as a restart, not a rejection). The
+    fuzz node uses that, so its valid-by-design scans never become tensors: a burst of them would
+    keep the detector from the good robots' 10 Hz, and the fuzz would measure capacity, not robustness.
+    """
+
+    def __init__(self, robot: str, *, falling_stamps: bool = False) -> None:
+        self.key = ros_scan_key(robot)
+        self.store = ros_types(BRIDGE_CONFIG.distro).store
+        step_ns = -100_000_000 if falling_stamps else 100_000_000
+        self._stamps = itertools.count(T0_NS + (10**15 if falling_stamps else 0), step_ns)
+        self._sequence = itertools.count()
+        self._gid = bytes(range(GID_SIZE))
+
+    def attachment(self) -> bytes:
+        return encode_attachment(next(self._sequence), time.time_ns(), self._gid)
+
+    def message(self, scan: Scan, **fields: Any) -> Any:
+        return dataclasses.replace(laser_scan_message(scan, next(self._stamps)), **fields)
+
+    def cdr(self, message: Any, *, little_endian: bool = True) -> bytes:
+        return bytes(self.store.serialize_cdr(message, LASER_SCAN, little_endian=little_endian))
+
+    def sample(self, scan: Scan) -> RosSample:
+        return self.key, self.cdr(self.message(scan)), self.attachment()
+
+
+def ros_mutations(scan: Scan, rng: random.Random) -> list[tuple[str, Callable[[], RosSample]]]:
+    """Named makers of bad (and a few valid-by-design) ROS 2 samples for the bridge's scan key."""
+    node = RosScans(ROS_FUZZ_ROBOT, falling_stamps=True)
+    times = node.store.types["builtin_interfaces/msg/Time"]
+
+    def good() -> bytes:
+        return node.cdr(node.message(scan))
+
+    def attached(make: Callable[[], bytes], key: str = node.key) -> Callable[[], RosSample]:
+        """The sample of ``make()``'s payload with a proper attachment: only the payload (or key) is bad."""
+        return lambda: (key, make(), node.attachment())
+
+    def cdr_with(**fields: Any) -> Callable[[], RosSample]:
+        return attached(lambda: node.cdr(node.message(scan, **fields)))
+
+    def stamped(sec: int, nanosec: int) -> Callable[[], bytes]:
+        def make() -> bytes:
+            message = node.message(scan)
+            header = dataclasses.replace(message.header, stamp=times(sec=sec, nanosec=nanosec))
+            return node.cdr(dataclasses.replace(message, header=header))
+
+        return make
+
+    def with_frame_id(frame_id: str) -> bytes:
+        message = node.message(scan)
+        return node.cdr(
+            dataclasses.replace(message, header=dataclasses.replace(message.header, frame_id=frame_id))
+        )
+
+    def frame_id_not_terminated() -> bytes:
+        payload = bytearray(good())
+        (name_len,) = struct.unpack_from("<I", payload, 4 + 8)
+        payload[4 + 12 + name_len - 1] = ord("x")  # the NUL that ends frame_id
+        return bytes(payload)
+
+    def bad_gid_length() -> RosSample:
+        attachment = bytearray(node.attachment())
+        attachment[16] = GID_SIZE // 2
+        return node.key, good(), bytes(attachment)
+
+    ranges = scan.ranges.astype("<f4")
+    fine = np.repeat(ranges, 4)  # a 1,440-beam sensor over the same turn
+    return [
+        ("ros_random_bytes", attached(lambda: rng.randbytes(rng.randint(0, 2048)))),
+        ("ros_empty", attached(lambda: b"")),
+        ("ros_msgpack_not_cdr", attached(lambda: encode_message(scan))),
+        ("ros_truncated", attached(lambda: (g := good())[: rng.randint(0, len(g) - 1)])),
+        ("ros_trailing_bytes", attached(lambda: good() + bytes(8))),
+        ("ros_wrong_type_hash", attached(good, ros_scan_key(ROS_FUZZ_ROBOT, "RIHS01_" + "0" * 64))),
+        ("ros_humble_hash", attached(good, ros_scan_key(ROS_FUZZ_ROBOT, TYPE_HASH_NOT_SUPPORTED))),
+        ("ros_no_attachment", lambda: (node.key, good(), None)),
+        ("ros_attachment_short", lambda: (node.key, good(), node.attachment()[:20])),
+        ("ros_attachment_gid_length", bad_gid_length),
+        ("ros_beams_absurd", attached(lambda: with_beam_count(good(), 0x7FFFFFFF))),
+        ("ros_beams_lie", attached(lambda: with_beam_count(good(), ranges.size + 1))),
+        ("ros_beams_zero", cdr_with(ranges=ranges[:0], angle_max=scan.angle_min)),
+        ("ros_beams_1440", cdr_with(ranges=fine, angle_increment=scan.angle_increment / 4)),
+        ("ros_beams_beyond_a_turn", cdr_with(ranges=np.tile(ranges, 2))),
+        ("ros_angle_increment_nan", cdr_with(angle_increment=math.nan)),
+        ("ros_angle_min_inf", cdr_with(angle_min=math.inf)),
+        ("ros_angle_increment_zero", cdr_with(angle_increment=0.0)),
+        ("ros_range_max_nan", cdr_with(range_max=math.nan)),
+        ("ros_range_limits_swapped", cdr_with(range_min=5.0, range_max=1.0)),
+        ("ros_stamp_nanosec_overflow", attached(stamped(1, 2_000_000_000))),
+        ("ros_stamp_negative", attached(stamped(-5, 0))),
+        ("ros_frame_id_empty", attached(lambda: with_frame_id(""))),
+        ("ros_frame_id_not_terminated", attached(frame_id_not_terminated)),
+        ("ros_ranges_all_nan", cdr_with(ranges=np.full_like(ranges, np.nan))),
+        ("ros_big_endian", attached(lambda: node.cdr(node.message(scan), little_endian=False))),
+    ]
+
+
+def ros_bad_payloads(count: int, scan: Scan, seed: int) -> Iterator[tuple[str, RosSample]]:
+    """(mutation name, ROS sample), round-robin over the ROS mutations, seeded."""
+    rng = random.Random(seed + 1)
+    makers = ros_mutations(scan, rng)
+    for i in range(count):
+        name, make = makers[i % len(makers)]
+        yield name, make()
+
+
+def run(bad: int, good_every: int, seed: int, ros_bad: int | None = None) -> FuzzReport:
+    """``bad`` triscan payloads and ``ros_bad`` (default ``bad // 2``) ROS payloads, interleaved."""
+    ros_bad = bad // 2 if ros_bad is None else ros_bad
     report = FuzzReport()
-    fuzz_port, encoder_port, detector_port = free_tcp_ports(3)
+    fuzz_port, encoder_port, detector_port, bridge_port = free_tcp_ports(4)
     quiet = {"stderr": subprocess.DEVNULL}  # thousands of rejections are logged; we read the counters
     children = {
         "encoder": start_loopback_service(
@@ -181,21 +343,28 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
         "detector": start_loopback_service(
             "services.detector", detector_port, [fuzz_port, encoder_port], **quiet
         ),
+        "ros2_bridge": start_loopback_service(
+            "services.ros2_bridge",
+            bridge_port,
+            [fuzz_port, encoder_port, detector_port],
+            *BRIDGE_ARGS,
+            **quiet,
+        ),
     }
     scans = recorded_scans(40, seed=3)
     tensor = StackedTensor(
         robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=np.zeros((64, 384, 3), np.uint8), padding="zero",
         scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
     )  # fmt: skip
-    answered: set[int] = set()
+    answered: dict[str, set[int]] = {GOOD_ROBOT: set(), ROS_GOOD_ROBOT: set()}
     stats: dict[str, dict[str, Any]] = {}
     lock = threading.Lock()
 
     def on_detections(sample: Any) -> None:
         message = decode_message(payload_bytes(sample), Detections)
-        if message.robot_id == GOOD_ROBOT:
+        if message.robot_id in answered:
             with lock:
-                answered.add(message.seq)
+                answered[message.robot_id].add(message.seq)
 
     def on_stats(sample: Any) -> None:
         body = json.loads(payload_bytes(sample))
@@ -204,6 +373,9 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
 
     expected_encoder = EncoderCore("zero")  # the encoder's rules, applied to exactly what is sent
     expected_detector: Counter[str] = Counter()
+    expected_bridge = BridgeCore(BRIDGE_CONFIG)  # the bridge's rules; what it forwards feeds the encoder's
+    ros_good = RosScans(ROS_GOOD_ROBOT)
+    ros_good_seqs: list[int] = []  # bridge seqs of the good ROS scans sent while counting
     block = {"congestion_control": zenoh.CongestionControl.BLOCK}
     try:
         with open_session(ZenohSettings.loopback(fuzz_port)) as session:
@@ -213,8 +385,19 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
             ]
             wait_for_subscriber(session, scan_key(GOOD_ROBOT), 60)
             wait_for_subscriber(session, tensor_key(GOOD_ROBOT), 60)
+            wait_for_subscriber(session, ros_good.key, 60)  # the bridge hears every ROS sample sent
             good_pub = session.declare_publisher(scan_key(GOOD_ROBOT), **block)
             good_seq = 0
+
+            def send_ros(sample: RosSample) -> Scan | None:
+                """Put a ROS sample; returns the Scan the bridge should forward (the local core's)."""
+                key, payload, attachment = sample
+                session.put(key, payload, attachment=attachment, **block)
+                out = expected_bridge.handle_scan(key, payload, attachment)
+                if out is None:
+                    return None
+                expected_encoder.handle_payload(out.payload, parse_key(out.key)[0])
+                return decode_message(out.payload, Scan)
 
             def send_good() -> None:
                 nonlocal good_seq
@@ -225,18 +408,22 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
                 if counting:
                     expected_encoder.push(scan)
                 good_seq += 1
+                forwarded = send_ros(ros_good.sample(scan))
+                if counting and forwarded is not None:
+                    ros_good_seqs.append(forwarded.seq)
 
             counting = False
 
             # Prime: the good robot's detections prove every link is up before the fuzz starts.
             deadline = time.monotonic() + 60
-            while not answered:
+            while not all(answered.values()):
                 if time.monotonic() > deadline:
-                    raise TimeoutError("the pipeline never answered the good robot")
+                    raise TimeoutError(f"the pipeline never answered both good robots: {answered}")
                 send_good()
                 time.sleep(0.1)
             with lock:
-                answered.clear()
+                for seqs in answered.values():
+                    seqs.clear()
             first_counted_seq = good_seq
             counting = True
             # The local core must know the good stream's recent history, as the service does.
@@ -248,6 +435,15 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
                 )
             expected_encoder.counters = EncoderCounters()
             sent_by_kind: Counter[str] = Counter()
+            ros_sent_by_kind: Counter[str] = Counter()
+            ros_fuzz = ros_bad_payloads(
+                ros_bad, scans[0].model_copy(update={"robot_id": ROS_FUZZ_ROBOT}), seed
+            )
+
+            def send_ros_fuzz(name: str, sample: RosSample) -> None:
+                report.valid_by_design += int(send_ros(sample) is not None)
+                ros_sent_by_kind[name] += 1
+
             for i, (name, topic, robot, payload) in enumerate(
                 bad_payloads(bad, scans[0].model_copy(update={"robot_id": FUZZ_ROBOT}), tensor, seed)
             ):
@@ -264,15 +460,19 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
                     session.put(tensor_key(robot), payload, **block)
                 report.valid_by_design += int(valid)
                 sent_by_kind[name] += 1
+                if (ros := next(ros_fuzz, None)) is not None:
+                    send_ros_fuzz(*ros)
                 if i % good_every == 0:
                     send_good()
                     time.sleep(0.1)  # the good robot scans at 10 Hz; the fuzz floods in between
+            for ros in ros_fuzz:  # those left when ros_bad > bad
+                send_ros_fuzz(*ros)
             # Bad keys: not a robot id at all (the services must refuse the key, not the payload).
             for i in range(max(1, bad // 100)):
                 session.put(f"triscan/bad.id{i}/scan", encode_message(scans[0]), **block)
                 expected_encoder.counters.rejected["bad_key"] += 1
                 sent_by_kind["bad_key"] += 1
-            last_good = good_seq
+            last_good, last_ros_good = good_seq, len(ros_good_seqs)
             for _ in range(3):  # a few more, so the last fuzz cannot hide the last good tensor
                 send_good()
                 time.sleep(0.1)
@@ -286,18 +486,36 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
     report.bad_sent_by_kind = dict(sent_by_kind)
     good_range = range(first_counted_seq + 2, last_good)  # tensors exist from the third scan on
     report.good_scans = len(good_range)
-    report.good_answered = sum(1 for s in good_range if s in answered)
-    expected = {"encoder": dict(expected_encoder.counters.rejected), "detector": dict(expected_detector)}
+    report.good_answered = sum(1 for s in good_range if s in answered[GOOD_ROBOT])
+    ros_good_judged = ros_good_seqs[2:last_ros_good]
+    report.ros_bad_sent = sum(ros_sent_by_kind.values())
+    report.ros_bad_sent_by_kind = dict(ros_sent_by_kind)
+    report.ros_good_scans = len(ros_good_judged)
+    report.ros_good_answered = sum(1 for s in ros_good_judged if s in answered[ROS_GOOD_ROBOT])
+    expected = {
+        "encoder": dict(expected_encoder.counters.rejected),
+        "detector": dict(expected_detector),
+        "ros2_bridge": dict(expected_bridge.counters.rejected_scans),
+    }
     report.expected_by_reason = expected
-    for service in ("encoder", "detector"):
-        counted = stats.get(service, {}).get("rejected", {})
+    for service, rejected_field in REJECTED_FIELD.items():
+        counted = stats.get(service, {}).get(rejected_field, {})
         report.rejected_by_reason[service] = counted
         report.counted_rejected[service] = sum(counted.values())
         report.expected_rejected[service] = sum(expected[service].values())
+    bridge_stats = stats.get("ros2_bridge", {})
+    report.detector_dropped_stale = stats.get("detector", {}).get("dropped_stale", -1)
+    report.bridge_scans_published = {
+        "expected": expected_bridge.counters.scans_published,
+        "counted": bridge_stats.get("scans_published", -1),
+    }
+    unanswered = report.good_scans - report.good_answered + report.ros_good_scans - report.ros_good_answered
     report.passed = (
         all(report.alive_at_end.values())
-        and report.good_answered == report.good_scans
+        and unanswered <= max(0, report.detector_dropped_stale)
         and all(report.rejected_by_reason[s] == expected[s] for s in expected)
+        and report.bridge_scans_published["expected"] == report.bridge_scans_published["counted"]
+        and bridge_stats.get("rejected_detections") == {}
     )
     if not report.passed:
         log.error("expected rejections %s, counted %s", expected, report.rejected_by_reason)
@@ -307,12 +525,15 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bad", type=int, default=10_000, help="malformed payloads to send")
+    parser.add_argument(
+        "--ros-bad", type=int, default=None, help="malformed ROS payloads for the bridge (default: --bad / 2)"
+    )
     parser.add_argument("--good-every", type=int, default=25, help="one good scan after this many bad")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("bench/results/fuzz_services.json"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    report = run(args.bad, args.good_every, args.seed)
+    report = run(args.bad, args.good_every, args.seed, args.ros_bad)
     write_report(report, args.out)
     return 0 if report.passed else 1
 

@@ -13,10 +13,19 @@ recordings (a file or its directory).
   the encoder sees one continuous stream. LaserScans the bridge would refuse are counted by reason and
   skipped (the same rules as :mod:`services.ros2_bridge.laser_scan`).
 * **Pace**: messages go out at their recorded (bag) times divided by ``--speed``.
+* **As a service** (``python -m services.bag_replay``, which ``triscan up --replay`` starts instead of
+  the simulator): it holds the health token ``triscan/@health/replay/<pid>`` while it plays and
+  publishes its counters (``published``, ``passes``, ``robots``, ``rejected``) on
+  ``triscan/@stats/replay/<pid>``, so ``triscan status`` and the launcher see it like any service. It
+  exits 0 at the end of a bag played without ``--loop``: a finished replay is not a crash.
+
+rosbags is imported only when a bag is opened, so the launcher can import this module (for
+:class:`ReplayConfig`) on an install without the ``ros2`` extra.
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import re
 import threading
@@ -29,12 +38,15 @@ from typing import Any, Final
 
 from common.keys import scan_key, validate_robot_id
 from common.messages import Scan, encode_message
+from common.transport import ZenohSettings, add_zenoh_arguments, settings_from_args
 from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
-from services.ros2_bridge.ros_types import LASER_SCAN, ros_types
+from services.runtime import ServiceRuntime, configure_logging, stop_event_on_signals
 
 log = logging.getLogger(__name__)
 
+SERVICE: Final[str] = "replay"  # its health token and stats name
 DEFAULT_ROBOT: Final[str] = "replay"
+DEFAULT_WAIT_S: Final[float] = 10.0
 _NOT_IN_ID: Final[re.Pattern[str]] = re.compile(r"[^A-Za-z0-9_-]+")
 
 
@@ -85,13 +97,19 @@ def robots_for(topics: Sequence[str], robot: str | None) -> dict[str, str]:
 
 
 def _open_reader(bags: Sequence[Path]) -> Any:
-    from rosbags.highlevel import AnyReader
+    try:
+        from rosbags.highlevel import AnyReader
 
+        from services.ros2_bridge.ros_types import ros_types
+    except ImportError as exc:
+        raise ReplayError(f"replaying bags needs rosbags: pip install 'triscan[ros2]' ({exc})") from None
     return AnyReader(list(bags), default_typestore=ros_types("jazzy").store)
 
 
 def scan_connections(reader: Any, topics: Sequence[str]) -> list[Any]:
     """The LaserScan connections of an open reader, restricted to ``topics`` if any are named."""
+    from services.ros2_bridge.ros_types import LASER_SCAN
+
     scans = [c for c in reader.connections if c.msgtype == LASER_SCAN]
     if topics:
         known = {c.topic for c in scans}
@@ -113,9 +131,13 @@ def replay(
     stop: threading.Event | None = None,
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
+    summary: ReplaySummary | None = None,
 ) -> ReplaySummary:
-    """Publish the bags' scans through ``publish(key, payload)`` at recorded pace; returns what it did."""
-    summary = ReplaySummary()
+    """Publish the bags' scans through ``publish(key, payload)`` at recorded pace; returns what it did.
+
+    ``summary``, if given, is filled in as the replay goes (for a caller that reports progress).
+    """
+    summary = ReplaySummary() if summary is None else summary
     stop = stop or threading.Event()
     with _open_reader(config.bags) as reader:
         connections = scan_connections(reader, config.topics)
@@ -192,20 +214,39 @@ def _progress(total: int | None, enabled: bool) -> Any:
     return tqdm(total=total, unit="scan", desc="replay")
 
 
-def run_replay(
-    settings: Any, config: ReplayConfig, *, wait_s: float = 10.0, stop: threading.Event | None = None
-) -> ReplaySummary:
-    """Open a Zenoh session, wait up to ``wait_s`` for a subscriber of the first robot, and replay."""
-    import zenoh
+def replay_robots(config: ReplayConfig) -> dict[str, str]:
+    """Open the bags and map each replayed topic to its robot id; ReplayError if the replay cannot start.
 
-    from common.transport import open_session, wait_for_subscriber
-
+    ``triscan up --replay`` calls this before starting anything, so a wrong bag or topic is an error
+    message, not a service that dies on start.
+    """
     with _open_reader(config.bags) as reader:
         topics = sorted({c.topic for c in scan_connections(reader, config.topics)})
-    robots = robots_for(topics, config.robot)
-    with open_session(settings) as session:
+    return robots_for(topics, config.robot)
+
+
+def run_replay(
+    settings: ZenohSettings,
+    config: ReplayConfig,
+    *,
+    wait_s: float = DEFAULT_WAIT_S,
+    stop: threading.Event | None = None,
+) -> ReplaySummary:
+    """Replay as a service: wait up to ``wait_s`` for a subscriber of the first robot, then play.
+
+    Runs in a :class:`ServiceRuntime` (health token, counters on ``triscan/@stats/replay/<pid>``);
+    puts block rather than drop under congestion, so a bag replays whole or not at all.
+    """
+    import zenoh
+
+    from common.transport import wait_for_subscriber
+
+    robots = replay_robots(config)
+    stop = stop or threading.Event()
+    summary = ReplaySummary()
+    with ServiceRuntime(SERVICE, settings, stop) as runtime:
         try:
-            wait_for_subscriber(session, scan_key(next(iter(robots.values()))), wait_s)
+            wait_for_subscriber(runtime.session, scan_key(next(iter(robots.values()))), wait_s)
         except TimeoutError as exc:
             log.warning("%s: replaying anyway", exc)
         publishers: dict[str, Any] = {}
@@ -213,12 +254,83 @@ def run_replay(
         def publish(key: str, payload: bytes) -> None:
             publisher = publishers.get(key)
             if publisher is None:
-                publisher = publishers[key] = session.declare_publisher(
-                    key, congestion_control=zenoh.CongestionControl.BLOCK
+                publisher = publishers[key] = runtime.keep(
+                    runtime.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
                 )
             publisher.put(payload)
+            runtime.publish_stats(summary_counters(summary))
 
-        summary = replay(config, publish, stop=stop)
-        for publisher in publishers.values():
-            publisher.undeclare()
+        replay(config, publish, stop=stop, sleep=stop.wait, summary=summary)
+        runtime.publish_stats(summary_counters(summary), force=True)
     return summary
+
+
+def summary_counters(summary: ReplaySummary) -> dict[str, object]:
+    """The replay's stats (``published`` is updated once a message has been put)."""
+    return {
+        "published": summary.published,
+        "passes": summary.passes,
+        "robots": len(summary.robots),
+        "rejected": dict(summary.rejected),
+    }
+
+
+def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
+    """The replay's flags, shared by ``triscan replay`` and ``python -m services.bag_replay``."""
+    parser.add_argument(
+        "bags", nargs="+", type=Path, metavar="BAG", help="ROS 1 .bag files, or one ROS 2 bag"
+    )
+    parser.add_argument(
+        "--topic", action="append", default=[], help="LaserScan topic to replay (default: all)"
+    )
+    parser.add_argument(
+        "--robot", default=None, help=f"robot id of a single replayed topic (default: {DEFAULT_ROBOT})"
+    )
+    parser.add_argument("--speed", type=float, default=1.0, help="playback speed relative to the recording")
+    parser.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
+    parser.add_argument(
+        "--wait", type=float, default=DEFAULT_WAIT_S, help="seconds to wait for a subscriber first"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_zenoh_arguments(parser)
+
+
+def config_from_args(args: argparse.Namespace) -> ReplayConfig:
+    return ReplayConfig(
+        bags=tuple(args.bags),
+        topics=tuple(args.topic),
+        robot=args.robot,
+        speed=args.speed,
+        loop=args.loop,
+        progress=not args.no_progress,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m services.bag_replay``: 0 at the end of the bag, 2 if the replay cannot start."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.bag_replay", description=__doc__.splitlines()[0]
+    )
+    add_replay_arguments(parser)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    try:
+        summary = run_replay(
+            settings_from_args(args), config_from_args(args), wait_s=args.wait, stop=stop_event_on_signals()
+        )
+    except ReplayError as exc:
+        log.error("%s", exc)
+        return 2
+    log.info(
+        "published %d scans in %d pass(es) as %s; skipped %s",
+        summary.published,
+        summary.passes,
+        ", ".join(sorted(summary.robots.values())),
+        dict(summary.rejected) or "none",
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -353,14 +353,20 @@ def _run_card(args: argparse.Namespace) -> int:
     return 0
 
 
+SIMULATOR_ONLY_FLAGS = {"robots": "--robots", "rate_hz": "--rate", "seed": "--seed"}
+REPLAY_ONLY_FLAGS = {"topic": "--topic", "robot": "--robot", "speed": "--speed", "loop": "--loop"}
+
+
 def _add_up(sub: argparse._SubParsersAction) -> None:
     from common.transport import add_zenoh_arguments
 
     p = sub.add_parser(
         "up", help="the full simulation loop: simulator, encoder, detector, visualizer as four processes"
     )
-    p.add_argument("--robots", type=int, default=1, help="simulated robots")
-    p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    # None: the default of UpConfig (simulator flags) or ReplayConfig (replay flags), so that a flag of
+    # the other source can be refused rather than silently ignored.
+    p.add_argument("--robots", type=int, default=None, help="simulated robots (default 1)")
+    p.add_argument("--rate", dest="rate_hz", type=float, default=None, help="scans per second per robot")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: Ctrl-C)")
     p.add_argument("--headless", action="store_true", help="no viewer: record an .rrd instead")
     p.add_argument(
@@ -376,16 +382,35 @@ def _add_up(sub: argparse._SubParsersAction) -> None:
         default=1,
         help="detector: most robots per model call (above 1 needs a -batch model, the default then)",
     )
-    p.add_argument("--seed", type=int, default=1, help="simulator seed (training used 0)")
+    p.add_argument("--seed", type=int, default=None, help="simulator seed (default 1; training used 0)")
     p.add_argument(
         "--max-restarts", type=int, default=5, help="restarts of one service per minute before giving up"
     )
+    replay = p.add_argument_group("replay (instead of the simulator; the run ends when the bag does)")
+    replay.add_argument(
+        "--replay",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="BAG",
+        help="ROS 1 .bag files or one ROS 2 bag",
+    )
+    replay.add_argument("--topic", action="append", default=None, help="LaserScan topic (default: all)")
+    replay.add_argument("--robot", default=None, help="robot id of a single replayed topic (default: replay)")
+    replay.add_argument("--speed", type=float, default=None, help="playback speed (default 1)")
+    replay.add_argument("--loop", action="store_true", default=None, help="replay until stopped")
     add_zenoh_arguments(p)
     p.set_defaults(run=_run_up)
 
 
+def _given(args: argparse.Namespace, flags: dict[str, str]) -> dict[str, object]:
+    """The flags of ``flags`` (attribute → flag) given on the command line, by attribute."""
+    return {name: getattr(args, name) for name in flags if getattr(args, name) is not None}
+
+
 def _run_up(args: argparse.Namespace) -> int:
     from common.transport import ZenohSettings, settings_from_args
+    from services.bag_replay import ReplayConfig
     from services.launcher import DEFAULT_LISTEN, UpConfig, up
     from services.runtime import stop_event_on_signals
 
@@ -397,19 +422,27 @@ def _run_up(args: argparse.Namespace) -> int:
             listen=(DEFAULT_LISTEN,),
             multicast_scouting=False if settings.multicast_scouting is None else settings.multicast_scouting,
         )
+    simulator_flags, replay_flags = _given(args, SIMULATOR_ONLY_FLAGS), _given(args, REPLAY_ONLY_FLAGS)
+    replay = None
+    if args.replay is not None:
+        if simulator_flags:
+            raise ValueError(f"{', '.join(SIMULATOR_ONLY_FLAGS[k] for k in simulator_flags)}: simulator only")
+        replay_flags["topics"] = tuple(replay_flags.pop("topic", ()))
+        replay = ReplayConfig(bags=tuple(args.replay), progress=False, **replay_flags)  # type: ignore[arg-type]
+    elif replay_flags:
+        raise ValueError(f"{', '.join(REPLAY_ONLY_FLAGS[k] for k in replay_flags)}: needs --replay")
     config = UpConfig(
-        robots=args.robots,
-        rate_hz=args.rate,
         duration_s=args.duration,
         headless=args.headless,
         rrd_path=args.rrd,
         viewer=args.viewer,
         model=args.model,
         batch=args.batch,
-        seed=args.seed,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,
+        replay=replay,
+        **simulator_flags,  # type: ignore[arg-type]
     )
     return up(config, stop_event_on_signals())
 
@@ -437,36 +470,23 @@ def _run_status(args: argparse.Namespace) -> int:
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
-    from common.transport import add_zenoh_arguments
+    from services.bag_replay import add_replay_arguments
 
     p = sub.add_parser(
         "replay", help="publish the LaserScans of ROS 1/2 bags (.bag, .db3, .mcap) as triscan scans"
     )
-    p.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="ROS 1 .bag files, or one ROS 2 bag")
-    p.add_argument("--topic", action="append", default=[], help="LaserScan topic to replay (default: all)")
-    p.add_argument("--robot", default=None, help="robot id of a single replayed topic (default: replay)")
-    p.add_argument("--speed", type=float, default=1.0, help="playback speed relative to the recording")
-    p.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
-    p.add_argument("--wait", type=float, default=10.0, help="seconds to wait for a subscriber first")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_zenoh_arguments(p)
+    add_replay_arguments(p)
     p.set_defaults(run=_run_replay)
 
 
 def _run_replay(args: argparse.Namespace) -> int:
     from common.transport import settings_from_args
-    from services.bag_replay import ReplayConfig, run_replay
+    from services.bag_replay import config_from_args, run_replay
     from services.runtime import stop_event_on_signals
 
-    config = ReplayConfig(
-        bags=tuple(args.bags),
-        topics=tuple(args.topic),
-        robot=args.robot,
-        speed=args.speed,
-        loop=args.loop,
-        progress=not args.no_progress,
+    summary = run_replay(
+        settings_from_args(args), config_from_args(args), wait_s=args.wait, stop=stop_event_on_signals()
     )
-    summary = run_replay(settings_from_args(args), config, wait_s=args.wait, stop=stop_event_on_signals())
     robots = ", ".join(f"{topic} → {robot}" for topic, robot in summary.robots.items())
     print(f"published {summary.published} scans in {summary.passes} pass(es): {robots}")
     if summary.rejected:

@@ -8,6 +8,15 @@ children's liveliness tokens (``triscan/@health/<service>/<pid>``), restarts a c
 clear log line and a cap on restarts), and stops them all on Ctrl-C or after ``--duration``. Its own
 session takes the user's Zenoh flags, so other apps (``examples/subscribe_detections.py``, ROS 2
 bridges) join through it.
+
+With ``--replay BAG...`` the scans come from recorded bags (``python -m services.bag_replay``) instead
+of the simulator. A bag is finite, so the replay is started last, once the encoder, detector and
+visualizer hold their health tokens (no scan of a short bag is lost to a detector still loading its
+model), and it is never restarted: it would play the bag again from its first, older stamps, which the
+encoder refuses as reordered. When the replay exits 0 (the bag played through, no ``--loop``) the run
+ends: the launcher waits until no detections have arrived for ``DRAIN_QUIET_S`` (so the last scans'
+detections reach the recording), stops the services and returns 0. A replay that exits otherwise
+ends the run with 1.
 """
 
 from __future__ import annotations
@@ -30,15 +39,21 @@ from common.inference import check_batch, model_invalid_rule, model_padding, mod
 from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session
+from services.bag_replay import SERVICE as REPLAY
+from services.bag_replay import ReplayConfig, replay_robots
 from services.runtime import EXIT_WITH_PARENT_ENV
 
 log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # where other apps on this machine join the loop
 SERVICES = ("simulator", "encoder", "detector", "visualizer")
+MODULES = {REPLAY: "services.bag_replay"}  # a child's module, where it is not services.<name>
 STOP_GRACE_S = 5.0
 READY_TIMEOUT_S = 60.0
 RESTART_WINDOW_S = 60.0
+DRAIN_QUIET_S = 1.0  # after a replay ends: stop once no detections arrived for this long
+DRAIN_MAX_S = 10.0
+REPLAY_WAIT_S = 30.0  # the replay's --wait for the encoder's subscription (it starts when all are up)
 
 
 @dataclass(frozen=True)
@@ -57,6 +72,13 @@ class UpConfig:
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
     verbose: bool = False
+    replay: ReplayConfig | None = None  # bags replayed instead of the simulator
+
+    @property
+    def services(self) -> tuple[str, ...]:
+        """The children, scan source first: the simulator, or the replay of ``replay``'s bags."""
+        source = "simulator" if self.replay is None else REPLAY
+        return (source, *SERVICES[1:])
 
 
 def free_tcp_ports(count: int) -> list[int]:
@@ -118,6 +140,7 @@ def service_commands(
     model = config.model or default_model_path(batched=config.batch > 1)
     padding = model_padding(model)  # the encoder must match the model
     service_args = {
+        REPLAY: [] if config.replay is None else replay_arguments(config.replay),
         "simulator": [
             *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
             *("--padding", padding),
@@ -127,7 +150,7 @@ def service_commands(
         "visualizer": sink,
     }
     commands = {}
-    for name in SERVICES:
+    for name in config.services:
         if name == "visualizer" and not sink:
             continue
         others = [port for other, port in ports.items() if other != name]
@@ -140,8 +163,28 @@ def service_commands(
             multicast_scouting=False,
             config_file=config.settings.config_file,
         )
-        commands[name] = [*python, f"services.{name}", *service_args[name], *verbose, *zenoh.to_cli()]
+        module = MODULES.get(name, f"services.{name}")
+        commands[name] = [*python, module, *service_args[name], *verbose, *zenoh.to_cli()]
     return commands
+
+
+def replay_arguments(replay: ReplayConfig) -> list[str]:
+    """``python -m services.bag_replay``'s flags for ``replay`` (no progress bar: the launcher logs)."""
+    args = [
+        *map(str, replay.bags),
+        "--speed",
+        str(replay.speed),
+        "--wait",
+        str(REPLAY_WAIT_S),
+        "--no-progress",
+    ]
+    for topic in replay.topics:
+        args += ["--topic", topic]
+    if replay.robot is not None:
+        args += ["--robot", replay.robot]
+    if replay.loop:
+        args.append("--loop")
+    return args
 
 
 @dataclass
@@ -204,6 +247,10 @@ class TrafficCounter:
 
         return count
 
+    def count_of(self, topic: str) -> int:
+        with self._lock:
+            return self.counts.get(topic, 0)
+
     def summary(self) -> str:
         with self._lock:
             parts = [f"{count} {topic} messages" for topic, count in sorted(self.counts.items())]
@@ -211,15 +258,21 @@ class TrafficCounter:
 
 
 def up(config: UpConfig, stop: threading.Event) -> int:
-    """Start, watch and stop the services; 0 on a clean stop, 1 if a service kept dying or never came up."""
+    """Start, watch and stop the services; 0 on a clean stop (or a replay played through), 1 if a
+    service kept dying, never came up, or the replay failed."""
     if config.robots < 1:
         raise ValueError(f"--robots must be >= 1, got {config.robots}")
     model = config.model or default_model_path(batched=config.batch > 1)
     check_batch(config.batch, config.batch == 1 or model_takes_batches(model), model)
+    if config.replay is not None:
+        robots = replay_robots(config.replay)  # a wrong bag or topic fails here, before anything starts
+        log.info("replaying %s", ", ".join(f"{topic} as {robot}" for topic, robot in robots.items()))
     launcher_ports = [p for p in (_endpoint_port(e) for e in config.settings.listen) if p is not None]
-    ports = dict(zip(SERVICES, free_tcp_ports(len(SERVICES)), strict=True))
+    ports = dict(zip(config.services, free_tcp_ports(len(config.services)), strict=True))
     commands = service_commands(config, ports, launcher_ports[0] if launcher_ports else None)
     children = {name: _Child(name, command) for name, command in commands.items()}
+    replay_child = children.get(REPLAY)
+    restartable = {name: child for name, child in children.items() if child is not replay_child}
     health = HealthBoard()
     traffic = TrafficCounter()
     exit_code = 0
@@ -229,7 +282,7 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             session.declare_subscriber(wildcard_key(topic), traffic.counter(topic))
             for topic in (SCAN, DETECTIONS)
         ]
-        for child in children.values():
+        for child in restartable.values():
             child.start()
         started = time.monotonic()
         ready = False
@@ -238,6 +291,8 @@ def up(config: UpConfig, stop: threading.Event) -> int:
                 now = time.monotonic()
                 if not ready:
                     missing = set(children) - health.alive()
+                    if replay_child is not None and replay_child.process is None and missing == {REPLAY}:
+                        replay_child.start()  # the others are up: the bag's first scans are not lost
                     if not missing:
                         ready = True
                         log.info("all services up after %.1f s: %s", now - started, ", ".join(children))
@@ -247,7 +302,11 @@ def up(config: UpConfig, stop: threading.Event) -> int:
                         )
                         exit_code = 1
                         break
-                if not _restart_dead(children, config.max_restarts):
+                replay_code = None if replay_child is None else replay_child.exit_code()
+                if replay_code is not None:
+                    exit_code = _end_of_replay(replay_code, traffic)
+                    break
+                if not _restart_dead(restartable, config.max_restarts):
                     exit_code = 1
                     break
                 if config.duration_s and now - started >= config.duration_s:
@@ -264,6 +323,21 @@ def up(config: UpConfig, stop: threading.Event) -> int:
         path = rrd[rrd.index("--save") + 1]
         log.info("recording: %s (view it with `rerun %s`)", path, path)
     return exit_code
+
+
+def _end_of_replay(code: int, traffic: TrafficCounter) -> int:
+    """The replay exited: drain the last detections if it played through (0), else report it (1)."""
+    if code != 0:
+        log.error("replay exited with code %d: a replay is not restarted, stopping", code)
+        return 1
+    log.info("replay finished: waiting for the last detections")
+    deadline = time.monotonic() + DRAIN_MAX_S
+    seen, quiet_since = traffic.count_of(DETECTIONS), time.monotonic()
+    while time.monotonic() < deadline and time.monotonic() - quiet_since < DRAIN_QUIET_S:
+        time.sleep(0.1)
+        if (now_seen := traffic.count_of(DETECTIONS)) != seen:
+            seen, quiet_since = now_seen, time.monotonic()
+    return 0
 
 
 def _restart_dead(children: dict[str, _Child], max_restarts: int) -> bool:

@@ -243,10 +243,10 @@ class ServiceRuntime:
         """The stop event is set or ``duration_s`` (when > 0) has passed."""
         return self.stop.is_set() or (self.duration_s > 0.0 and self.elapsed_s >= self.duration_s)
 
-    def publish_stats(self, counters: Mapping[str, object]) -> None:
-        """Publish counters (at most once per ``STATS_PERIOD_S``)."""
+    def publish_stats(self, counters: Mapping[str, object], *, force: bool = False) -> None:
+        """Publish counters (at most once per ``STATS_PERIOD_S``, always with ``force``)."""
         assert self._stats is not None, "use ServiceRuntime in a with block"
-        self._stats.publish(counters)
+        self._stats.publish(counters, force=force)
 
     def serve(
         self, housekeeping: Callable[[], Mapping[str, object]], period_s: float = STATS_PERIOD_S

@@ -76,3 +76,52 @@ def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything
         up(UpConfig(viewer="none", batch=4, model=fixed), threading.Event())
     with pytest.raises(ValueError, match="--batch must be >= 1"):
         up(UpConfig(viewer="none", batch=0), threading.Event())
+
+
+def test_a_replay_replaces_the_simulator_and_gets_its_flags(tmp_path: Path) -> None:
+    from services.bag_replay import ReplayConfig
+
+    bags = (tmp_path / "a.bag", tmp_path / "b.bag")
+    replay = ReplayConfig(bags=bags, topics=("/front/scan",), robot="r7", speed=2.5, loop=True)
+    config = UpConfig(viewer="none", replay=replay)
+    assert config.services == ("replay", "encoder", "detector", "visualizer")
+    ports = dict(zip(config.services, (1, 2, 3, 4), strict=True))
+    commands = service_commands(config, ports, None)
+    assert set(commands) == {"replay", "encoder", "detector"}
+    command = commands["replay"]
+    assert command[1:5] == ["-m", "services.bag_replay", str(bags[0]), str(bags[1])]
+    assert flag_values(command, "--topic") == ["/front/scan"] and flag_values(command, "--robot") == ["r7"]
+    assert flag_values(command, "--speed") == ["2.5"] and "--loop" in command and "--no-progress" in command
+    assert flag_values(command, "--listen") == ["tcp/127.0.0.1:1"]
+    assert "tcp/127.0.0.1:1" in flag_values(commands["encoder"], "--connect")
+    assert flag_values(commands["encoder"], "--padding") == ["zero"]  # still the model's
+    once = service_commands(UpConfig(viewer="none", replay=ReplayConfig(bags=bags[:1])), ports, None)
+    assert "--loop" not in once["replay"] and flag_values(once["replay"], "--robot") == []
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--replay", "x.bag", "--robots", "2"], "--robots: simulator only"),
+        (["--replay", "x.bag", "--rate", "5", "--seed", "3"], "--rate, --seed: simulator only"),
+        (["--speed", "2"], "--speed: needs --replay"),
+        (["--loop", "--topic", "/scan"], "--topic, --loop: needs --replay"),
+    ],
+)
+def test_up_refuses_flags_of_the_other_scan_source(
+    argv: list[str], message: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    from services.cli import main
+
+    assert main(["up", "--headless", *argv]) == 2
+    assert message in caplog.text
+
+
+def test_up_refuses_a_replay_that_cannot_start_before_starting_anything(tmp_path: Path) -> None:
+    import threading
+
+    from services.bag_replay import ReplayConfig
+    from services.launcher import up
+
+    with pytest.raises(FileNotFoundError, match="missing"):
+        up(UpConfig(viewer="none", replay=ReplayConfig(bags=(tmp_path / "missing.mcap",))), threading.Event())

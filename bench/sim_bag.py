@@ -1,0 +1,89 @@
+"""A ROS 2 bag of real simulated LiDAR scans: data for ``triscan replay``, ``up --replay`` and benchmarks.
+
+No robot recording ships with triscan, and a bag of made-up ranges would show the detector nothing. This
+writes what a ROS 2 robot with an LDS-01 would have recorded while driving through one of the
+simulator's rooms: one ``sensor_msgs/msg/LaserScan`` topic (default ``/scan``), the simulator's scans
+at its rate, header stamps and log times counted from ``T0_NS``, written by rosbags' own MCAP writer
+(not by triscan's reader code, so a replay test checks one against the other).
+
+    python -m bench.sim_bag --scans 150 --out runs/sim_drive      # prints the .mcap file it wrote
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Final
+
+from bench.harness import recorded_scans
+from common.messages import Scan
+from services.ros2_bridge.ros_types import LASER_SCAN, ros_types
+from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
+
+log = logging.getLogger("bench.sim_bag")
+
+T0_NS: Final[int] = 1_700_000_000_000_000_000  # a plausible wall-clock start (2023-11-14)
+DEFAULT_TOPIC: Final[str] = "/scan"
+
+
+def laser_scan_message(scan: Scan, stamp_ns: int) -> Any:
+    """The rosbags (Jazzy) LaserScan a ROS driver would publish for ``scan``, stamped ``stamp_ns``."""
+    types = ros_types("jazzy").store.types
+    beams = scan.ranges.shape[0]
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return types[LASER_SCAN](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=scan.frame_id
+        ),
+        angle_min=scan.angle_min, angle_max=scan.angle_min + scan.angle_increment * max(beams - 1, 0),
+        angle_increment=scan.angle_increment, time_increment=0.0, scan_time=0.0, range_min=scan.range_min,
+        range_max=scan.range_max, ranges=scan.ranges.astype("<f4"), intensities=scan.ranges[:0].astype("<f4"),
+    )  # fmt: skip
+
+
+def write_scan_bag(directory: Path, scans: Sequence[Scan], *, topic: str = DEFAULT_TOPIC) -> Path:
+    """Write ``scans`` (stamped from 0, as :func:`bench.harness.recorded_scans` makes them) as a ROS 2
+    MCAP bag in ``directory`` (which must not exist); returns the ``.mcap`` file."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = ros_types("jazzy").store
+    with Writer(directory, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection(topic, LASER_SCAN, typestore=store)
+        for scan in scans:
+            stamp_ns = T0_NS + scan.stamp_ns
+            message = laser_scan_message(scan, stamp_ns)
+            writer.write(connection, stamp_ns, bytes(store.serialize_cdr(message, LASER_SCAN)))
+    (mcap,) = directory.glob("*.mcap")
+    return mcap
+
+
+def write_sim_bag(
+    directory: Path,
+    scans: int,
+    *,
+    seed: int = SIM_SEED,
+    rate_hz: float = SCAN_RATE_HZ,
+    topic: str = DEFAULT_TOPIC,
+) -> Path:
+    """Simulate ``scans`` consecutive scans of one robot and write them as a bag; returns the ``.mcap``."""
+    return write_scan_bag(directory, recorded_scans(scans, seed=seed, rate_hz=rate_hz), topic=topic)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scans", type=int, default=150, help="scans to record (at --rate)")
+    parser.add_argument("--seed", type=int, default=SIM_SEED, help="simulator seed (the model trained on 0)")
+    parser.add_argument("--rate", type=float, default=SCAN_RATE_HZ, help="scans per second")
+    parser.add_argument("--topic", default=DEFAULT_TOPIC, help="LaserScan topic")
+    parser.add_argument("--out", type=Path, required=True, help="bag directory to create")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    mcap = write_sim_bag(args.out, args.scans, seed=args.seed, rate_hz=args.rate, topic=args.topic)
+    print(mcap)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
