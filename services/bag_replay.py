@@ -130,7 +130,7 @@ def replay(
     *,
     stop: threading.Event | None = None,
     clock: Callable[[], float] = time.monotonic,
-    sleep: Callable[[float], None] = time.sleep,
+    sleep: Callable[[float], object] = time.sleep,
     summary: ReplaySummary | None = None,
 ) -> ReplaySummary:
     """Publish the bags' scans through ``publish(key, payload)`` at recorded pace; returns what it did.
@@ -170,7 +170,7 @@ def _one_pass(
     next_seq: dict[str, int],
     config: ReplayConfig,
     clock: Callable[[], float],
-    sleep: Callable[[float], None],
+    sleep: Callable[[float], object],
     stop: threading.Event,
     *,
     stamp_offset_ns: int,

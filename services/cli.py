@@ -427,7 +427,8 @@ def _run_up(args: argparse.Namespace) -> int:
     if args.replay is not None:
         if simulator_flags:
             raise ValueError(f"{', '.join(SIMULATOR_ONLY_FLAGS[k] for k in simulator_flags)}: simulator only")
-        replay_flags["topics"] = tuple(replay_flags.pop("topic", ()))
+        topics: list[str] = replay_flags.pop("topic", [])  # type: ignore[assignment]
+        replay_flags["topics"] = tuple(topics)
         replay = ReplayConfig(bags=tuple(args.replay), progress=False, **replay_flags)  # type: ignore[arg-type]
     elif replay_flags:
         raise ValueError(f"{', '.join(REPLAY_ONLY_FLAGS[k] for k in replay_flags)}: needs --replay")
