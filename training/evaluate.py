@@ -33,7 +33,7 @@ import numpy as np
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding
 from common.inference import OnnxDetector, unwrap_seam_duplicates
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS
-from training.export import read_tensor_png
+from training.png import read_tensor_png
 
 log = logging.getLogger(__name__)
 
