@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import subprocess
 import threading
 import time
 from dataclasses import dataclass, field
@@ -67,6 +68,7 @@ def run(
     threads: int | None,
     model: Path | None = None,
 ) -> LatencyReport:
+    """Start the services, publish the simulated robots' scans through them, and time every answer."""
     report = LatencyReport(
         "from-scans (2 processes)" if from_scans else "3 processes",
         (model or default_model_path()).name,
@@ -75,23 +77,7 @@ def run(
         duration_s,
     )
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
-    detector_args = ["--threads", str(threads)] if threads else []
-    if model is not None:
-        detector_args += ["--model", str(model)]
-    if from_scans:
-        children = {
-            "detector": start_loopback_service(
-                "services.detector", detector_port, [bench_port], "--from-scans", *detector_args
-            )
-        }
-    else:
-        children = {
-            "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
-            "detector": start_loopback_service(
-                "services.detector", detector_port, [bench_port, encoder_port], *detector_args
-            ),
-        }
-    published: dict[tuple[str, int], int] = {}
+    children = _start_services(from_scans, threads, model, bench_port, encoder_port, detector_port)
     received: dict[tuple[str, int], tuple[int, Detections]] = {}
     lock = threading.Lock()
 
@@ -111,24 +97,7 @@ def run(
             wait_for_subscriber(session, scan_key(fleet.robot_ids[0]))
             if not from_scans:
                 wait_for_subscriber(session, f"triscan/{fleet.robot_ids[0]}/tensor")
-            period = 1.0 / rate_hz
-            start = time.monotonic()
-            measure_from: float | None = None  # set once the pipeline has answered and warmed up
-            tick = 0
-            while measure_from is None or time.monotonic() - measure_from < duration_s:
-                due = start + tick * period
-                if (now := time.monotonic()) < due:
-                    time.sleep(due - now)
-                if measure_from is None and received and time.monotonic() - start >= WARM_UP_S:
-                    measure_from = time.monotonic()
-                if measure_from is None and time.monotonic() - start > MAX_WARM_UP_S:
-                    raise TimeoutError(f"no detections within {MAX_WARM_UP_S:.0f} s: is the pipeline up?")
-                for scan, _truth in fleet.step(time.time_ns()):
-                    scan = scan.model_copy(update={"stamp_ns": time.time_ns()})
-                    publishers[scan.robot_id].put(encode_message(scan))
-                    if measure_from is not None:
-                        published[(scan.robot_id, scan.seq)] = scan.stamp_ns
-                tick += 1
+            published = _publish_scans(fleet, publishers, rate_hz, duration_s, received)
             time.sleep(1.0)  # let the last detections arrive
             report.peak_rss_mb = {
                 name: round(proc_status_mb(p.pid, "VmHWM"), 1) for name, p in children.items()
@@ -136,6 +105,76 @@ def run(
             sub.undeclare()
     finally:
         stop_processes(children, grace_s=20)
+    _summarise(report, published, received)
+    return report
+
+
+def _start_services(
+    from_scans: bool,
+    threads: int | None,
+    model: Path | None,
+    bench_port: int,
+    encoder_port: int,
+    detector_port: int,
+) -> dict[str, subprocess.Popen[bytes]]:
+    """The encoder and the detector as two processes, or one ``--from-scans`` detector."""
+    detector_args = ["--threads", str(threads)] if threads else []
+    if model is not None:
+        detector_args += ["--model", str(model)]
+    if from_scans:
+        return {
+            "detector": start_loopback_service(
+                "services.detector", detector_port, [bench_port], "--from-scans", *detector_args
+            )
+        }
+    return {
+        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
+        "detector": start_loopback_service(
+            "services.detector", detector_port, [bench_port, encoder_port], *detector_args
+        ),
+    }
+
+
+def _publish_scans(
+    fleet: SimulatedFleet,
+    publishers: dict[str, Any],
+    rate_hz: float,
+    duration_s: float,
+    received: dict[tuple[str, int], tuple[int, Detections]],
+) -> dict[tuple[str, int], int]:
+    """Publish the fleet's scans at ``rate_hz`` until ``duration_s`` after warm-up; their stamps.
+
+    Only scans published once the pipeline has answered and ``WARM_UP_S`` has passed are returned,
+    keyed by (robot, seq): they are the ones the report measures.
+    """
+    published: dict[tuple[str, int], int] = {}
+    period = 1.0 / rate_hz
+    start = time.monotonic()
+    measure_from: float | None = None  # set once the pipeline has answered and warmed up
+    tick = 0
+    while measure_from is None or time.monotonic() - measure_from < duration_s:
+        due = start + tick * period
+        if (now := time.monotonic()) < due:
+            time.sleep(due - now)
+        if measure_from is None and received and time.monotonic() - start >= WARM_UP_S:
+            measure_from = time.monotonic()
+        if measure_from is None and time.monotonic() - start > MAX_WARM_UP_S:
+            raise TimeoutError(f"no detections within {MAX_WARM_UP_S:.0f} s: is the pipeline up?")
+        for scan, _truth in fleet.step(time.time_ns()):
+            scan = scan.model_copy(update={"stamp_ns": time.time_ns()})
+            publishers[scan.robot_id].put(encode_message(scan))
+            if measure_from is not None:
+                published[(scan.robot_id, scan.seq)] = scan.stamp_ns
+        tick += 1
+    return published
+
+
+def _summarise(
+    report: LatencyReport,
+    published: dict[tuple[str, int], int],
+    received: dict[tuple[str, int], tuple[int, Detections]],
+) -> None:
+    """Latency quantiles and the per-stage split of every answered scan, into ``report``."""
     latencies, stages = [], {"encode": [], "inference": [], "nms": [], "transport": []}
     for key, stamp in published.items():
         if key not in received:
@@ -153,7 +192,6 @@ def run(
     if latencies:
         report.latency_ms = {**latency_quantiles_ms(latencies), "mean": round(float(np.mean(latencies)), 2)}
         report.stage_ms_mean = {k: round(float(np.mean(v)), 3) for k, v in stages.items()}
-    return report
 
 
 def main() -> int:
