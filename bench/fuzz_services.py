@@ -173,20 +173,9 @@ def bad_payloads(
 def run(bad: int, good_every: int, seed: int) -> FuzzReport:
     report = FuzzReport()
     fuzz_port, encoder_port, detector_port = free_tcp_ports(3)
-    quiet = {"stderr": subprocess.DEVNULL}  # thousands of rejections are logged; we read the counters
-    children = {
-        "encoder": start_loopback_service(
-            "services.encoder", encoder_port, [fuzz_port, detector_port], **quiet
-        ),
-        "detector": start_loopback_service(
-            "services.detector", detector_port, [fuzz_port, encoder_port], **quiet
-        ),
-    }
+    children = _start_services(fuzz_port, encoder_port, detector_port)
     scans = recorded_scans(40, seed=3)
-    tensor = StackedTensor(
-        robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=np.zeros((64, 384, 3), np.uint8), padding="zero",
-        scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
-    )  # fmt: skip
+    tensor = _fuzz_tensor()
     answered: set[int] = set()
     stats: dict[str, dict[str, Any]] = {}
     lock = threading.Lock()
@@ -229,49 +218,25 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
             counting = False
 
             # Prime: the good robot's detections prove every link is up before the fuzz starts.
-            deadline = time.monotonic() + 60
-            while not answered:
-                if time.monotonic() > deadline:
-                    raise TimeoutError("the pipeline never answered the good robot")
-                send_good()
-                time.sleep(0.1)
+            _prime(send_good, answered)
             with lock:
                 answered.clear()
             first_counted_seq = good_seq
             counting = True
             # The local core must know the good stream's recent history, as the service does.
-            for seq in range(max(0, good_seq - 3), good_seq):
-                expected_encoder.push(
-                    scans[seq % len(scans)].model_copy(
-                        update={"robot_id": GOOD_ROBOT, "seq": seq, "stamp_ns": 0}
-                    )
-                )
-            expected_encoder.counters = EncoderCounters()
-            sent_by_kind: Counter[str] = Counter()
-            for i, (name, topic, robot, payload) in enumerate(
-                bad_payloads(bad, scans[0].model_copy(update={"robot_id": FUZZ_ROBOT}), tensor, seed)
-            ):
-                if topic == "scan":
-                    rejected_before = sum(expected_encoder.counters.rejected.values())
-                    expected_encoder.handle_payload(payload, robot)
-                    valid = sum(expected_encoder.counters.rejected.values()) == rejected_before
-                    session.put(scan_key(robot), payload, **block)
-                else:
-                    reason = tensor_rejection(payload, robot)
-                    valid = reason is None
-                    if reason is not None:
-                        expected_detector[reason] += 1
-                    session.put(tensor_key(robot), payload, **block)
-                report.valid_by_design += int(valid)
-                sent_by_kind[name] += 1
-                if i % good_every == 0:
-                    send_good()
-                    time.sleep(0.1)  # the good robot scans at 10 Hz; the fuzz floods in between
+            _replay_good_history(expected_encoder, scans, good_seq)
+            sent_by_kind = _send_bad_payloads(
+                session,
+                bad_payloads(bad, scans[0].model_copy(update={"robot_id": FUZZ_ROBOT}), tensor, seed),
+                expected_encoder,
+                expected_detector,
+                report,
+                send_good,
+                good_every,
+                block,
+            )
             # Bad keys: not a robot id at all (the services must refuse the key, not the payload).
-            for i in range(max(1, bad // 100)):
-                session.put(f"triscan/bad.id{i}/scan", encode_message(scans[0]), **block)
-                expected_encoder.counters.rejected["bad_key"] += 1
-                sent_by_kind["bad_key"] += 1
+            _send_bad_keys(session, scans[0], max(1, bad // 100), expected_encoder, sent_by_kind, block)
             last_good = good_seq
             for _ in range(3):  # a few more, so the last fuzz cannot hide the last good tensor
                 send_good()
@@ -282,9 +247,112 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
         report.alive_at_end = {name: p.poll() is None for name, p in children.items()}
     finally:
         stop_processes(children, grace_s=30)
+    good_range = range(first_counted_seq + 2, last_good)  # tensors exist from the third scan on
+    _judge(report, sent_by_kind, good_range, answered, expected_encoder, expected_detector, stats)
+    return report
+
+
+def _start_services(
+    fuzz_port: int, encoder_port: int, detector_port: int
+) -> dict[str, subprocess.Popen[bytes]]:
+    """The encoder and the detector under test, each connected to this process."""
+    quiet = {"stderr": subprocess.DEVNULL}  # thousands of rejections are logged; we read the counters
+    return {
+        "encoder": start_loopback_service(
+            "services.encoder", encoder_port, [fuzz_port, detector_port], **quiet
+        ),
+        "detector": start_loopback_service(
+            "services.detector", detector_port, [fuzz_port, encoder_port], **quiet
+        ),
+    }
+
+
+def _fuzz_tensor() -> StackedTensor:
+    """A valid tensor message of the fuzz robot: the base the tensor mutations start from."""
+    return StackedTensor(
+        robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=np.zeros((64, 384, 3), np.uint8), padding="zero",
+        scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
+    )  # fmt: skip
+
+
+def _prime(send_good: Callable[[], None], answered: set[int]) -> None:
+    """Send good scans until the first detections come back (at most 60 s)."""
+    deadline = time.monotonic() + 60
+    while not answered:
+        if time.monotonic() > deadline:
+            raise TimeoutError("the pipeline never answered the good robot")
+        send_good()
+        time.sleep(0.1)
+
+
+def _replay_good_history(expected_encoder: EncoderCore, scans: list[Scan], good_seq: int) -> None:
+    """Push the good stream's last scans through the local core, then zero its counters."""
+    for seq in range(max(0, good_seq - 3), good_seq):
+        expected_encoder.push(
+            scans[seq % len(scans)].model_copy(update={"robot_id": GOOD_ROBOT, "seq": seq, "stamp_ns": 0})
+        )
+    expected_encoder.counters = EncoderCounters()
+
+
+def _send_bad_payloads(
+    session: Any,
+    payloads: Iterator[tuple[str, str, str, bytes]],
+    expected_encoder: EncoderCore,
+    expected_detector: Counter[str],
+    report: FuzzReport,
+    send_good: Callable[[], None],
+    good_every: int,
+    block: dict[str, Any],
+) -> Counter[str]:
+    """Publish every bad payload, counting what each service should reject; a good scan now and then."""
+    sent_by_kind: Counter[str] = Counter()
+    for i, (name, topic, robot, payload) in enumerate(payloads):
+        if topic == "scan":
+            rejected_before = sum(expected_encoder.counters.rejected.values())
+            expected_encoder.handle_payload(payload, robot)
+            valid = sum(expected_encoder.counters.rejected.values()) == rejected_before
+            session.put(scan_key(robot), payload, **block)
+        else:
+            reason = tensor_rejection(payload, robot)
+            valid = reason is None
+            if reason is not None:
+                expected_detector[reason] += 1
+            session.put(tensor_key(robot), payload, **block)
+        report.valid_by_design += int(valid)
+        sent_by_kind[name] += 1
+        if i % good_every == 0:
+            send_good()
+            time.sleep(0.1)  # the good robot scans at 10 Hz; the fuzz floods in between
+    return sent_by_kind
+
+
+def _send_bad_keys(
+    session: Any,
+    scan: Scan,
+    count: int,
+    expected_encoder: EncoderCore,
+    sent_by_kind: Counter[str],
+    block: dict[str, Any],
+) -> None:
+    """Publish a valid scan on ``count`` keys that are not robot ids; the encoder must refuse each."""
+    for i in range(count):
+        session.put(f"triscan/bad.id{i}/scan", encode_message(scan), **block)
+        expected_encoder.counters.rejected["bad_key"] += 1
+        sent_by_kind["bad_key"] += 1
+
+
+def _judge(
+    report: FuzzReport,
+    sent_by_kind: Counter[str],
+    good_range: range,
+    answered: set[int],
+    expected_encoder: EncoderCore,
+    expected_detector: Counter[str],
+    stats: dict[str, dict[str, Any]],
+) -> None:
+    """Fill in the report's counts and whether the services counted exactly what was expected."""
     report.bad_sent = sum(sent_by_kind.values())
     report.bad_sent_by_kind = dict(sent_by_kind)
-    good_range = range(first_counted_seq + 2, last_good)  # tensors exist from the third scan on
     report.good_scans = len(good_range)
     report.good_answered = sum(1 for s in good_range if s in answered)
     expected = {"encoder": dict(expected_encoder.counters.rejected), "detector": dict(expected_detector)}
@@ -301,7 +369,6 @@ def run(bad: int, good_every: int, seed: int) -> FuzzReport:
     )
     if not report.passed:
         log.error("expected rejections %s, counted %s", expected, report.rejected_by_reason)
-    return report
 
 
 def main(argv: list[str] | None = None) -> int:
