@@ -1,7 +1,8 @@
 """Would batching frames across robots raise fleet capacity? Per-image cost of YOLOv8n vs batch size.
 
-Times ``session.run`` of the shipped ``-batch`` models (the evaluated networks with a free batch axis,
-:func:`training.export.add_batch_axis`) on B real stacked tensors at once, for each B and thread count.
+Times ``session.run`` of the shipped ``-batch`` models (the evaluated networks with a free batch
+axis, :func:`training.batch_variant.add_batch_axis`) on B real stacked tensors at once, for each B and
+thread count.
 If the per-image cost falls below the batch-1 cost, a detector draining several robots per call
 (``services.detector --batch``) serves proportionally more robots; this measures by how much. The
 tensors come from simulated scans through the encoder, so sparsity matches what the detector sees.

@@ -23,6 +23,7 @@ import argparse
 import json
 import logging
 import os
+import subprocess
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -66,25 +67,10 @@ class FleetStep:
 
 
 def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetStep:
+    """One step of the ladder: start the services, drive ``robots`` robots through them, judge it."""
     step = FleetStep(robots)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
-    detector_args = (
-        *("--workers", str(args.workers), "--batch", str(args.batch)),
-        *(("--threads", str(args.threads)) if args.threads else ()),
-        *(("--model", str(args.model)) if args.model else ()),
-        *(("--from-scans",) if args.from_scans else ()),
-    )
-    children = {}
-    if not args.from_scans:
-        children["encoder"] = start_loopback_service(
-            "services.encoder", encoder_port, [bench_port, detector_port]
-        )
-    children["detector"] = start_loopback_service(
-        "services.detector",
-        detector_port,
-        [bench_port] if args.from_scans else [bench_port, encoder_port],
-        *detector_args,
-    )
+    children = _start_services(args, bench_port, encoder_port, detector_port)
     robot_ids = [f"fleet{i:03d}" for i in range(robots)]
     published: dict[tuple[str, int], int] = {}
     received: dict[tuple[str, int], int] = {}
@@ -105,51 +91,13 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
         with open_session(ZenohSettings.loopback(bench_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
             stats_sub = session.declare_subscriber(service_stats_key("detector"), on_detector_stats)
-            next_rss_sample = 0.0
             publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
             wait_for_subscriber(session, scan_key(robot_ids[0]))
             if not args.from_scans:
                 wait_for_subscriber(session, f"triscan/{robot_ids[0]}/tensor")
-            period = 1.0 / args.rate
-            start = time.monotonic()
-            tick = 0
-            measure_from: float | None = None  # once every robot has been answered and warm-up is over
-            while measure_from is None or time.monotonic() - measure_from < args.seconds:
-                due = start + tick * period
-                if (now := time.monotonic()) < due:
-                    time.sleep(due - now)
-                if measure_from is None and time.monotonic() - start >= WARM_UP_S:
-                    with lock:
-                        answered = {rid for rid, _ in received}
-                    if len(answered) == robots:
-                        measure_from = time.monotonic()
-                        step.rss_mb_start = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
-                    elif time.monotonic() - start > MAX_WARM_UP_S:
-                        step.why_not = (
-                            f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
-                        )
-                        break
-                if measure_from is not None:
-                    step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
-                    if (elapsed := time.monotonic() - measure_from) >= next_rss_sample:
-                        sample = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
-                        step.rss_mb_timeline.append({"t_s": round(elapsed, 1), **sample})
-                        next_rss_sample += args.rss_every
-                measuring = measure_from is not None
-                base = scans[tick % len(scans)]
-                # Robots publish spread over the tick, as independent robots would, not in one burst.
-                for index, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
-                    stamp = time.time_ns()
-                    scan = base.model_copy(update={"robot_id": rid, "seq": tick, "stamp_ns": stamp})
-                    publisher.put(encode_message(scan))
-                    if measuring:
-                        published[(rid, tick)] = stamp
-                    slot = due + (index + 1) * period / robots
-                    if (wait := slot - time.monotonic()) > 0:
-                        time.sleep(wait)
-                tick += 1
+            published = _publish_fleet(step, robot_ids, publishers, scans, args, children, received, lock)
             time.sleep(1.0)
-            step.rss_mb_end = {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+            step.rss_mb_end = _rss_mb(children)
             step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
             calls = int(detector_stats.get("inference_calls", 0))
             step.detector_mean_batch = (
@@ -159,19 +107,121 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
             stats_sub.undeclare()
     finally:
         stop_processes(children, grace_s=30)
+    _judge_step(step, published, received, args)
+    return step
+
+
+def _start_services(
+    args: argparse.Namespace, bench_port: int, encoder_port: int, detector_port: int
+) -> dict[str, subprocess.Popen[bytes]]:
+    """The encoder (unless ``--from-scans``) and the detector, each connected to this bench process."""
+    detector_args = (
+        *("--workers", str(args.workers), "--batch", str(args.batch)),
+        *(("--threads", str(args.threads)) if args.threads else ()),
+        *(("--model", str(args.model)) if args.model else ()),
+        *(("--from-scans",) if args.from_scans else ()),
+    )
+    children = {}
+    if not args.from_scans:
+        children["encoder"] = start_loopback_service(
+            "services.encoder", encoder_port, [bench_port, detector_port]
+        )
+    children["detector"] = start_loopback_service(
+        "services.detector",
+        detector_port,
+        [bench_port] if args.from_scans else [bench_port, encoder_port],
+        *detector_args,
+    )
+    return children
+
+
+def _rss_mb(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
+    """Resident memory of each child process now, in MB."""
+    return {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+
+
+def _publish_fleet(
+    step: FleetStep,
+    robot_ids: list[str],
+    publishers: list[Any],
+    scans: list[Scan],
+    args: argparse.Namespace,
+    children: dict[str, subprocess.Popen[bytes]],
+    received: dict[tuple[str, int], int],
+    lock: threading.Lock,
+) -> dict[tuple[str, int], int]:
+    """Publish every robot's scans at ``--rate`` through warm-up and the measured window.
+
+    Returns the publish stamp of each (robot, seq) sent in the measured window, which starts once
+    warm-up is over and every robot has been answered; records RSS and publish lag into ``step``.
+    """
+    robots = len(robot_ids)
+    published: dict[tuple[str, int], int] = {}
+    next_rss_sample = 0.0
+    period = 1.0 / args.rate
+    start = time.monotonic()
+    tick = 0
+    measure_from: float | None = None  # once every robot has been answered and warm-up is over
+    while measure_from is None or time.monotonic() - measure_from < args.seconds:
+        due = start + tick * period
+        if (now := time.monotonic()) < due:
+            time.sleep(due - now)
+        if measure_from is None and time.monotonic() - start >= WARM_UP_S:
+            with lock:
+                answered = {rid for rid, _ in received}
+            if len(answered) == robots:
+                measure_from = time.monotonic()
+                step.rss_mb_start = _rss_mb(children)
+            elif time.monotonic() - start > MAX_WARM_UP_S:
+                step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
+                break
+        if measure_from is not None:
+            step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
+            if (elapsed := time.monotonic() - measure_from) >= next_rss_sample:
+                step.rss_mb_timeline.append({"t_s": round(elapsed, 1), **_rss_mb(children)})
+                next_rss_sample += args.rss_every
+        measuring = measure_from is not None
+        base = scans[tick % len(scans)]
+        # Robots publish spread over the tick, as independent robots would, not in one burst.
+        for index, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
+            stamp = time.time_ns()
+            scan = base.model_copy(update={"robot_id": rid, "seq": tick, "stamp_ns": stamp})
+            publisher.put(encode_message(scan))
+            if measuring:
+                published[(rid, tick)] = stamp
+            slot = due + (index + 1) * period / robots
+            if (wait := slot - time.monotonic()) > 0:
+                time.sleep(wait)
+        tick += 1
+    return published
+
+
+def _worst_latency_per_second(
+    published: dict[tuple[str, int], int], received: dict[tuple[str, int], int]
+) -> list[float]:
+    """Worst latency per second of the window (NaN: nothing answered that second).
+
+    A few stalls and a saturated detector look alike in a p99 but not here.
+    """
+    first = min(published.values())
+    worst: dict[int, float] = {}
+    for key, stamp in published.items():
+        if key in received:
+            second = (stamp - first) // 1_000_000_000
+            worst[second] = max(worst.get(second, 0.0), (received[key] - stamp) / 1e6)
+    return [round(worst.get(s, float("nan")), 1) for s in range(max(worst) + 1)] if worst else []
+
+
+def _judge_step(
+    step: FleetStep,
+    published: dict[tuple[str, int], int],
+    received: dict[tuple[str, int], int],
+    args: argparse.Namespace,
+) -> None:
+    """Fill in the step's latency and answer figures, and whether it passed (and if not, why)."""
     latencies = np.array([(received[k] - t) / 1e6 for k, t in published.items() if k in received])
     if published:
-        # Worst latency per second of the window: a few stalls and a saturated detector look alike in
-        # a p99 but not here.
-        first = min(published.values())
-        worst: dict[int, float] = {}
-        for key, stamp in published.items():
-            if key in received:
-                second = (stamp - first) // 1_000_000_000
-                worst[second] = max(worst.get(second, 0.0), (received[key] - stamp) / 1e6)
-        step.latency_ms_max_per_s = (
-            [round(worst.get(s, float("nan")), 1) for s in range(max(worst) + 1)] if worst else []
-        )
+        step.latency_ms_max_per_s = _worst_latency_per_second(published, received)
     step.scans_published, step.scans_answered = len(published), len(latencies)
     step.answered_share = round(len(latencies) / max(1, len(published)), 4)
     if len(latencies):
@@ -185,7 +235,6 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
     if growth > args.rss_growth_mb:
         reasons.append(f"RSS grew {growth:.1f} MB")
     step.passed, step.why_not = not reasons, "; ".join(reasons)
-    return step
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import subprocess
 import threading
 import time
 from dataclasses import dataclass, field
@@ -42,7 +43,7 @@ from services.simulator.fleet import SimulatedFleet
 
 ROOT = Path(__file__).resolve().parents[1]
 
-log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+log = logging.getLogger("bench.pipeline_latency")
 
 WARM_UP_S = 3.0  # at least this, and until the first detections came back (peers connect on retry)
 MAX_WARM_UP_S = 60.0
@@ -81,6 +82,7 @@ def run(
     trace: Path | None = None,
     bare_frames: int = 300,
 ) -> LatencyReport:
+    """Start the services, publish the simulated robots' scans through them, and time every answer."""
     report = LatencyReport(
         "from-scans (2 processes)" if from_scans else "3 processes",
         (model or default_model_path()).name,
@@ -90,23 +92,7 @@ def run(
     )
     report.bare_ms = bare_frame_latency(model or default_model_path(), threads, rate_hz, bare_frames)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
-    detector_args = ["--threads", str(threads)] if threads else []
-    if model is not None:
-        detector_args += ["--model", str(model)]
-    if from_scans:
-        children = {
-            "detector": start_loopback_service(
-                "services.detector", detector_port, [bench_port], "--from-scans", *detector_args
-            )
-        }
-    else:
-        children = {
-            "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
-            "detector": start_loopback_service(
-                "services.detector", detector_port, [bench_port, encoder_port], *detector_args
-            ),
-        }
-    published: dict[tuple[str, int], int] = {}
+    children = _start_services(from_scans, threads, model, bench_port, encoder_port, detector_port)
     received: dict[tuple[str, int], tuple[int, Detections]] = {}
     lock = threading.Lock()
 
@@ -126,24 +112,7 @@ def run(
             wait_for_subscriber(session, scan_key(fleet.robot_ids[0]))
             if not from_scans:
                 wait_for_subscriber(session, f"triscan/{fleet.robot_ids[0]}/tensor")
-            period = 1.0 / rate_hz
-            start = time.monotonic()
-            measure_from: float | None = None  # set once the pipeline has answered and warmed up
-            tick = 0
-            while measure_from is None or time.monotonic() - measure_from < duration_s:
-                due = start + tick * period
-                if (now := time.monotonic()) < due:
-                    time.sleep(due - now)
-                if measure_from is None and received and time.monotonic() - start >= WARM_UP_S:
-                    measure_from = time.monotonic()
-                if measure_from is None and time.monotonic() - start > MAX_WARM_UP_S:
-                    raise TimeoutError(f"no detections within {MAX_WARM_UP_S:.0f} s: is the pipeline up?")
-                for scan, _truth in fleet.step(time.time_ns()):
-                    scan = scan.model_copy(update={"stamp_ns": time.time_ns()})
-                    publishers[scan.robot_id].put(encode_message(scan))
-                    if measure_from is not None:
-                        published[(scan.robot_id, scan.seq)] = scan.stamp_ns
-                tick += 1
+            published = _publish_scans(fleet, publishers, rate_hz, duration_s, received)
             time.sleep(1.0)  # let the last detections arrive
             report.peak_rss_mb = {
                 name: round(proc_status_mb(p.pid, "VmHWM"), 1) for name, p in children.items()
@@ -151,6 +120,79 @@ def run(
             sub.undeclare()
     finally:
         stop_processes(children, grace_s=20)
+    latencies, stages = _summarise(report, published, received)
+    if trace is not None:
+        write_trace(trace, latencies, stages)
+    return report
+
+
+def _start_services(
+    from_scans: bool,
+    threads: int | None,
+    model: Path | None,
+    bench_port: int,
+    encoder_port: int,
+    detector_port: int,
+) -> dict[str, subprocess.Popen[bytes]]:
+    """The encoder and the detector as two processes, or one ``--from-scans`` detector."""
+    detector_args = ["--threads", str(threads)] if threads else []
+    if model is not None:
+        detector_args += ["--model", str(model)]
+    if from_scans:
+        return {
+            "detector": start_loopback_service(
+                "services.detector", detector_port, [bench_port], "--from-scans", *detector_args
+            )
+        }
+    return {
+        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
+        "detector": start_loopback_service(
+            "services.detector", detector_port, [bench_port, encoder_port], *detector_args
+        ),
+    }
+
+
+def _publish_scans(
+    fleet: SimulatedFleet,
+    publishers: dict[str, Any],
+    rate_hz: float,
+    duration_s: float,
+    received: dict[tuple[str, int], tuple[int, Detections]],
+) -> dict[tuple[str, int], int]:
+    """Publish the fleet's scans at ``rate_hz`` until ``duration_s`` after warm-up; their stamps.
+
+    Only scans published once the pipeline has answered and ``WARM_UP_S`` has passed are returned,
+    keyed by (robot, seq): they are the ones the report measures.
+    """
+    published: dict[tuple[str, int], int] = {}
+    period = 1.0 / rate_hz
+    start = time.monotonic()
+    measure_from: float | None = None  # set once the pipeline has answered and warmed up
+    tick = 0
+    while measure_from is None or time.monotonic() - measure_from < duration_s:
+        due = start + tick * period
+        if (now := time.monotonic()) < due:
+            time.sleep(due - now)
+        if measure_from is None and received and time.monotonic() - start >= WARM_UP_S:
+            measure_from = time.monotonic()
+        if measure_from is None and time.monotonic() - start > MAX_WARM_UP_S:
+            raise TimeoutError(f"no detections within {MAX_WARM_UP_S:.0f} s: is the pipeline up?")
+        for scan, _truth in fleet.step(time.time_ns()):
+            scan = scan.model_copy(update={"stamp_ns": time.time_ns()})
+            publishers[scan.robot_id].put(encode_message(scan))
+            if measure_from is not None:
+                published[(scan.robot_id, scan.seq)] = scan.stamp_ns
+        tick += 1
+    return published
+
+
+def _summarise(
+    report: LatencyReport,
+    published: dict[tuple[str, int], int],
+    received: dict[tuple[str, int], tuple[int, Detections]],
+) -> tuple[list[float], dict[str, list[float]]]:
+    """Latency quantiles and the per-stage split of every answered scan, into ``report``; returns the
+    per-frame values (total, and each stage) for ``--trace``."""
     latencies: list[float] = []
     stages: dict[str, list[float]] = {name: [] for name in STAGES}
     for key, stamp in published.items():
@@ -182,9 +224,7 @@ def run(
             for q in ("p50", "p99")
             if q in report.bare_ms
         }
-    if trace is not None:
-        write_trace(trace, latencies, stages)
-    return report
+    return latencies, stages
 
 
 STAGES = ("encode", "decode", "queue", "inference", "nms", "transport")

@@ -195,7 +195,7 @@ def _add_batch_model(sub: argparse._SubParsersAction) -> None:
 
 def _run_batch_model(args: argparse.Namespace) -> int:
     from common.model_spec import batch_variant_path
-    from training.export import add_batch_axis
+    from training.batch_variant import add_batch_axis
 
     out = add_batch_axis(args.model, args.out or batch_variant_path(args.model))
     print(f"wrote {out}: the same network, frames in one call equal frames one by one")

@@ -194,7 +194,7 @@ def test_randomised_set_records_its_settings_and_keeps_true_geometry_labels(
     for label in sorted((clean / "labels").rglob("*.txt")):
         assert label.read_text() == (randomised / label.relative_to(clean)).read_text()
     # ...while the scans differ, and dropouts light the sentinel row.
-    from training.export import read_tensor_png
+    from training.png import read_tensor_png
 
     differing, sentinel_gain = 0, 0
     for image in sorted((clean / "images").rglob("*.png")):

@@ -17,25 +17,16 @@ import pytest
 
 from common.encoding import to_model_input
 from common.model_spec import CLASS_NAMES, INPUT_SHAPE, NUM_ANCHORS, batch_variant_path, file_sha256
+from training.batch_variant import BATCH_AXIS, add_batch_axis
 from training.dataset import DatasetConfig, generate_dataset
-from training.export import (
-    BATCH_AXIS,
-    BOX_CHANNELS,
-    ExportError,
-    _calibration_reader,
-    _check_io,
-    add_batch_axis,
-    calibration_images,
-    compare_outputs,
-    export_models,
-    export_onnx,
-    head_decode_nodes,
-    median_latency_ms,
-    quantize_int8,
-    read_tensor_png,
-)
+from training.export import export_models
+from training.export_checks import compare_outputs, median_latency_ms
 from training.offline import configure_offline
-from training.png import write_rgb_png
+from training.onnx_export import export_onnx
+from training.onnx_model import BOX_CHANNELS, ExportError
+from training.onnx_model import check_io as _check_io
+from training.png import read_tensor_png, write_rgb_png
+from training.quantization import _calibration_reader, calibration_images, head_decode_nodes, quantize_int8
 
 pytest.importorskip("ultralytics")
 onnx = pytest.importorskip("onnx")

@@ -18,18 +18,13 @@ from PIL import Image
 
 pytest.importorskip("pybullet")  # generating the tiny data set needs the simulator extra
 
+from common.model_spec import CLASS_COLOURS
 from services.cli import main as cli_main
 from training.dataset import DatasetConfig, generate_dataset
-from training.pictures import (
-    AXIS,
-    CLASS_COLOURS,
-    MAP_BOTTOM_MARGIN,
-    MAP_ORIGIN,
-    MAP_PANEL_WIDTH,
-    RASTER_ORIGIN,
-    decode_hits,
-    render_sample,
-)
+from training.map_picture import MAP_BOTTOM_MARGIN, MAP_ORIGIN, MAP_PANEL_WIDTH, decode_hits
+from training.picture_style import AXIS
+from training.pictures import render_sample
+from training.raster_picture import RASTER_ORIGIN
 
 ROWS_PER_M = 63 / 4.0
 

@@ -52,7 +52,7 @@ def test_training_writes_weights_and_a_summary(trained_run: tuple[Path, Path]) -
 def test_export_then_eval_runs_through_the_runtime_detector(
     trained_run: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    from training.export import export_onnx
+    from training.onnx_export import export_onnx
 
     data, best = trained_run
     onnx_path = export_onnx(best, tmp_path / "smoke.onnx", padding="zero")

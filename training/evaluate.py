@@ -33,7 +33,7 @@ import numpy as np
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding
 from common.inference import OnnxDetector, unwrap_seam_duplicates
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS
-from training.export import read_tensor_png
+from training.png import read_tensor_png
 
 if TYPE_CHECKING:
     from services.simulator.lidar import LidarSpec
@@ -276,7 +276,6 @@ def evaluate(
     from training.offline import configure_offline
 
     configure_offline()
-    import torch
     from ultralytics.utils.metrics import ConfusionMatrix, DetMetrics
 
     names = dict(enumerate(CLASS_NAMES))
@@ -296,55 +295,23 @@ def evaluate(
         iou = iou_of(sample.boxes, boxes) if len(boxes) and len(sample.boxes) else np.zeros((0, 0))
         correct = match_predictions(classes, sample.classes, iou)
         metrics.update_stats(_stats(correct, scores, classes, sample.classes, sample.name))
-        label_in, pred_in = seam_subset(sample, iou.reshape(len(sample.classes), len(classes)), classes)
-        if label_in.any():
-            seam_instances += int(label_in.sum())
-            seam_correct = match_predictions(
-                classes[pred_in], sample.classes[label_in], iou[label_in][:, pred_in]
-            )
-            seam_metrics.update_stats(
-                _stats(seam_correct, scores[pred_in], classes[pred_in], sample.classes[label_in], sample.name)
-            )
-        confusion.process_batch(
-            {
-                "bboxes": torch.from_numpy(np.asarray(boxes, dtype=np.float32)),
-                "conf": torch.from_numpy(np.asarray(scores, dtype=np.float32)),
-                "cls": torch.from_numpy(np.asarray(classes, dtype=np.float32)),
-            },
-            {
-                "bboxes": torch.from_numpy(sample.boxes.astype(np.float32)),
-                "cls": torch.from_numpy(sample.classes.astype(np.float32)),
-            },
-        )
+        seam_instances += _update_seam_stats(seam_metrics, sample, iou, scores, classes)
+        confusion.process_batch(*_confusion_batch(sample, boxes, scores, classes))
         report.images += 1
         report.instances += len(sample.classes)
     if report.images == 0:
         raise ValueError(f"{source}: no samples to evaluate")
     out_dir.mkdir(parents=True, exist_ok=True)
     metrics.process(save_dir=out_dir, plot=plots)
-    precision, recall, map50, map50_95 = (float(v) for v in metrics.mean_results())
-    report.overall = {"precision": precision, "recall": recall, "mAP50": map50, "mAP50-95": map50_95}
+    report.overall = _figures(metrics.mean_results())
     for class_index in metrics.ap_class_index:
-        p, r, ap50, ap = (
-            float(v) for v in metrics.class_result(list(metrics.ap_class_index).index(class_index))
-        )
         report.per_class[names[int(class_index)]] = {
             "instances": int(metrics.nt_per_class[int(class_index)]),
-            "precision": p,
-            "recall": r,
-            "mAP50": ap50,
-            "mAP50-95": ap,
+            **_figures(metrics.class_result(list(metrics.ap_class_index).index(class_index))),
         }
     if seam_instances:
         seam_metrics.process(save_dir=out_dir, plot=False)
-        p, r, ap50, ap = (float(v) for v in seam_metrics.mean_results())
-        report.seam_crossing = {
-            "instances": seam_instances,
-            "precision": p,
-            "recall": r,
-            "mAP50": ap50,
-            "mAP50-95": ap,
-        }
+        report.seam_crossing = {"instances": seam_instances, **_figures(seam_metrics.mean_results())}
     report.mean_timings_ms = {k: v / report.images for k, v in timing_sums.items()}
     if plots:
         confusion.plot(normalize=True, save_dir=out_dir)
@@ -356,6 +323,45 @@ def evaluate(
     (out_dir / "metrics.json").write_text(json.dumps(report.to_json(), indent=2) + "\n")
     log.info("%s on %s: %s", report.model_id, source, report.overall)
     return report
+
+
+def _update_seam_stats(
+    seam_metrics: Any, sample: EvalSample, iou: np.ndarray, scores: np.ndarray, classes: np.ndarray
+) -> int:
+    """Score the sample's seam-crossing objects alone into ``seam_metrics``; return how many labels."""
+    label_in, pred_in = seam_subset(sample, iou.reshape(len(sample.classes), len(classes)), classes)
+    if not label_in.any():
+        return 0
+    seam_correct = match_predictions(classes[pred_in], sample.classes[label_in], iou[label_in][:, pred_in])
+    seam_metrics.update_stats(
+        _stats(seam_correct, scores[pred_in], classes[pred_in], sample.classes[label_in], sample.name)
+    )
+    return int(label_in.sum())
+
+
+def _confusion_batch(
+    sample: EvalSample, boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Predictions and labels of one image as the torch dicts of Ultralytics' ``ConfusionMatrix``."""
+    import torch
+
+    return (
+        {
+            "bboxes": torch.from_numpy(np.asarray(boxes, dtype=np.float32)),
+            "conf": torch.from_numpy(np.asarray(scores, dtype=np.float32)),
+            "cls": torch.from_numpy(np.asarray(classes, dtype=np.float32)),
+        },
+        {
+            "bboxes": torch.from_numpy(sample.boxes.astype(np.float32)),
+            "cls": torch.from_numpy(sample.classes.astype(np.float32)),
+        },
+    )
+
+
+def _figures(results: Any) -> dict[str, float]:
+    """Ultralytics' (P, R, mAP@0.5, mAP@0.5:0.95) as the named floats of metrics.json."""
+    precision, recall, map50, map50_95 = (float(v) for v in results)
+    return {"precision": precision, "recall": recall, "mAP50": map50, "mAP50-95": map50_95}
 
 
 def format_table(report: EvalReport) -> str:

@@ -1,9 +1,13 @@
-"""A minimal, fast writer of 8-bit RGB PNGs for the data set's sparse scan images.
+"""The data set's scan images as PNGs: a minimal, fast writer, and the reader that gives the tensor back.
 
 The images are 64×384×3 and about 99 % zeros. Pillow spends most of its time choosing per-row
 filters that buy nothing on such data; writing filter type 0 rows straight into zlib at level 1 is
 three to four times faster and the files stay ~1.5 kB. Output depends only on zlib, so a seed gives
 byte-identical files across Pillow versions. Any PNG reader (OpenCV in Ultralytics, Pillow) reads it.
+
+Reading one back as the run-time tensor (:func:`read_tensor_png`) lives beside the writer because the
+two must agree on the channel order (red plane = channel 0 = scan t−2); calibration, the export's
+checks and the evaluation all read the data set through it.
 """
 
 from __future__ import annotations
@@ -13,6 +17,9 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
+from training.onnx_model import ExportError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 ZLIB_LEVEL = 1
@@ -40,3 +47,19 @@ def encode_rgb_png(image: np.ndarray) -> bytes:
 
 def write_rgb_png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(encode_rgb_png(image))
+
+
+def read_tensor_png(path: Path) -> np.ndarray:
+    """A data-set PNG as the run-time ``uint8[64, 384, 3]`` tensor (PNG red plane = channel 0 = t−2).
+
+    Pillow returns planes in file order (R, G, B), which is the order :func:`encode_rgb_png` wrote them;
+    OpenCV would return B, G, R and silently swap the oldest and newest scan. A PNG of another size is
+    an :class:`~training.onnx_model.ExportError`, the one-line error of the commands that read them.
+    """
+    from PIL import Image
+
+    with Image.open(path) as image:
+        tensor = np.asarray(image.convert("RGB"), dtype=np.uint8)
+    if tensor.shape != (RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH):
+        raise ExportError(f"{path}: expected a {IMAGE_WIDTH}×{RANGE_ROWS} RGB image, got {tensor.shape}")
+    return tensor

@@ -1,0 +1,131 @@
+"""Trained YOLOv8n checkpoint → the fixed-shape fp32 ONNX file the robot runs, padding recorded.
+
+The robot runs ONNX Runtime, never torch, so the checkpoint is exported once here with the shape it
+will always see: ``float32[1, 3, 64, 384]`` (batch 1, no dynamic axes: a fixed graph lets ONNX Runtime
+plan memory once and keeps the INT8 calibration valid for every input). Besides Ultralytics' own
+metadata (names, imgsz, stride) each file carries ``triscan.*`` metadata — padding mode, class list,
+source weights — so a detector can refuse a model trained on the other padding instead of silently
+mixing ``zero`` and ``wrap`` (README, "The encoding"). Which padding to record is decided here too
+(:func:`resolve_padding`): the data set's word wins, and a caller who says otherwise gets an error.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from common.encoding import IMAGE_WIDTH, PADDINGS, RANGE_ROWS
+from common.model_spec import CLASS_NAMES, META_CLASSES, META_PADDING, META_PREFIX
+from training.onnx_model import ExportError, provenance, save_checked, set_metadata
+
+log = logging.getLogger(__name__)
+
+
+def dataset_padding(dataset_dir: Path) -> str | None:
+    """The padding a data set was generated with, or None if the directory does not say.
+
+    ``summary.json`` (written by ``triscan dataset``) is authoritative; the comment line of
+    ``data.yaml`` is the fallback for a set whose summary was not copied along.
+    """
+    summary = dataset_dir / "summary.json"
+    if summary.is_file():
+        padding = json.loads(summary.read_text()).get("config", {}).get("padding")
+        if padding in PADDINGS:
+            return str(padding)
+    data_yaml = dataset_dir / "data.yaml"
+    if data_yaml.is_file():
+        match = re.search(r"padding (\w+)", data_yaml.read_text())
+        if match and match.group(1) in PADDINGS:
+            return match.group(1)
+    return None
+
+
+def resolve_padding(requested: str | None, dataset_dir: Path | None) -> str:
+    """Padding to record in the model: the data set's when known, checked against the caller's.
+
+    A mismatch is an error, not a warning: a ``wrap`` model fed ``zero`` tensors (or the reverse)
+    still produces plausible-looking detections, so nothing downstream would catch it.
+    """
+    if requested is not None and requested not in PADDINGS:
+        raise ExportError(f"padding must be one of {PADDINGS}, got {requested!r}")
+    derived = dataset_padding(dataset_dir) if dataset_dir is not None else None
+    if derived is not None and requested is not None and derived != requested:
+        raise ExportError(f"padding {requested!r} requested but the data set {dataset_dir} uses {derived!r}")
+    if derived is not None:
+        return derived
+    if requested is None:
+        log.warning("padding not derivable from the training data set; recording the default 'zero'")
+        return "zero"
+    return requested
+
+
+def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: str | None = None) -> Path:
+    """Export an Ultralytics checkpoint to a fixed-shape fp32 ONNX file at ``out``.
+
+    ``padding`` is read from the data set the checkpoint was trained on (its ``train_args.data``)
+    when that set is still on disk; ``padding`` must then agree with it. If neither says, ``zero``
+    (the paper's default) is recorded with a warning.
+
+    Ultralytics writes the ONNX next to the file it loaded, so the checkpoint is copied into a scratch
+    directory first: exporting never litters the run directory or the working directory.
+    """
+    weights = Path(weights)
+    out = Path(out)
+    if not weights.is_file():
+        raise FileNotFoundError(f"weights {weights} not found")
+    from training.offline import configure_offline
+
+    configure_offline()
+    import onnx
+    from ultralytics import YOLO
+
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="triscan-export-") as scratch:
+        local = Path(scratch) / weights.name
+        shutil.copyfile(weights, local)
+        yolo = YOLO(str(local), task="detect")
+        names = [yolo.names[i] for i in sorted(yolo.names)]
+        if tuple(names) != CLASS_NAMES:
+            raise ExportError(f"{weights} predicts {names}, not the triscan classes {list(CLASS_NAMES)}")
+        data = (getattr(yolo, "ckpt", None) or {}).get("train_args", {}).get("data")
+        dataset_dir = Path(data).parent if data else None
+        if dataset_dir is not None and not dataset_dir.is_dir():
+            dataset_dir = None
+        recorded_padding = resolve_padding(padding, dataset_dir)
+        exported = yolo.export(
+            format="onnx",
+            imgsz=(RANGE_ROWS, IMAGE_WIDTH),
+            batch=1,
+            dynamic=False,
+            simplify=True,
+            opset=opset,
+            nms=False,  # NMS runs in common/inference.py, where its thresholds are configurable
+            device="cpu",  # the same graph whatever accelerator this machine has
+            verbose=False,
+        )
+        model = onnx.load(str(exported))
+    set_metadata(
+        model,
+        {
+            META_PADDING: recorded_padding,
+            META_CLASSES: json.dumps(list(CLASS_NAMES)),
+            f"{META_PREFIX}source_weights": provenance(weights),
+            f"{META_PREFIX}precision": "fp32",
+        },
+    )
+    save_checked(model, out)
+    log.info(
+        "exported %s → %s (opset %d, padding %s, %.1f MB, %.1f s)",
+        weights,
+        out,
+        next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx")),
+        recorded_padding,
+        out.stat().st_size / 1e6,
+        time.perf_counter() - started,
+    )
+    return out
