@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from common.encoding import to_model_input
+from common.inference import OnnxDetector
 from common.model_spec import CLASS_NAMES, INPUT_SHAPE, NUM_ANCHORS, batch_variant_path, file_sha256
 from training.batch_variant import BATCH_AXIS, add_batch_axis
 from training.dataset import DatasetConfig, generate_dataset
@@ -49,7 +50,9 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny ``wrap`` set: not the default padding, so reading it from the set is observable."""
     out = tmp_path_factory.mktemp("export_ds") / "set"
     generate_dataset(
-        DatasetConfig(out=out, scenarios=3, positions=2, seed=3, padding="wrap", frame_stride=4),
+        DatasetConfig(
+            out=out, scenarios=3, positions=2, seed=3, padding="wrap", frame_stride=4, invalid="empty"
+        ),
         progress=False,
     )
     return out
@@ -131,6 +134,8 @@ def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: P
     assert meta["imgsz"] == "[64, 384]" and meta["stride"] == "32" and meta["task"] == "detect"
     assert "doorframe" in meta["names"]
     assert meta["triscan.padding"] == "wrap", "padding must come from the training data set"
+    assert meta["triscan.invalid"] == "empty", "so must the invalid-return rule"
+    assert OnnxDetector(fp32).invalid == "empty"
     assert json.loads(meta["triscan.classes"]) == list(CLASS_NAMES)
     assert meta["triscan.source_weights"] == f"last.pt sha256:{file_sha256(weights)[:12]}"
     assert meta["triscan.precision"] == "fp32"

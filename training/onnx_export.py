@@ -3,9 +3,10 @@
 The robot runs ONNX Runtime, never torch, so the checkpoint is exported once here with the shape it
 will always see: ``float32[1, 3, 64, 384]`` (batch 1, no dynamic axes: a fixed graph lets ONNX Runtime
 plan memory once and keeps the INT8 calibration valid for every input). Besides Ultralytics' own
-metadata (names, imgsz, stride) each file carries ``triscan.*`` metadata — padding mode, class list,
-source weights — so a detector can refuse a model trained on the other padding instead of silently
-mixing ``zero`` and ``wrap`` (README, "The encoding"). Which padding to record is decided here too
+metadata (names, imgsz, stride) each file carries ``triscan.*`` metadata — padding mode, invalid-return
+rule, class list, source weights — so a detector can refuse a model trained on the other padding
+instead of silently mixing ``zero`` and ``wrap`` (README, "The encoding"). Which padding to record is
+decided here too
 (:func:`resolve_padding`): the data set's word wins, and a caller who says otherwise gets an error.
 """
 
@@ -19,8 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from common.encoding import IMAGE_WIDTH, PADDINGS, RANGE_ROWS
-from common.model_spec import CLASS_NAMES, META_CLASSES, META_PADDING, META_PREFIX
+from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS
+from common.model_spec import CLASS_NAMES, META_CLASSES, META_INVALID, META_PADDING, META_PREFIX
 from training.onnx_model import ExportError, provenance, save_checked, set_metadata
 
 log = logging.getLogger(__name__)
@@ -43,6 +44,18 @@ def dataset_padding(dataset_dir: Path) -> str | None:
         if match and match.group(1) in PADDINGS:
             return match.group(1)
     return None
+
+
+def dataset_invalid_rule(dataset_dir: Path | None) -> str:
+    """Where the data set put invalid returns: its ``summary.json`` says; sets made before the option
+    existed (no key) and sets whose summary is gone used the paper's sentinel row."""
+    summary = dataset_dir / "summary.json" if dataset_dir is not None else None
+    if summary is not None and summary.is_file():
+        rule = json.loads(summary.read_text()).get("config", {}).get("invalid", "sentinel")
+        if rule not in INVALID_RULES:
+            raise ExportError(f"{summary} names an unknown invalid-return rule {rule!r}")
+        return str(rule)
+    return "sentinel"
 
 
 def resolve_padding(requested: str | None, dataset_dir: Path | None) -> str:
@@ -97,6 +110,7 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
         if dataset_dir is not None and not dataset_dir.is_dir():
             dataset_dir = None
         recorded_padding = resolve_padding(padding, dataset_dir)
+        recorded_invalid = dataset_invalid_rule(dataset_dir)
         exported = yolo.export(
             format="onnx",
             imgsz=(RANGE_ROWS, IMAGE_WIDTH),
@@ -113,6 +127,7 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
         model,
         {
             META_PADDING: recorded_padding,
+            META_INVALID: recorded_invalid,
             META_CLASSES: json.dumps(list(CLASS_NAMES)),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",
