@@ -60,6 +60,7 @@ from common.model_spec import (
     NUM_ANCHORS,
     NUM_CLASSES,
     SHIPPED_BATCH_MODEL,
+    default_model_path,
     file_model_id,
 )
 
@@ -468,6 +469,28 @@ def check_batch(batch: int, takes_batches: bool, model_path: Path | str) -> None
             f"--batch {batch} needs a model with a free batch axis; {model_path} is fixed at batch 1 "
             f"(its -batch variant, e.g. models/{SHIPPED_BATCH_MODEL.name}, is the same network)"
         )
+
+
+AUTO_BATCH: Final[int] = 4
+"""The detector's batch cap when none is given and its model takes batches. A worker never waits to fill
+a batch, so a lone robot is served at batch 1 (same outputs, same speed); several waiting robots share
+one model call, which on a CPU costs less per frame. 4, not 8: at 8 fp32 frames one call lasts long
+enough to push p99 past 100 ms (bench/README.md, "Does `--batch` raise it?")."""
+
+
+def detector_model_and_batch(model: Path | None, batch: int | None) -> tuple[Path, int]:
+    """The model and batch cap a detector runs when the user may have chosen neither.
+
+    ``batch`` None picks by itself: the shipped ``-batch`` model (or ``model``) with :data:`AUTO_BATCH`
+    when the model takes batches, batch 1 when it does not. An explicit ``batch`` is checked against
+    the model (:func:`check_batch`); with ``batch`` 1 and no model, the fixed batch-1 file is used.
+    """
+    if batch is None:
+        path = model or default_model_path(batched=True)
+        return path, AUTO_BATCH if model_takes_batches(path) else 1
+    path = model or default_model_path(batched=batch > 1)
+    check_batch(batch, batch == 1 or model_takes_batches(path), path)
+    return path, batch
 
 
 def default_providers() -> list[str]:

@@ -379,8 +379,8 @@ def _add_up(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--batch",
         type=int,
-        default=1,
-        help="detector: most robots per model call (above 1 needs a -batch model, the default then)",
+        default=None,
+        help="detector: most robots per model call (default: it picks, 4 with the shipped -batch model)",
     )
     p.add_argument("--seed", type=int, default=None, help="simulator seed (default 1; training used 0)")
     p.add_argument(

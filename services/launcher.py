@@ -35,9 +35,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import check_batch, model_invalid_rule, model_padding, model_takes_batches
+from common.inference import detector_model_and_batch, model_invalid_rule, model_padding
 from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
-from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session
 from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
@@ -67,7 +66,7 @@ class UpConfig:
     rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
     viewer: str = "spawn"  # spawn | web | none, when not headless
     model: Path | None = None
-    batch: int = 1  # the detector's --batch: most robots per model call
+    batch: int | None = None  # the detector's --batch (None: it picks, common.inference.AUTO_BATCH)
     seed: int = 1  # the shipped model trained on seed 0's worlds: show it unseen ones
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
@@ -137,7 +136,7 @@ def service_commands(
         sink = ["--spawn"]
     else:
         sink = []
-    model = config.model or default_model_path(batched=config.batch > 1)
+    model, _ = detector_model_and_batch(config.model, config.batch)
     padding = model_padding(model)  # the encoder must match the model
     service_args = {
         REPLAY: [] if config.replay is None else replay_arguments(config.replay),
@@ -146,7 +145,10 @@ def service_commands(
             *("--padding", padding),
         ],
         "encoder": ["--padding", padding, "--invalid", model_invalid_rule(model)],
-        "detector": [*(("--model", str(config.model)) if config.model else ()), "--batch", str(config.batch)],
+        "detector": [
+            *(("--model", str(config.model)) if config.model else ()),
+            *(("--batch", str(config.batch)) if config.batch is not None else ()),
+        ],
         "visualizer": sink,
     }
     commands = {}
@@ -262,8 +264,7 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     service kept dying, never came up, or the replay failed."""
     if config.robots < 1:
         raise ValueError(f"--robots must be >= 1, got {config.robots}")
-    model = config.model or default_model_path(batched=config.batch > 1)
-    check_batch(config.batch, config.batch == 1 or model_takes_batches(model), model)
+    detector_model_and_batch(config.model, config.batch)  # a batch the model cannot run fails here
     if config.replay is not None:
         robots = replay_robots(config.replay)  # a wrong bag or topic fails here, before anything starts
         log.info("replaying %s", ", ".join(f"{topic} as {robot}" for topic, robot in robots.items()))

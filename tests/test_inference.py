@@ -641,3 +641,17 @@ def test_exported_model_detect_gives_valid_detections(exported: tuple[Path, Any]
         assert math.hypot(det.x_m, det.y_m) == pytest.approx((det.range_min_m + det.range_max_m) / 2)
     assert isinstance(timings, StageTimings)
     assert timings.encode_ms >= 0 and timings.inference_ms > 0 and timings.nms_ms >= 0
+
+
+def test_the_detector_picks_its_model_and_batch_by_itself(tmp_path: Path) -> None:
+    from common.inference import AUTO_BATCH, detector_model_and_batch
+    from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
+
+    assert detector_model_and_batch(None, None) == (SHIPPED_BATCH_MODEL, AUTO_BATCH)
+    assert detector_model_and_batch(SHIPPED_MODEL, None) == (SHIPPED_MODEL, 1)  # a fixed model: batch 1
+    assert detector_model_and_batch(None, 1) == (SHIPPED_MODEL, 1)
+    assert detector_model_and_batch(None, 8) == (SHIPPED_BATCH_MODEL, 8)
+    with pytest.raises(ValueError, match="free batch axis"):
+        detector_model_and_batch(SHIPPED_MODEL, 4)
+    with pytest.raises(ValueError, match="--batch must be >= 1"):
+        detector_model_and_batch(None, 0)

@@ -68,7 +68,7 @@ def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything
     from services.launcher import up
 
     ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
-    assert flag_values(service_commands(UpConfig(viewer="none"), ports, None)["detector"], "--batch") == ["1"]
+    assert flag_values(service_commands(UpConfig(viewer="none"), ports, None)["detector"], "--batch") == []
     batched = service_commands(UpConfig(viewer="none", batch=8), ports, None)["detector"]
     assert flag_values(batched, "--batch") == ["8"] and flag_values(batched, "--model") == []
     fixed = MODELS / "triscan-yolov8n-zero.onnx"

@@ -17,10 +17,17 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector, check_batch
+from common.inference import (
+    AUTO_BATCH,
+    DEFAULT_CONF,
+    DEFAULT_IOU,
+    OnnxDetector,
+    check_batch,
+    detector_model_and_batch,
+)
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
-from common.model_spec import MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL, default_model_path
+from common.model_spec import MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, settings_from_args
 from services.detector.core import DetectorCore, InferencePipeline
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
@@ -90,9 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--batch",
         type=int,
-        default=1,
-        help="most robots' tensors per model call, each worker; above 1 needs a -batch model "
-        f"(default model then: {SHIPPED_BATCH_MODEL.name})",
+        default=None,
+        help=f"most robots' tensors per model call, each worker (default: {AUTO_BATCH} with a -batch model, "
+        f"{SHIPPED_BATCH_MODEL.name} when no --model is given; 1 with a fixed model)",
     )
     parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
@@ -102,20 +109,21 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(args.verbose)
     if args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
-    if args.batch < 1:
+    if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
     threads = args.threads or (max(1, (os.cpu_count() or 1) // args.workers) if args.workers > 1 else None)
     try:
+        model, batch = detector_model_and_batch(args.model, args.batch)
         detectors = [
             OnnxDetector(
-                args.model or default_model_path(batched=args.batch > 1),
+                model,
                 conf_threshold=args.conf,
                 iou_threshold=args.iou,
                 intra_op_threads=threads,
             )
             for _ in range(args.workers)
         ]
-        check_batch(args.batch, all(d.batched for d in detectors), detectors[0].model_path)
+        check_batch(batch, all(d.batched for d in detectors), model)
     except (FileNotFoundError, ValueError) as exc:
         log.error("cannot load the model: %s", exc)
         return 2
@@ -126,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         from_scans=args.from_scans,
         forget_after_s=args.forget_after,
         duration_s=args.duration,
-        batch=args.batch,
+        batch=batch,
     )
     return 0
 
