@@ -21,6 +21,7 @@ pipeline − bare is what the pipeline adds, free of this VM's drift between run
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import subprocess
 import threading
@@ -38,6 +39,7 @@ from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.detector.core import default_intra_op_threads
 from services.launcher import free_tcp_ports, stop_processes
 from services.simulator.fleet import SimulatedFleet
 
@@ -68,6 +70,8 @@ class LatencyReport:
     stage_ms_p99: dict[str, float] = field(default_factory=dict)
     bare_ms: dict[str, float] = field(default_factory=dict)  # the network alone, same model and threads
     overhead_ms: dict[str, float] = field(default_factory=dict)  # pipeline − bare: p50, p99
+    zenoh_cfg: list[str] = field(default_factory=list)  # --cfg entries every process ran with
+    bare_threads: int | None = None  # ONNX Runtime threads of the baseline and the detector (None: all)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
     machine: MachineInfo = field(default_factory=machine_info)
 
@@ -81,6 +85,7 @@ def run(
     model: Path | None = None,
     trace: Path | None = None,
     bare_frames: int = 300,
+    zenoh_cfg: tuple[str, ...] = (),
 ) -> LatencyReport:
     """Start the services, publish the simulated robots' scans through them, and time every answer."""
     report = LatencyReport(
@@ -90,9 +95,13 @@ def run(
         rate_hz,
         duration_s,
     )
-    report.bare_ms = bare_frame_latency(model or default_model_path(), threads, rate_hz, bare_frames)
+    model = model or default_model_path()
+    report.zenoh_cfg = list(zenoh_cfg)
+    # The detector's own default when --threads is not given, so the baseline times the same setting.
+    report.bare_threads = threads or default_intra_op_threads(1, from_scans)
+    report.bare_ms = bare_frame_latency(model, report.bare_threads, rate_hz, bare_frames)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
-    children = _start_services(from_scans, threads, model, bench_port, encoder_port, detector_port)
+    children = _start_services(from_scans, threads, model, bench_port, encoder_port, detector_port, zenoh_cfg)
     received: dict[tuple[str, int], tuple[int, Detections]] = {}
     lock = threading.Lock()
 
@@ -104,7 +113,11 @@ def run(
 
     try:
         with (
-            open_session(ZenohSettings.loopback(bench_port)) as session,
+            open_session(
+                dataclasses.replace(
+                    ZenohSettings.loopback(bench_port), cfg=tuple(tuple(e.split(":", 1)) for e in zenoh_cfg)
+                )
+            ) as session,
             SimulatedFleet(robots, rate_hz=rate_hz) as fleet,
         ):
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
@@ -129,15 +142,19 @@ def run(
 def _start_services(
     from_scans: bool,
     threads: int | None,
-    model: Path | None,
+    model: Path,
     bench_port: int,
     encoder_port: int,
     detector_port: int,
+    zenoh_cfg: tuple[str, ...] = (),
 ) -> dict[str, subprocess.Popen[bytes]]:
-    """The encoder and the detector as two processes, or one ``--from-scans`` detector."""
-    detector_args = ["--threads", str(threads)] if threads else []
-    if model is not None:
-        detector_args += ["--model", str(model)]
+    """The encoder and the detector as two processes, or one ``--from-scans`` detector.
+
+    The detector is given ``model`` explicitly, so the pipeline runs the very file the bare baseline
+    timed. ``zenoh_cfg`` entries (``KEY:VALUE``) go to every process as ``--cfg``.
+    """
+    cfg = [arg for entry in zenoh_cfg for arg in ("--cfg", entry)]
+    detector_args = [*(["--threads", str(threads)] if threads else []), "--model", str(model), *cfg]
     if from_scans:
         return {
             "detector": start_loopback_service(
@@ -145,11 +162,16 @@ def _start_services(
             )
         }
     return {
-        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
+        "encoder": start_loopback_service(
+            "services.encoder", encoder_port, [bench_port, detector_port], *cfg
+        ),
         "detector": start_loopback_service(
             "services.detector", detector_port, [bench_port, encoder_port], *detector_args
         ),
     }
+
+
+NO_SHM = ("transport/shared_memory/enabled:false",)  # zenoh copies every payload through the socket
 
 
 def _publish_scans(
@@ -275,6 +297,9 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     parser.add_argument("--trace", type=Path, default=None, help="also write per-frame stage times (CSV)")
     parser.add_argument("--bare-frames", type=int, default=300, help="frames of the bare-network baseline")
+    parser.add_argument(
+        "--no-shm", action="store_true", help="zenoh shared memory off in every process (the comparison)"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     report = run(
@@ -286,6 +311,7 @@ def main() -> int:
         args.model,
         trace=args.trace,
         bare_frames=args.bare_frames,
+        zenoh_cfg=NO_SHM if args.no_shm else (),
     )
     write_report(report, args.out)
     return 0 if report.scans_answered else 1

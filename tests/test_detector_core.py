@@ -191,3 +191,13 @@ def test_a_batch_gives_each_robot_what_it_would_get_alone(
     # One shared call: every frame of the batch reports the same inference time.
     assert len({m.timings.inference_ms for m in together}) == 1
     assert core.detect_many([]) == [] and core.counters.inference_calls == 1
+
+
+def test_default_threads_leave_a_core_to_the_encoder_in_the_same_process() -> None:
+    from services.detector.core import default_intra_op_threads
+
+    assert default_intra_op_threads(1, from_scans=False, cpus=2) is None  # ONNX Runtime: every core
+    assert default_intra_op_threads(1, from_scans=True, cpus=2) == 1
+    assert default_intra_op_threads(1, from_scans=True, cpus=1) == 1
+    assert default_intra_op_threads(2, from_scans=False, cpus=8) == 4
+    assert default_intra_op_threads(4, from_scans=True, cpus=2) == 1

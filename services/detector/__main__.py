@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -29,7 +28,7 @@ from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
 from common.model_spec import MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, settings_from_args
-from services.detector.core import DetectorCore, InferencePipeline
+from services.detector.core import DetectorCore, InferencePipeline, default_intra_op_threads
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
 from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
@@ -86,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         "--threads",
         type=int,
         default=None,
-        help="ONNX Runtime threads per worker (default: all cores / workers)",
+        help="ONNX Runtime threads per worker (default: cores / workers; one core less with --from-scans)",
     )
     parser.add_argument(
         "--workers",
@@ -111,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--workers must be >= 1, got {args.workers}")
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
-    threads = args.threads or (max(1, (os.cpu_count() or 1) // args.workers) if args.workers > 1 else None)
+    threads = args.threads or default_intra_op_threads(args.workers, args.from_scans)
     try:
         model, batch = detector_model_and_batch(args.model, args.batch)
         detectors = [

@@ -13,6 +13,7 @@ measures.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import Counter, OrderedDict
@@ -236,6 +237,22 @@ class DetectorCore:
             model_id=self.detector.model_id,
             scan_stamp_ns=tensor.scan_stamps_ns[2],
         )
+
+
+def default_intra_op_threads(workers: int, from_scans: bool, cpus: int | None = None) -> int | None:
+    """ONNX Runtime threads per worker when the user gives none (``None``: every core).
+
+    Several workers share the cores. With ``--from-scans`` the encoder's Zenoh callbacks run in this
+    process too, and an ONNX Runtime thread on every core then competes with them: measured on a
+    2-core VM at 10 Hz, one thread instead of two cut the scan → detections p50 from 13.2 to 9.4 ms
+    (bench/README.md, "Pipeline latency"). So one core is left to the rest of the process.
+    """
+    cpus = cpus or os.cpu_count() or 1
+    if workers > 1:
+        return max(1, cpus // workers)
+    if from_scans:
+        return max(1, cpus - 1)
+    return None
 
 
 class InferencePipeline:
