@@ -24,10 +24,9 @@ from training.export import export_models
 from training.export_checks import compare_outputs, median_latency_ms
 from training.offline import configure_offline
 from training.onnx_export import export_onnx
-from training.onnx_model import BOX_CHANNELS, ExportError
-from training.onnx_model import check_io as _check_io
+from training.onnx_model import BOX_CHANNELS, ExportError, check_io
 from training.png import read_tensor_png, write_rgb_png
-from training.quantization import _calibration_reader, calibration_images, head_decode_nodes, quantize_int8
+from training.quantization import calibration_images, calibration_reader, head_decode_nodes, quantize_int8
 
 pytest.importorskip("ultralytics")
 onnx = pytest.importorskip("onnx")
@@ -122,11 +121,11 @@ def test_shape_check_rejects_dynamic_axes_and_other_outputs(fp32: Path) -> None:
     dim = model.graph.input[0].type.tensor_type.shape.dim[0]
     dim.dim_param = "batch"  # what `dynamic=True` would have produced
     with pytest.raises(ExportError, match="input must be"):
-        _check_io(model, fp32)
+        check_io(model, fp32)
     model = onnx.load(str(fp32))
     model.graph.output[0].type.tensor_type.shape.dim[2].dim_value = 2100  # a 640×320-sized anchor grid
     with pytest.raises(ExportError, match="output must be"):
-        _check_io(model, fp32)
+        check_io(model, fp32)
 
 
 def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: Path) -> None:
@@ -313,7 +312,7 @@ def test_calibration_feeds_the_run_time_tensor_in_png_channel_order(tmp_path: Pa
     tensor[30, 40, 2] = 255  # scan t only
     write_rgb_png(tmp_path / "a.png", tensor)
     np.testing.assert_array_equal(read_tensor_png(tmp_path / "a.png"), tensor)
-    reader = _calibration_reader("images", [tmp_path / "a.png"])
+    reader = calibration_reader("images", [tmp_path / "a.png"])
     feed = reader.get_next()
     assert feed is not None and set(feed) == {"images"}
     np.testing.assert_array_equal(feed["images"], to_model_input(tensor))

@@ -70,7 +70,7 @@ def spread_evenly(items: Sequence[Path], count: int) -> list[Path]:
     return [items[i] for i in picks]
 
 
-def _calibration_reader(feed_name: str, images: Sequence[Path]) -> Any:
+def calibration_reader(feed_name: str, images: Sequence[Path]) -> Any:
     """A ``CalibrationDataReader`` yielding each PNG through the run-time conversion.
 
     Built inside a function so that importing this module does not import onnxruntime.quantization.
@@ -272,7 +272,7 @@ def quantize_int8(
         # Found on the graph actually quantised: pre-processing may fuse or rename nodes.
         graph_in = onnx.load(str(model_in))
         exclude = head_decode_nodes(graph_in) if keep_head_float else []
-        reader = _calibration_reader(input_name(graph_in), images)
+        reader = calibration_reader(input_name(graph_in), images)
         model = _quantize_static(
             model_in,
             reader,
