@@ -115,9 +115,16 @@ def _start_services(
     args: argparse.Namespace, bench_port: int, encoder_port: int, detector_port: int
 ) -> dict[str, subprocess.Popen[bytes]]:
     """The encoder (unless ``--from-scans``) and the detector, each connected to this bench process."""
+    tuning = (
+        ()
+        if args.detector_defaults
+        else (
+            *("--workers", str(args.workers), "--batch", str(args.batch)),
+            *(("--threads", str(args.threads)) if args.threads else ()),
+        )
+    )
     detector_args = (
-        *("--workers", str(args.workers), "--batch", str(args.batch)),
-        *(("--threads", str(args.threads)) if args.threads else ()),
+        *tuning,
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
     )
@@ -250,6 +257,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--threads", type=int, default=None, help="detector --threads per worker")
     parser.add_argument(
+        "--detector-defaults",
+        action="store_true",
+        help="pass no --workers/--batch/--threads: measure the detector as it configures itself",
+    )
+    parser.add_argument(
         "--from-scans",
         action="store_true",
         help="one detector --from-scans process instead of encoder + detector",
@@ -296,11 +308,13 @@ def main(argv: list[str] | None = None) -> int:
             "rss_growth_mb": args.rss_growth_mb,
         },
         "rate_hz": args.rate,
-        "workers": args.workers,
-        "batch": args.batch,
-        "threads": args.threads,
+        "workers": "detector default" if args.detector_defaults else args.workers,
+        "batch": "detector default" if args.detector_defaults else args.batch,
+        "threads": "detector default" if args.detector_defaults else args.threads,
         "from_scans": args.from_scans,
-        "model": str(args.model or f"default ({'fp32 -batch' if args.batch > 1 else 'fp32'})"),
+        "model": str(
+            args.model or f"default ({'fp32 -batch' if args.detector_defaults or args.batch > 1 else 'fp32'})"
+        ),
         "seconds_per_step": args.seconds,
         "machine": asdict(machine_info()),
         "steps": [asdict(s) for s in steps],

@@ -127,3 +127,15 @@ def test_replay_answered_reports_share_and_latency(tmp_path: Path) -> None:
     assert 0 < report["scans_answered"] <= 18 and report["answered_share"] > 0
     assert set(report["latency_ms"]) == {"p50", "p95", "p99", "max"}
     assert report["detector_counters"]["processed"] > 0 and report["machine"]["logical_cpus"] > 0
+
+
+def test_fleet_bound_measures_the_default_models_best_throughput() -> None:
+    from bench.fleet_bound import compute_bound
+    from common.model_spec import SHIPPED_BATCH_MODEL
+
+    bound = compute_bound(SHIPPED_BATCH_MODEL, seconds=0.2)
+    rows = bound["rows"]
+    assert bound["model"] == SHIPPED_BATCH_MODEL.name and len(rows) >= 4  # type: ignore[arg-type]
+    best_ms = min(row["ms_per_image"] for row in rows)  # type: ignore[union-attr]
+    assert bound["best_frames_per_s"] == round(1000.0 / best_ms, 1)
+    assert bound["best_batch"] in (1, 2, 4, 8)

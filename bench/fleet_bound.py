@@ -1,0 +1,93 @@
+"""The fleet the services hold at 10 Hz against the compute bound of the model, in one run.
+
+The bound is what the network alone could do on this machine: the default detector model's best
+throughput (frames/s) over batch sizes and ONNX Runtime thread counts, all cores busy, no Zenoh, no
+encoder (``bench.batch_inference``'s measurement). Divided by the scan rate it is the most robots any
+pipeline could serve here. Then ``bench.fleet_capacity`` climbs a ladder of robot counts at fractions
+of that bound with the detector left to its own defaults (``--detector-defaults``: no ``--workers``,
+``--batch`` or ``--threads``), and the share of the bound it holds (p99 < 100 ms, ≥ 95 % answered,
+flat memory) is the figure the pipeline-overhead issue asks for (goal ≥ 80 %).
+
+    python -m bench.fleet_bound --seconds 15 --out bench/results/fleet_bound.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import tempfile
+from pathlib import Path
+
+from bench import batch_inference, fleet_capacity
+from bench.machine import machine_info
+from common.inference import detector_model_and_batch
+
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+
+FRACTIONS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+
+def compute_bound(model: Path, seconds: float) -> dict[str, object]:
+    """Best frames/s of ``model`` over batch sizes and thread counts (the network alone)."""
+    frames = batch_inference.real_model_inputs(batch_inference.FRAMES)
+    threads = sorted({1, os.cpu_count() or 1})
+    report = batch_inference.measure([model], [1, 2, 4, 8], threads, seconds, frames)
+    best = min(report.rows, key=lambda row: row.ms_per_image)
+    return {
+        "model": model.name,
+        "best_frames_per_s": round(1000.0 / best.ms_per_image, 1),
+        "best_batch": best.batch,
+        "best_threads": best.threads,
+        "rows": [row.__dict__ for row in report.rows],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    parser.add_argument("--bound-seconds", type=float, default=3.0, help="seconds per batch/thread setting")
+    parser.add_argument("--seconds", type=float, default=15.0, help="measured seconds per fleet step")
+    parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_bound.json"))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    model, _ = detector_model_and_batch(None, None)  # the model the detector runs by default
+    bound = compute_bound(model, args.bound_seconds)
+    bound_robots = float(bound["best_frames_per_s"]) / args.rate  # type: ignore[arg-type]
+    ladder = sorted({max(1, math.floor(f * bound_robots)) for f in FRACTIONS})
+    log.info("compute bound: %.1f frames/s = %.1f robots at %.0f Hz; ladder %s", bound["best_frames_per_s"],
+             bound_robots, args.rate, ladder)  # fmt: skip
+    with tempfile.TemporaryDirectory() as scratch:
+        fleet_json = Path(scratch) / "fleet.json"
+        fleet_capacity.main(
+            [
+                "--ladder", ",".join(map(str, ladder)), "--seconds", str(args.seconds),
+                "--rate", str(args.rate), "--detector-defaults", "--out", str(fleet_json),
+            ]
+        )  # fmt: skip
+        fleet = json.loads(fleet_json.read_text())
+    capacity = int(fleet["capacity_robots"])
+    report = {
+        "bound": bound,
+        "bound_robots": round(bound_robots, 1),
+        "capacity_robots": capacity,
+        "share_of_bound": round(capacity / bound_robots, 3) if bound_robots else 0.0,
+        "fleet": fleet,
+        "machine": machine_info(),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    log.info(
+        "held %d robots of a %.1f-robot bound: %.0f %% (goal >= 80 %%); written to %s",
+        capacity,
+        bound_robots,
+        100 * report["share_of_bound"],  # type: ignore[operator]
+        args.out,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
