@@ -330,10 +330,12 @@ def ros_bad_payloads(count: int, scan: Scan, seed: int) -> Iterator[tuple[str, R
         yield name, make()
 
 
-def run(bad: int, good_every: int, seed: int, ros_bad: int | None = None) -> FuzzReport:
-    """``bad`` triscan payloads and ``ros_bad`` (default ``bad // 2``) ROS payloads, interleaved."""
-    ros_bad = bad // 2 if ros_bad is None else ros_bad
-    report = FuzzReport()
+BLOCK: dict[str, Any] = {"congestion_control": zenoh.CongestionControl.BLOCK}  # nothing lost on the way
+Children = dict[str, subprocess.Popen[bytes]]
+
+
+def _start_services() -> tuple[int, Children]:
+    """The three services as children wired to each other and to this process's port (returned)."""
     fuzz_port, encoder_port, detector_port, bridge_port = free_tcp_ports(4)
     quiet = {"stderr": subprocess.DEVNULL}  # thousands of rejections are logged; we read the counters
     children = {
@@ -351,153 +353,224 @@ def run(bad: int, good_every: int, seed: int, ros_bad: int | None = None) -> Fuz
             **quiet,
         ),
     }
-    scans = recorded_scans(40, seed=3)
-    tensor = StackedTensor(
+    return fuzz_port, children
+
+
+def _fuzz_tensor() -> StackedTensor:
+    """A valid tensor of the fuzz robot: the real message the tensor mutations are derived from."""
+    return StackedTensor(
         robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=np.zeros((64, 384, 3), np.uint8), padding="zero",
         scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
     )  # fmt: skip
-    answered: dict[str, set[int]] = {GOOD_ROBOT: set(), ROS_GOOD_ROBOT: set()}
-    stats: dict[str, dict[str, Any]] = {}
-    lock = threading.Lock()
 
-    def on_detections(sample: Any) -> None:
+
+class Heard:
+    """What the services publish back: the seqs answered for each good robot, each service's latest stats."""
+
+    def __init__(self) -> None:
+        self.answered: dict[str, set[int]] = {GOOD_ROBOT: set(), ROS_GOOD_ROBOT: set()}
+        self.stats: dict[str, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+
+    def on_detections(self, sample: Any) -> None:
+        """Note a good robot's answered seq; the fuzz robots' answers are not judged."""
         message = decode_message(payload_bytes(sample), Detections)
-        if message.robot_id in answered:
-            with lock:
-                answered[message.robot_id].add(message.seq)
+        if message.robot_id in self.answered:
+            with self._lock:
+                self.answered[message.robot_id].add(message.seq)
 
-    def on_stats(sample: Any) -> None:
+    def on_stats(self, sample: Any) -> None:
+        """Keep each service's latest counters: the last ones are judged."""
         body = json.loads(payload_bytes(sample))
-        with lock:
-            stats[body["service"]] = body
+        with self._lock:
+            self.stats[body["service"]] = body
 
-    expected_encoder = EncoderCore("zero")  # the encoder's rules, applied to exactly what is sent
-    expected_detector: Counter[str] = Counter()
-    expected_bridge = BridgeCore(BRIDGE_CONFIG)  # the bridge's rules; what it forwards feeds the encoder's
-    ros_good = RosScans(ROS_GOOD_ROBOT)
-    ros_good_seqs: list[int] = []  # bridge seqs of the good ROS scans sent while counting
-    block = {"congestion_control": zenoh.CongestionControl.BLOCK}
+    def forget_answers(self) -> None:
+        """Drop the answers so far, so only those to counted scans are judged."""
+        with self._lock:
+            for seqs in self.answered.values():
+                seqs.clear()
+
+
+@dataclass
+class FuzzSession:
+    """This process's side of a run: what it puts, and what each service should count for it.
+
+    Scan payloads go through a local encoder core, tensor payloads through the message decoder, ROS
+    samples through a local bridge core (whose forwarded scans feed the local encoder too).
+    """
+
+    session: Any  # zenoh.Session
+    scans: list[Scan]
+    good_pub: Any  # the good robot's scan publisher
+    ros_good: RosScans
+    expected_encoder: EncoderCore = field(default_factory=lambda: EncoderCore("zero"))
+    expected_detector: Counter[str] = field(default_factory=Counter)
+    expected_bridge: BridgeCore = field(default_factory=lambda: BridgeCore(BRIDGE_CONFIG))
+    ros_good_seqs: list[int] = field(default_factory=list)  # bridge seqs of the good ROS scans counted
+    sent_by_kind: Counter[str] = field(default_factory=Counter)
+    ros_sent_by_kind: Counter[str] = field(default_factory=Counter)
+    valid_by_design: int = 0
+    good_seq: int = 0
+    counting: bool = False  # off while priming: the local cores count only what is judged
+
+    @classmethod
+    def ready(cls, session: Any, scans: list[Scan]) -> FuzzSession:
+        """Wait until the services subscribe to the good keys, so the first put is not lost."""
+        ros_good = RosScans(ROS_GOOD_ROBOT)
+        wait_for_subscriber(session, scan_key(GOOD_ROBOT), 60)
+        wait_for_subscriber(session, tensor_key(GOOD_ROBOT), 60)
+        wait_for_subscriber(session, ros_good.key, 60)  # the bridge hears every ROS sample sent
+        good_pub = session.declare_publisher(scan_key(GOOD_ROBOT), **BLOCK)
+        return cls(session, scans, good_pub, ros_good)
+
+    def send_ros(self, sample: RosSample) -> Scan | None:
+        """Put a ROS sample; returns the Scan the bridge should forward (the local core's)."""
+        key, payload, attachment = sample
+        self.session.put(key, payload, attachment=attachment, **BLOCK)
+        out = self.expected_bridge.handle_scan(key, payload, attachment)
+        if out is None:
+            return None
+        self.expected_encoder.handle_payload(out.payload, parse_key(out.key)[0])
+        return decode_message(out.payload, Scan)
+
+    def send_good(self) -> None:
+        """The next real scan of both good robots: as a triscan Scan and as a ROS 2 LaserScan."""
+        scan = self.scans[self.good_seq % len(self.scans)].model_copy(
+            update={"robot_id": GOOD_ROBOT, "seq": self.good_seq, "stamp_ns": time.time_ns()}
+        )
+        self.good_pub.put(encode_message(scan))
+        if self.counting:
+            self.expected_encoder.push(scan)
+        self.good_seq += 1
+        forwarded = self.send_ros(self.ros_good.sample(scan))
+        if self.counting and forwarded is not None:
+            self.ros_good_seqs.append(forwarded.seq)
+
+    def send_bad(self, name: str, topic: str, robot: str, payload: bytes) -> None:
+        """Put a bad triscan payload, counting it as the encoder (scans) or the detector (tensors) should."""
+        if topic == "scan":
+            rejected_before = sum(self.expected_encoder.counters.rejected.values())
+            self.expected_encoder.handle_payload(payload, robot)
+            valid = sum(self.expected_encoder.counters.rejected.values()) == rejected_before
+            self.session.put(scan_key(robot), payload, **BLOCK)
+        else:
+            reason = tensor_rejection(payload, robot)
+            valid = reason is None
+            if reason is not None:
+                self.expected_detector[reason] += 1
+            self.session.put(tensor_key(robot), payload, **BLOCK)
+        self.valid_by_design += int(valid)
+        self.sent_by_kind[name] += 1
+
+    def send_ros_fuzz(self, name: str, sample: RosSample) -> None:
+        """Put a bad ROS sample; one the bridge forwards is valid by design."""
+        self.valid_by_design += int(self.send_ros(sample) is not None)
+        self.ros_sent_by_kind[name] += 1
+
+
+def _prime(fuzz: FuzzSession, heard: Heard) -> None:
+    """Send good scans until both good robots are answered: every link is up before the fuzz starts."""
+    deadline = time.monotonic() + 60
+    while not all(heard.answered.values()):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the pipeline never answered both good robots: {heard.answered}")
+        fuzz.send_good()
+        time.sleep(0.1)
+    heard.forget_answers()
+
+
+def _replay_good_history(fuzz: FuzzSession) -> None:
+    """Start counting from zero, the local encoder knowing the good stream's recent history as the service."""
+    fuzz.counting = True
+    for seq in range(max(0, fuzz.good_seq - 3), fuzz.good_seq):
+        fuzz.expected_encoder.push(
+            fuzz.scans[seq % len(fuzz.scans)].model_copy(
+                update={"robot_id": GOOD_ROBOT, "seq": seq, "stamp_ns": 0}
+            )
+        )
+    fuzz.expected_encoder.counters = EncoderCounters()
+
+
+def _send_bad_payloads(fuzz: FuzzSession, bad: int, ros_bad: int, good_every: int, seed: int) -> None:
+    """The fuzz proper: each bad payload with a bad ROS sample beside it, a good scan every ``good_every``."""
+    ros_fuzz = ros_bad_payloads(ros_bad, fuzz.scans[0].model_copy(update={"robot_id": ROS_FUZZ_ROBOT}), seed)
+    fuzz_scan = fuzz.scans[0].model_copy(update={"robot_id": FUZZ_ROBOT})
+    for i, (name, topic, robot, payload) in enumerate(bad_payloads(bad, fuzz_scan, _fuzz_tensor(), seed)):
+        fuzz.send_bad(name, topic, robot, payload)
+        if (ros := next(ros_fuzz, None)) is not None:
+            fuzz.send_ros_fuzz(*ros)
+        if i % good_every == 0:
+            fuzz.send_good()
+            time.sleep(0.1)  # the good robot scans at 10 Hz; the fuzz floods in between
+    for ros in ros_fuzz:  # those left when ros_bad > bad
+        fuzz.send_ros_fuzz(*ros)
+
+
+def _send_bad_keys(fuzz: FuzzSession, bad: int) -> None:
+    """Keys that are not a robot id at all: the services must refuse the key, not the payload."""
+    for i in range(max(1, bad // 100)):
+        fuzz.session.put(f"triscan/bad.id{i}/scan", encode_message(fuzz.scans[0]), **BLOCK)
+        fuzz.expected_encoder.counters.rejected["bad_key"] += 1
+        fuzz.sent_by_kind["bad_key"] += 1
+
+
+def run(bad: int, good_every: int, seed: int, ros_bad: int | None = None) -> FuzzReport:
+    """``bad`` triscan payloads and ``ros_bad`` (default ``bad // 2``) ROS payloads, interleaved."""
+    ros_bad = bad // 2 if ros_bad is None else ros_bad
+    fuzz_port, children = _start_services()
+    scans = recorded_scans(40, seed=3)
+    heard = Heard()
     try:
         with open_session(ZenohSettings.loopback(fuzz_port)) as session:
             subs = [
-                session.declare_subscriber(wildcard_key(DETECTIONS), on_detections),
-                session.declare_subscriber(ALL_STATS, on_stats),
+                session.declare_subscriber(wildcard_key(DETECTIONS), heard.on_detections),
+                session.declare_subscriber(ALL_STATS, heard.on_stats),
             ]
-            wait_for_subscriber(session, scan_key(GOOD_ROBOT), 60)
-            wait_for_subscriber(session, tensor_key(GOOD_ROBOT), 60)
-            wait_for_subscriber(session, ros_good.key, 60)  # the bridge hears every ROS sample sent
-            good_pub = session.declare_publisher(scan_key(GOOD_ROBOT), **block)
-            good_seq = 0
-
-            def send_ros(sample: RosSample) -> Scan | None:
-                """Put a ROS sample; returns the Scan the bridge should forward (the local core's)."""
-                key, payload, attachment = sample
-                session.put(key, payload, attachment=attachment, **block)
-                out = expected_bridge.handle_scan(key, payload, attachment)
-                if out is None:
-                    return None
-                expected_encoder.handle_payload(out.payload, parse_key(out.key)[0])
-                return decode_message(out.payload, Scan)
-
-            def send_good() -> None:
-                nonlocal good_seq
-                scan = scans[good_seq % len(scans)].model_copy(
-                    update={"robot_id": GOOD_ROBOT, "seq": good_seq, "stamp_ns": time.time_ns()}
-                )
-                good_pub.put(encode_message(scan))
-                if counting:
-                    expected_encoder.push(scan)
-                good_seq += 1
-                forwarded = send_ros(ros_good.sample(scan))
-                if counting and forwarded is not None:
-                    ros_good_seqs.append(forwarded.seq)
-
-            counting = False
-
-            # Prime: the good robot's detections prove every link is up before the fuzz starts.
-            deadline = time.monotonic() + 60
-            while not all(answered.values()):
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"the pipeline never answered both good robots: {answered}")
-                send_good()
-                time.sleep(0.1)
-            with lock:
-                for seqs in answered.values():
-                    seqs.clear()
-            first_counted_seq = good_seq
-            counting = True
-            # The local core must know the good stream's recent history, as the service does.
-            for seq in range(max(0, good_seq - 3), good_seq):
-                expected_encoder.push(
-                    scans[seq % len(scans)].model_copy(
-                        update={"robot_id": GOOD_ROBOT, "seq": seq, "stamp_ns": 0}
-                    )
-                )
-            expected_encoder.counters = EncoderCounters()
-            sent_by_kind: Counter[str] = Counter()
-            ros_sent_by_kind: Counter[str] = Counter()
-            ros_fuzz = ros_bad_payloads(
-                ros_bad, scans[0].model_copy(update={"robot_id": ROS_FUZZ_ROBOT}), seed
-            )
-
-            def send_ros_fuzz(name: str, sample: RosSample) -> None:
-                report.valid_by_design += int(send_ros(sample) is not None)
-                ros_sent_by_kind[name] += 1
-
-            for i, (name, topic, robot, payload) in enumerate(
-                bad_payloads(bad, scans[0].model_copy(update={"robot_id": FUZZ_ROBOT}), tensor, seed)
-            ):
-                if topic == "scan":
-                    rejected_before = sum(expected_encoder.counters.rejected.values())
-                    expected_encoder.handle_payload(payload, robot)
-                    valid = sum(expected_encoder.counters.rejected.values()) == rejected_before
-                    session.put(scan_key(robot), payload, **block)
-                else:
-                    reason = tensor_rejection(payload, robot)
-                    valid = reason is None
-                    if reason is not None:
-                        expected_detector[reason] += 1
-                    session.put(tensor_key(robot), payload, **block)
-                report.valid_by_design += int(valid)
-                sent_by_kind[name] += 1
-                if (ros := next(ros_fuzz, None)) is not None:
-                    send_ros_fuzz(*ros)
-                if i % good_every == 0:
-                    send_good()
-                    time.sleep(0.1)  # the good robot scans at 10 Hz; the fuzz floods in between
-            for ros in ros_fuzz:  # those left when ros_bad > bad
-                send_ros_fuzz(*ros)
-            # Bad keys: not a robot id at all (the services must refuse the key, not the payload).
-            for i in range(max(1, bad // 100)):
-                session.put(f"triscan/bad.id{i}/scan", encode_message(scans[0]), **block)
-                expected_encoder.counters.rejected["bad_key"] += 1
-                sent_by_kind["bad_key"] += 1
-            last_good, last_ros_good = good_seq, len(ros_good_seqs)
+            fuzz = FuzzSession.ready(session, scans)
+            _prime(fuzz, heard)
+            first_counted_seq = fuzz.good_seq
+            _replay_good_history(fuzz)
+            _send_bad_payloads(fuzz, bad, ros_bad, good_every, seed)
+            _send_bad_keys(fuzz, bad)
+            last_good, last_ros_good = fuzz.good_seq, len(fuzz.ros_good_seqs)
             for _ in range(3):  # a few more, so the last fuzz cannot hide the last good tensor
-                send_good()
+                fuzz.send_good()
                 time.sleep(0.1)
             time.sleep(3.0)  # let counters of the last second arrive
             for sub in subs:
                 sub.undeclare()
-        report.alive_at_end = {name: p.poll() is None for name, p in children.items()}
+        alive_at_end = {name: p.poll() is None for name, p in children.items()}
     finally:
         stop_processes(children, grace_s=30)
-    report.bad_sent = sum(sent_by_kind.values())
-    report.bad_sent_by_kind = dict(sent_by_kind)
     good_range = range(first_counted_seq + 2, last_good)  # tensors exist from the third scan on
+    return _judge(fuzz, heard, alive_at_end, good_range, fuzz.ros_good_seqs[2:last_ros_good])
+
+
+def _judge(
+    fuzz: FuzzSession,
+    heard: Heard,
+    alive_at_end: dict[str, bool],
+    good_range: range,
+    ros_good_judged: list[int],
+) -> FuzzReport:
+    """The report: the services' counters against the expected ones, the good scans against the answers."""
+    report = FuzzReport(valid_by_design=fuzz.valid_by_design, alive_at_end=alive_at_end)
+    report.bad_sent = sum(fuzz.sent_by_kind.values())
+    report.bad_sent_by_kind = dict(fuzz.sent_by_kind)
     report.good_scans = len(good_range)
-    report.good_answered = sum(1 for s in good_range if s in answered[GOOD_ROBOT])
-    ros_good_judged = ros_good_seqs[2:last_ros_good]
-    report.ros_bad_sent = sum(ros_sent_by_kind.values())
-    report.ros_bad_sent_by_kind = dict(ros_sent_by_kind)
+    report.good_answered = sum(1 for s in good_range if s in heard.answered[GOOD_ROBOT])
+    report.ros_bad_sent = sum(fuzz.ros_sent_by_kind.values())
+    report.ros_bad_sent_by_kind = dict(fuzz.ros_sent_by_kind)
     report.ros_good_scans = len(ros_good_judged)
-    report.ros_good_answered = sum(1 for s in ros_good_judged if s in answered[ROS_GOOD_ROBOT])
+    report.ros_good_answered = sum(1 for s in ros_good_judged if s in heard.answered[ROS_GOOD_ROBOT])
     expected = {
-        "encoder": dict(expected_encoder.counters.rejected),
-        "detector": dict(expected_detector),
-        "ros2_bridge": dict(expected_bridge.counters.rejected_scans),
+        "encoder": dict(fuzz.expected_encoder.counters.rejected),
+        "detector": dict(fuzz.expected_detector),
+        "ros2_bridge": dict(fuzz.expected_bridge.counters.rejected_scans),
     }
     report.expected_by_reason = expected
+    stats = heard.stats
     for service, rejected_field in REJECTED_FIELD.items():
         counted = stats.get(service, {}).get(rejected_field, {})
         report.rejected_by_reason[service] = counted
@@ -506,7 +579,7 @@ def run(bad: int, good_every: int, seed: int, ros_bad: int | None = None) -> Fuz
     bridge_stats = stats.get("ros2_bridge", {})
     report.detector_dropped_stale = stats.get("detector", {}).get("dropped_stale", -1)
     report.bridge_scans_published = {
-        "expected": expected_bridge.counters.scans_published,
+        "expected": fuzz.expected_bridge.counters.scans_published,
         "counted": bridge_stats.get("scans_published", -1),
     }
     unanswered = report.good_scans - report.good_answered + report.ros_good_scans - report.ros_good_answered

@@ -31,6 +31,7 @@ import argparse
 import json
 import logging
 import os
+import subprocess
 import tempfile
 import threading
 import time
@@ -119,6 +120,66 @@ class Answers:
             return [key for key in keys if key in self.arrived_ns]
 
 
+class Publishers:
+    """Blocking publishers declared on first use, one a key: the replay decides which keys it puts on."""
+
+    def __init__(self, session: Any) -> None:
+        self._session = session
+        self._publishers: dict[str, Any] = {}
+
+    def put(self, key: str, payload: bytes) -> None:
+        """Put under congestion control that blocks: nothing replayed is dropped on the way."""
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self._publishers[key] = self._session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+        publisher.put(payload)
+
+    def undeclare(self) -> None:
+        """Close the publishers before the session, as the subscribers are."""
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+
+
+def _start_pipeline(
+    model: Path | None, connect: str | None
+) -> tuple[ZenohSettings, dict[str, subprocess.Popen[bytes]]]:
+    """This process's Zenoh settings, and the encoder and detector as children unless ``connect`` is given."""
+    bench_port, encoder_port, detector_port = free_tcp_ports(3)
+    detector_args = ["--model", str(model)] if model is not None else []
+    children = {} if connect else {
+        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
+        "detector": start_loopback_service(
+            "services.detector", detector_port, [bench_port, encoder_port], *detector_args
+        ),
+    }  # fmt: skip
+    settings = ZenohSettings.loopback(bench_port)
+    if connect:
+        settings = ZenohSettings(mode="peer", connect=(connect,), multicast_scouting=False)
+    return settings, children
+
+
+def _measure(
+    bag: Path, speed: float, put: Callable[[str, bytes], None], answers: Answers
+) -> tuple[dict[tuple[str, int], int], list[tuple[str, int]]]:
+    """Replay ``bag`` once, timing each scan's put, then wait for the answers: (publish times, answerable)."""
+    published_ns: dict[tuple[str, int], int] = {}
+
+    def timed_put(key: str, payload: bytes) -> None:
+        scan = decode_message(payload, Scan)
+        published_ns[(scan.robot_id, scan.seq)] = time.time_ns()
+        put(key, payload)
+
+    replay(ReplayConfig(bags=(bag,), robot=ROBOT, speed=speed, progress=False), timed_put)
+    answerable = [key for key in published_ns if key[1] >= FIRST_ANSWERABLE_SEQ]
+    deadline = time.monotonic() + DRAIN_TIMEOUT_S
+    while len(answers.answered(answerable)) < len(answerable) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.5 * STATS_PERIOD_S)  # one more stats period, so the counters below include the last frames
+    return published_ns, answerable
+
+
 def run(
     bag: Path,
     speed: float = 1.0,
@@ -131,19 +192,8 @@ def run(
     pipeline already running at ``connect``; see the module docstring."""
     model_name = "(the external detector's)" if connect else (model or default_model_path()).name
     report = ReplayAnsweredReport(bag=str(bag), model=model_name, speed=speed)
-    bench_port, encoder_port, detector_port = free_tcp_ports(3)
-    detector_args = ["--model", str(model)] if model is not None else []
-    children = {} if connect else {
-        "encoder": start_loopback_service("services.encoder", encoder_port, [bench_port, detector_port]),
-        "detector": start_loopback_service(
-            "services.detector", detector_port, [bench_port, encoder_port], *detector_args
-        ),
-    }  # fmt: skip
-    settings = ZenohSettings.loopback(bench_port)
-    if connect:
-        settings = ZenohSettings(mode="peer", connect=(connect,), multicast_scouting=False)
+    settings, children = _start_pipeline(model, connect)
     answers = Answers()
-    published_ns: dict[tuple[str, int], int] = {}
     try:
         with open_session(settings) as session:
             subscribers = [
@@ -153,38 +203,26 @@ def run(
             wait_for_subscriber(session, scan_key(ROBOT), wait_s)
             if not connect:  # an external detector may run --from-scans: no tensor subscriber then
                 wait_for_subscriber(session, tensor_key(ROBOT), wait_s)
-            publishers: dict[str, Any] = {}
-
-            def put(key: str, payload: bytes) -> None:
-                publisher = publishers.get(key)
-                if publisher is None:
-                    publisher = publishers[key] = session.declare_publisher(
-                        key, congestion_control=zenoh.CongestionControl.BLOCK
-                    )
-                publisher.put(payload)
-
-            _prime(bag, put, answers, wait_s)
+            publishers = Publishers(session)
+            _prime(bag, publishers.put, answers, wait_s)
             log.info("pipeline answered the priming replay: measuring %s at speed %g", bag, speed)
-
-            def timed_put(key: str, payload: bytes) -> None:
-                scan = decode_message(payload, Scan)
-                published_ns[(scan.robot_id, scan.seq)] = time.time_ns()
-                put(key, payload)
-
-            replay(ReplayConfig(bags=(bag,), robot=ROBOT, speed=speed, progress=False), timed_put)
-            answerable = [key for key in published_ns if key[1] >= FIRST_ANSWERABLE_SEQ]
-            deadline = time.monotonic() + DRAIN_TIMEOUT_S
-            while len(answers.answered(answerable)) < len(answerable) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            time.sleep(
-                1.5 * STATS_PERIOD_S
-            )  # one more stats period, so the counters below include the last frames
+            published_ns, answerable = _measure(bag, speed, publishers.put, answers)
             for subscriber in subscribers:
                 subscriber.undeclare()
-            for publisher in publishers.values():
-                publisher.undeclare()
+            publishers.undeclare()
     finally:
         stop_processes(children, grace_s=20)
+    _fill_report(report, answers, published_ns, answerable)
+    return report
+
+
+def _fill_report(
+    report: ReplayAnsweredReport,
+    answers: Answers,
+    published_ns: dict[tuple[str, int], int],
+    answerable: list[tuple[str, int]],
+) -> None:
+    """The share answered, latencies, stage timings and counters, from what came back."""
     answered = answers.answered(answerable)
     latencies_ms = [(answers.arrived_ns[key] - published_ns[key]) / 1e6 for key in answered]
     report.scans_published = len(published_ns)
@@ -204,7 +242,6 @@ def run(
         counters = {k: v for k, v in answers.stats.get(service, {}).items() if k not in ("pid", "stamp_ns")}
         setattr(report, f"{service}_counters", counters)
     report.machine.loadavg_end = [round(x, 2) for x in os.getloadavg()]
-    return report
 
 
 def _prime(bag: Path, put: Callable[[str, bytes], None], answers: Answers, timeout_s: float) -> None:
