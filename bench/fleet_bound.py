@@ -19,6 +19,7 @@ import logging
 import math
 import os
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
 from bench import batch_inference, fleet_capacity
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         "capacity_robots": capacity,
         "share_of_bound": round(capacity / bound_robots, 3) if bound_robots else 0.0,
         "fleet": fleet,
-        "machine": machine_info(),
+        "machine": asdict(machine_info()),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2, default=str) + "\n")
