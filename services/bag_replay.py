@@ -245,6 +245,7 @@ def run_replay(
     stop = stop or threading.Event()
     summary = ReplaySummary()
     with ServiceRuntime(SERVICE, settings, stop) as runtime:
+        runtime.ready()  # it subscribes to nothing: up as soon as its session is
         try:
             wait_for_subscriber(runtime.session, scan_key(next(iter(robots.values()))), wait_s)
         except TimeoutError as exc:

@@ -170,8 +170,11 @@ SampleHandler = Callable[[str, bytes], object]  # the return value, if any, is i
 class ServiceRuntime:
     """A service's Zenoh side and lifetime: use as ``with ServiceRuntime(...) as runtime:``.
 
-    Entering opens the session, declares the health token and the stats publisher; leaving undeclares
-    everything declared through it and closes the session, in that order, however the block ends.
+    Entering opens the session and the stats publisher; :meth:`ready` (called by :meth:`serve`, or by a
+    service with a loop of its own once it is wired) declares the health token, so the token means
+    "subscribed and serving": a peer that waits for it never publishes into the gap before the
+    service's subscriptions exist. Leaving undeclares everything declared through it and closes the
+    session, in that order, however the block ends.
     """
 
     def __init__(
@@ -186,13 +189,13 @@ class ServiceRuntime:
         self._declared: list[Any] = []  # subscribers and publishers, undeclared in reverse order
         self._robot_publishers: list[RobotPublishers] = []
         self._stats: StatsPublisher | None = None
+        self._health: Any = None
         self._started = time.monotonic()
 
     def __enter__(self) -> ServiceRuntime:
         self._session_cm = open_session(self.settings)
         self.session = self._session_cm.__enter__()
         try:
-            self._declared.append(declare_health(self.session, self.service))
             self._stats = StatsPublisher(self.session, self.service)
         except BaseException:
             self._session_cm.__exit__(None, None, None)
@@ -204,6 +207,8 @@ class ServiceRuntime:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         try:
+            if self._health is not None:
+                self._health.undeclare()  # first: peers see the service go before its parts do
             if self._stats is not None:
                 self._stats.close()
             for publishers in self._robot_publishers:
@@ -212,6 +217,11 @@ class ServiceRuntime:
                 entity.undeclare()
         finally:
             self._session_cm.__exit__(exc_type, exc, tb)
+
+    def ready(self) -> None:
+        """Declare the health token (once): the service is wired and serving."""
+        if self._health is None:
+            self._health = declare_health(self.session, self.service)
 
     def subscribe(self, key: str, handler: SampleHandler) -> None:
         """Call ``handler(key, payload)`` for every sample on ``key`` (a pattern)."""
@@ -255,6 +265,7 @@ class ServiceRuntime:
 
         The counters also go to the log every ``SUMMARY_PERIOD_S`` and once at the end.
         """
+        self.ready()
         last_summary = time.monotonic()
         counters: Mapping[str, object] = {}
         while not self.stop.wait(period_s):

@@ -83,6 +83,7 @@ def run(
             fleet.rate_hz,
             ", ".join(scan_key(robot_id) for robot_id in fleet.robot_ids),
         )
+        runtime.ready()
         start = time.monotonic()
         tick = 0  # index of the next tick; it is due at start + tick * period_s
         try:

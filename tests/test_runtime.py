@@ -1,0 +1,51 @@
+"""The service skeleton over real Zenoh: the health token means "wired", publishers die with robots."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from common.keys import scan_key
+from common.transport import ZenohSettings, open_session
+from services.runtime import RobotPublishers, ServiceRuntime
+from tests.health import service_pids
+from tests.waiting import wait_for
+
+
+def test_the_health_token_appears_only_once_the_service_is_ready(free_port: Callable[[], int]) -> None:
+    port = free_port()
+    received: list[str] = []
+    with (
+        ServiceRuntime("probe", ZenohSettings.loopback(port), threading.Event()) as runtime,
+        open_session(ZenohSettings.loopback(None, [port])) as watcher,
+    ):
+        # Prove the two sessions are linked first, or "no token" would prove nothing.
+        link = watcher.declare_subscriber("probe/link", lambda sample: None)
+        ping = runtime.session.declare_publisher("probe/link")
+        assert wait_for(lambda: ping.matching_status.matching, timeout=10)
+        assert service_pids(watcher, "probe") == set()  # linked, subscribing to nothing yet: no token
+        ping.undeclare()
+        link.undeclare()
+        runtime.subscribe(scan_key("r1"), lambda key, payload: received.append(key))
+        runtime.ready()
+        assert wait_for(lambda: service_pids(watcher, "probe"), timeout=10)
+        publisher = watcher.declare_publisher(scan_key("r1"))
+        assert wait_for(lambda: publisher.matching_status.matching, timeout=10)  # subscribed before ready
+        publisher.put(b"x")
+        assert wait_for(lambda: received == [scan_key("r1")], timeout=10)
+        publisher.undeclare()
+
+
+def test_robot_publishers_forget_silent_robots(free_port: Callable[[], int]) -> None:
+    with open_session(ZenohSettings.loopback(free_port())) as session:
+        publishers = RobotPublishers(session, scan_key)
+        publishers.put("r1", b"a")
+        publishers.put("r2", b"b")
+        assert len(publishers) == 2
+        later = time.monotonic() + 60
+        assert publishers.forget_silent(30.0, now=later) == ["r1", "r2"]
+        assert len(publishers) == 0
+        publishers.put("r1", b"c")  # a robot that speaks again gets a fresh publisher
+        publishers.forget(["r1", "unknown"])
+        assert len(publishers) == 0
