@@ -21,6 +21,7 @@ Two additions serve the ``zero`` vs ``wrap`` ablation (README, "The encoding"):
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 from collections.abc import Iterator
@@ -176,14 +177,22 @@ def fresh_samples(
                 )
 
 
+@functools.cache
+def _ultralytics_bbox_ioa() -> Any:
+    """Ultralytics' numpy box overlap, imported once and offline (its settings are written only then)."""
+    from training.offline import configure_offline
+
+    configure_offline()
+    from ultralytics.utils.metrics import bbox_ioa
+
+    return bbox_ioa
+
+
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise IoU, float64[len(a), len(b)], of xyxy boxes."""
-    top_left = np.maximum(a[:, None, :2], b[None, :, :2])
-    bottom_right = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.clip(bottom_right - top_left, 0, None).prod(axis=2)
-    area_a = (a[:, 2:] - a[:, :2]).prod(axis=1)
-    area_b = (b[:, 2:] - b[:, :2]).prod(axis=1)
-    return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-7)
+    """Pairwise IoU, float64[len(a), len(b)], of xyxy boxes: Ultralytics' own numpy IoU
+    (``bbox_ioa(..., iou=True)``), so matching uses the arithmetic of the validator it is compared with."""
+    bbox_ioa = _ultralytics_bbox_ioa()
+    return bbox_ioa(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64), iou=True)
 
 
 def circular_box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
