@@ -11,6 +11,7 @@ import itertools
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -56,53 +57,35 @@ def _scan_message(store: Any, i: int, frame_id: str) -> object:
     )  # fmt: skip
 
 
+def _write_drive(writer: Any, store: Any, serialize: Callable[[Any, str], Any]) -> None:
+    """The same drive in any bag format: two robots' scans and a chatter topic, PERIOD_NS apart."""
+    conns = {
+        topic: writer.add_connection(topic, LASER_SCAN, typestore=store)
+        for topic in ("/robot1/scan", "/robot2/scan")
+    }
+    chatter = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+    hello = serialize(store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String")
+    for i in range(SCANS):
+        for topic, conn in conns.items():
+            writer.write(
+                conn, T0_NS + i * PERIOD_NS, serialize(_scan_message(store, i, topic[1:7]), LASER_SCAN)
+            )
+        writer.write(chatter, T0_NS + i * PERIOD_NS, hello)
+
+
 def write_bag(directory: Path, fmt: str) -> Path:
     """A bag with /robot1/scan, /robot2/scan (SCANS each, PERIOD_NS apart) and a /chatter String."""
     if fmt == "bag":
         store = get_typestore(Stores.ROS1_NOETIC)
         path = directory / "drive.bag"
         with Rosbag1Writer(path) as writer:
-            conns = {
-                topic: writer.add_connection(topic, LASER_SCAN, typestore=store)
-                for topic in ("/robot1/scan", "/robot2/scan")
-            }
-            chatter = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
-            for i in range(SCANS):
-                for topic, conn in conns.items():
-                    writer.write(
-                        conn,
-                        T0_NS + i * PERIOD_NS,
-                        store.serialize_ros1(_scan_message(store, i, topic[1:7]), LASER_SCAN),
-                    )
-                writer.write(
-                    chatter,
-                    T0_NS + i * PERIOD_NS,
-                    store.serialize_ros1(
-                        store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"
-                    ),
-                )
+            _write_drive(writer, store, store.serialize_ros1)
         return path
     store = get_typestore(Stores.ROS2_JAZZY)
     plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
     path = directory / f"drive_{fmt}"
     with Rosbag2Writer(path, version=9, storage_plugin=plugin) as writer:
-        conns = {
-            topic: writer.add_connection(topic, LASER_SCAN, typestore=store)
-            for topic in ("/robot1/scan", "/robot2/scan")
-        }
-        chatter = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
-        for i in range(SCANS):
-            for topic, conn in conns.items():
-                writer.write(
-                    conn,
-                    T0_NS + i * PERIOD_NS,
-                    store.serialize_cdr(_scan_message(store, i, topic[1:7]), LASER_SCAN),
-                )
-            writer.write(
-                chatter,
-                T0_NS + i * PERIOD_NS,
-                store.serialize_cdr(store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"),
-            )
+        _write_drive(writer, store, store.serialize_cdr)
     (file,) = path.glob(f"*.{fmt}")
     return file  # the storage file itself, as a user would name it
 
