@@ -35,7 +35,7 @@ import numpy as np
 from bench.harness import proc_status_mb, recorded_scans, start_loopback_service
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
-from common.keys import DETECTIONS, scan_key, service_stats_key, wildcard_key
+from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports, stop_processes
@@ -94,7 +94,7 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
             publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
             wait_for_subscriber(session, scan_key(robot_ids[0]))
             if not args.from_scans:
-                wait_for_subscriber(session, f"triscan/{robot_ids[0]}/tensor")
+                wait_for_subscriber(session, tensor_key(robot_ids[0]))
             published = _publish_fleet(step, robot_ids, publishers, scans, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)

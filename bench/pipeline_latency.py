@@ -35,7 +35,7 @@ import numpy as np
 from bench.harness import proc_status_mb, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
-from common.keys import DETECTIONS, scan_key, wildcard_key
+from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
@@ -124,7 +124,7 @@ def run(
             publishers = {rid: session.declare_publisher(scan_key(rid)) for rid in fleet.robot_ids}
             wait_for_subscriber(session, scan_key(fleet.robot_ids[0]))
             if not from_scans:
-                wait_for_subscriber(session, f"triscan/{fleet.robot_ids[0]}/tensor")
+                wait_for_subscriber(session, tensor_key(fleet.robot_ids[0]))
             published = _publish_scans(fleet, publishers, rate_hz, duration_s, received)
             time.sleep(1.0)  # let the last detections arrive
             report.peak_rss_mb = {
