@@ -429,12 +429,6 @@ def _declared_invalid_rule(session: ort.InferenceSession, path: Path | str) -> I
     return rule
 
 
-def model_invalid_rule(path: Path | str) -> InvalidRule:
-    """The invalid-return rule a triscan ONNX model was trained with, so the launcher can start the
-    encoder to match the detector's model."""
-    return _declared_invalid_rule(_unoptimised_session(path), path)
-
-
 def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
     """A session only to read a model's metadata and signature: no graph optimisation, so it is cheap."""
     return ort.InferenceSession(
@@ -442,22 +436,30 @@ def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
     )
 
 
-def model_padding(path: Path | str) -> Padding:
-    """The padding a triscan ONNX model was trained with (``zero`` for a model that does not say), so
-    the launcher can start the encoder to match the detector's model."""
-    return _declared_padding(_unoptimised_session(path), path) or "zero"
-
-
 def _is_free_dimension(dim: object) -> bool:
     """ONNX Runtime reports a symbolic dimension as its name (a str) and an unnamed one as None."""
     return dim is None or isinstance(dim, str)
 
 
-def model_takes_batches(path: Path | str) -> bool:
-    """Whether a model's batch axis is free (a ``-batch`` file), so a launcher can refuse ``--batch``
-    for a fixed batch-1 model before starting a detector that would refuse it."""
-    shape = _unoptimised_session(path).get_inputs()[0].shape
-    return bool(shape) and _is_free_dimension(shape[0])
+class ModelFacts(NamedTuple):
+    """What a triscan ONNX file says about itself, read without running it."""
+
+    padding: Padding  # ``zero`` for a model that does not say
+    invalid: InvalidRule  # ``sentinel`` for a model that does not say
+    takes_batches: bool  # a free batch axis (a ``-batch`` file)
+
+
+def model_facts(path: Path | str) -> ModelFacts:
+    """Padding, invalid-return rule and batch axis of a model, from one cheap metadata session, so a
+    launcher can start the encoder to match the detector's model and refuse a ``--batch`` the model
+    cannot run before any process starts."""
+    session = _unoptimised_session(path)
+    shape = session.get_inputs()[0].shape
+    return ModelFacts(
+        padding=_declared_padding(session, path) or "zero",
+        invalid=_declared_invalid_rule(session, path),
+        takes_batches=bool(shape) and _is_free_dimension(shape[0]),
+    )
 
 
 def check_batch(batch: int, takes_batches: bool, model_path: Path | str) -> None:
@@ -487,9 +489,9 @@ def detector_model_and_batch(model: Path | None, batch: int | None) -> tuple[Pat
     """
     if batch is None:
         path = model or default_model_path(batched=True)
-        return path, AUTO_BATCH if model_takes_batches(path) else 1
+        return path, AUTO_BATCH if model_facts(path).takes_batches else 1
     path = model or default_model_path(batched=batch > 1)
-    check_batch(batch, batch == 1 or model_takes_batches(path), path)
+    check_batch(batch, batch == 1 or model_facts(path).takes_batches, path)
     return path, batch
 
 

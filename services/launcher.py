@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import detector_model_and_batch, model_invalid_rule, model_padding
+from common.inference import detector_model_and_batch, model_facts
 from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
 from common.transport import ZenohSettings, open_session
 from services.bag_replay import SERVICE as REPLAY
@@ -136,15 +136,16 @@ def service_commands(
         sink = ["--spawn"]
     else:
         sink = []
-    model, _ = detector_model_and_batch(config.model, config.batch)
-    padding = model_padding(model)  # the encoder must match the model
+    model, _ = detector_model_and_batch(config.model, config.batch)  # a batch it cannot run fails here
+    facts = model_facts(model)  # the encoder must match the model
+    padding = facts.padding
     service_args = {
         REPLAY: [] if config.replay is None else replay_arguments(config.replay),
         "simulator": [
             *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
             *("--padding", padding),
         ],
-        "encoder": ["--padding", padding, "--invalid", model_invalid_rule(model)],
+        "encoder": ["--padding", padding, "--invalid", facts.invalid],
         "detector": [
             *(("--model", str(config.model)) if config.model else ()),
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
@@ -264,7 +265,6 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     service kept dying, never came up, or the replay failed."""
     if config.robots < 1:
         raise ValueError(f"--robots must be >= 1, got {config.robots}")
-    detector_model_and_batch(config.model, config.batch)  # a batch the model cannot run fails here
     if config.replay is not None:
         robots = replay_robots(config.replay)  # a wrong bag or topic fails here, before anything starts
         log.info("replaying %s", ", ".join(f"{topic} as {robot}" for topic, robot in robots.items()))
