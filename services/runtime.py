@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import Any
 
-from common.keys import health_key, parse_key, stats_key
+from common.keys import health_key, stats_key
 from common.transport import ZenohSettings, add_zenoh_arguments, open_session, payload_bytes
 
 log = logging.getLogger(__name__)
@@ -278,8 +278,3 @@ class ServiceRuntime:
             if self.should_stop():
                 break
         log.info("%s stopping after %.1f s: %s", self.service, self.elapsed_s, counters or housekeeping())
-
-
-def robot_of_key(key: str) -> str:
-    """The robot id of a data key (``triscan/<robot>/<topic>``); ValueError for anything else."""
-    return parse_key(key)[0]

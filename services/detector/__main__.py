@@ -21,7 +21,6 @@ from common.inference import (
     DEFAULT_CONF,
     DEFAULT_IOU,
     OnnxDetector,
-    check_batch,
     detector_model_and_batch,
 )
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
@@ -122,7 +121,6 @@ def main(argv: list[str] | None = None) -> int:
             )
             for _ in range(args.workers)
         ]
-        check_batch(batch, all(d.batched for d in detectors), model)
     except (FileNotFoundError, ValueError) as exc:
         log.error("cannot load the model: %s", exc)
         return 2
