@@ -85,7 +85,7 @@ def run(
     model: Path | None = None,
     trace: Path | None = None,
     bare_frames: int = 300,
-    zenoh_cfg: tuple[str, ...] = (),
+    zenoh_cfg: tuple[tuple[str, str], ...] = (),
 ) -> LatencyReport:
     """Start the services, publish the simulated robots' scans through them, and time every answer."""
     report = LatencyReport(
@@ -96,7 +96,7 @@ def run(
         duration_s,
     )
     model = model or default_model_path()
-    report.zenoh_cfg = list(zenoh_cfg)
+    report.zenoh_cfg = [f"{key}:{value}" for key, value in zenoh_cfg]
     # The detector's own default when --threads is not given, so the baseline times the same setting.
     report.bare_threads = threads or default_intra_op_threads(1, from_scans)
     report.bare_ms = bare_frame_latency(model, report.bare_threads, rate_hz, bare_frames)
@@ -113,11 +113,7 @@ def run(
 
     try:
         with (
-            open_session(
-                dataclasses.replace(
-                    ZenohSettings.loopback(bench_port), cfg=tuple(tuple(e.split(":", 1)) for e in zenoh_cfg)
-                )
-            ) as session,
+            open_session(dataclasses.replace(ZenohSettings.loopback(bench_port), cfg=zenoh_cfg)) as session,
             SimulatedFleet(robots, rate_hz=rate_hz) as fleet,
         ):
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
@@ -146,14 +142,14 @@ def _start_services(
     bench_port: int,
     encoder_port: int,
     detector_port: int,
-    zenoh_cfg: tuple[str, ...] = (),
+    zenoh_cfg: tuple[tuple[str, str], ...] = (),
 ) -> dict[str, subprocess.Popen[bytes]]:
     """The encoder and the detector as two processes, or one ``--from-scans`` detector.
 
     The detector is given ``model`` explicitly, so the pipeline runs the very file the bare baseline
-    timed. ``zenoh_cfg`` entries (``KEY:VALUE``) go to every process as ``--cfg``.
+    timed. ``zenoh_cfg`` entries (config path, JSON5 value) go to every process as ``--cfg``.
     """
-    cfg = [arg for entry in zenoh_cfg for arg in ("--cfg", entry)]
+    cfg = ZenohSettings(cfg=zenoh_cfg).to_cli()  # the --cfg flags, written as every service parses them
     detector_args = [*(["--threads", str(threads)] if threads else []), "--model", str(model), *cfg]
     if from_scans:
         return {
@@ -171,7 +167,7 @@ def _start_services(
     }
 
 
-NO_SHM = ("transport/shared_memory/enabled:false",)  # zenoh copies every payload through the socket
+NO_SHM = (("transport/shared_memory/enabled", "false"),)  # zenoh copies every payload through the socket
 
 
 def _publish_scans(
