@@ -57,7 +57,7 @@ def run(
 
         def housekeeping() -> dict[str, object]:
             publishers.forget_silent(forget_after_s)  # no publisher leak as fleets change
-            return {**pipeline.snapshot(), "robots": len(publishers)}
+            return {**pipeline.housekeeping(), "robots": len(publishers)}
 
         pipeline.start()
         try:

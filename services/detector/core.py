@@ -330,8 +330,9 @@ class InferencePipeline:
         if self._mailbox.put(accepted.robot_id, pending):
             self.core.note_dropped()
 
-    def snapshot(self) -> dict[str, object]:
-        """Counters for the stats; with ``from_scans`` also forgets the encoder's silent robots."""
+    def housekeeping(self) -> dict[str, object]:
+        """The service's once-a-second chore: with ``from_scans`` forget the encoder's silent robots;
+        return the counters for the stats."""
         counters: dict[str, object] = self.core.counters.to_dict()
         if self.encoder is not None:
             self.encoder.forget_silent()
