@@ -100,9 +100,13 @@ def test_cdr_reader_reads_what_rosbags_writes(little_endian: bool, frame_id: str
 def test_detection_encoders_write_rosbags_bytes_on_both_distros() -> None:
     detections = [one_detection((10 + 40 * i, 5, 30 + 40 * i, 30), 0.5 + 0.1 * i, i % 4) for i in range(4)]
     detections.append(one_detection((370, 3, 380, 9), 0.9, 2))  # straddles 0°: min > max after wrapping
+    # a crowded frame: every class at many offsets, so every alignment case of the fast path occurs
+    detections += [
+        one_detection((9 * i, 2 + i, 9 * i + 7, 20 + i), 0.31 + 0.023 * i, i % 4) for i in range(24)
+    ]
     for distro in ("jazzy", "humble"):
         fast, reference = DetectionMessages(ros_types(distro)), ReferenceDetectionMessages(ros_types(distro))
-        for count in (0, 1, 5):
+        for count in (0, 1, 2, 5, 7, 29):
             for frame_id in ("l", "laser", "base_scan", "a_b"):
                 args = (detections[:count], STAMP_NS, frame_id)
                 assert fast.detection_array(*args) == reference.detection_array(*args), (

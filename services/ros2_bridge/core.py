@@ -51,7 +51,7 @@ from services.ros2_bridge.rmw_zenoh import (
     qualified_topic,
     subscription_key,
 )
-from services.ros2_bridge.ros_messages import DetectionMessages
+from services.ros2_bridge.ros_messages import Boxes, DetectionMessages
 from services.ros2_bridge.ros_types import (
     DETECTION3D_ARRAY,
     LASER_SCAN,
@@ -314,13 +314,14 @@ class BridgeCore:
         if robot is None or robot.frame_id is None:
             self.counters.detections_skipped += 1
             return []
-        stamp = message.scan_stamp_ns
+        stamp, detections = message.scan_stamp_ns, message.detections
+        boxes = Boxes.of(detections)  # once for both messages
         out = [
             self._stamped(
-                robot.detections, self.messages.detection_array(message.detections, stamp, robot.frame_id)
+                robot.detections, self.messages.detection_array(detections, stamp, robot.frame_id, boxes)
             ),
             self._stamped(
-                robot.markers, self.messages.marker_array(message.detections, stamp, robot.frame_id)
+                robot.markers, self.messages.marker_array(detections, stamp, robot.frame_id, boxes)
             ),
         ]
         self.counters.ros_published += len(out)
