@@ -137,3 +137,21 @@ def test_seam_subset_keeps_seam_objects_and_their_class_predictions() -> None:
     assert pred_in.tolist() == [True, False, True, False]
     unknown = EvalSample("s", sample.tensor, boxes, sample.classes, None)
     assert not seam_subset(unknown, box_iou(boxes, preds), pred_classes)[0].any()
+
+
+def test_evaluate_scores_a_missed_seam_object_when_the_model_finds_nothing(
+    tmp_path: Path, ultralytics_offline: None
+) -> None:
+    """An empty scan with a seam-crossing label: no predictions at all is a miss, not a crash."""
+    from common.inference import OnnxDetector
+    from common.model_spec import default_model_path
+    from training.evaluate import evaluate
+
+    detector = OnnxDetector(default_model_path(), providers=["CPUExecutionProvider"], intra_op_threads=1)
+    empty = np.zeros((64, 384, 3), np.uint8)
+    seam_box = np.array([[346.0, 20.0, 365.0, 27.0]])
+    samples = [EvalSample("empty", empty, seam_box, np.array([1]), np.array([True]))]
+    report = evaluate(detector, iter(samples), tmp_path, source="empty scan", plots=False)
+    assert (report.images, report.instances) == (1, 1)
+    assert report.overall["recall"] == 0.0
+    assert report.seam_crossing is not None and report.seam_crossing["instances"] == 1

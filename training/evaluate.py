@@ -301,7 +301,12 @@ def evaluate(
         for key in timing_sums:
             timing_sums[key] += float(getattr(timings, key))
         iou_of = circular_box_iou if wrap else box_iou
-        iou = iou_of(sample.boxes, boxes) if len(boxes) and len(sample.boxes) else np.zeros((0, 0))
+        # [labels, predictions] even when one side is empty: the seam subset indexes it by both
+        iou = (
+            iou_of(sample.boxes, boxes)
+            if len(boxes) and len(sample.boxes)
+            else np.zeros((len(sample.boxes), len(boxes)))
+        )
         correct = match_predictions(classes, sample.classes, iou)
         metrics.update_stats(_stats(correct, scores, classes, sample.classes, sample.name))
         seam_instances += _update_seam_stats(seam_metrics, sample, iou, scores, classes)
@@ -338,7 +343,7 @@ def _update_seam_stats(
     seam_metrics: Any, sample: EvalSample, iou: np.ndarray, scores: np.ndarray, classes: np.ndarray
 ) -> int:
     """Score the sample's seam-crossing objects alone into ``seam_metrics``; return how many labels."""
-    label_in, pred_in = seam_subset(sample, iou.reshape(len(sample.classes), len(classes)), classes)
+    label_in, pred_in = seam_subset(sample, iou, classes)
     if not label_in.any():
         return 0
     seam_correct = match_predictions(classes[pred_in], sample.classes[label_in], iou[label_in][:, pred_in])
