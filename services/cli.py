@@ -231,7 +231,10 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "eval", help="mAP, P, R per class of an ONNX model, through the run-time detector code"
     )
-    p.add_argument("--model", type=Path, required=True, help="ONNX model")
+    p.add_argument(
+        "--model", type=Path, required=True, action="append",
+        help="ONNX model; repeat it to score several models on the very same --fresh tensors",
+    )  # fmt: skip
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=Path, help="a data set written by `triscan dataset`")
     source.add_argument("--fresh", type=int, metavar="N", help="simulate N new scenarios instead")
@@ -241,10 +244,11 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frame-stride", type=int, default=15, help="window stride of --fresh motions")
     p.add_argument(
         "--noise",
-        default="clean",
+        nargs="+",
+        default=["clean"],
         metavar="CONDITION",
         help="LiDAR imperfections of the --fresh worlds: clean, sigma3, drop5, drop5+sigma3, "
-        "drop10+sigma3+spur1, or sigma=S,dropout=D,spurious=P",
+        "drop10+sigma3+spur1, or sigma=S,dropout=D,spurious=P; several: each on the same worlds",
     )
     p.add_argument(
         "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
@@ -260,32 +264,47 @@ def _run_eval(args: argparse.Namespace) -> int:
         VAL_CONF,
         VAL_IOU,
         VAL_MAX_DET,
+        FreshWorlds,
+        condition_matrix,
         dataset_samples,
         evaluate,
+        format_condition_table,
         format_table,
         fresh_samples,
     )
 
-    detector = OnnxDetector(
-        args.model,
-        conf_threshold=VAL_CONF,
-        iou_threshold=VAL_IOU,
-        max_detections=VAL_MAX_DET,
-        padding=args.padding,
-        intra_op_threads=args.threads,
-    )
+    matrix = len(args.model) > 1 or len(args.noise) > 1
+    if matrix and args.data is not None:
+        raise ValueError("several --model or --noise values need --fresh worlds, not --data")
+    detectors = [
+        OnnxDetector(
+            model,
+            conf_threshold=VAL_CONF,
+            iou_threshold=VAL_IOU,
+            max_detections=VAL_MAX_DET,
+            padding=args.padding,
+            intra_op_threads=args.threads,
+        )
+        for model in args.model
+    ]
+    if matrix:
+        worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride)
+        reports = condition_matrix(detectors, args.noise, worlds, args.out)
+        print(format_condition_table(reports))
+        print(f"per cell: {args.out}/<condition>/<model>/metrics.json; grid: {args.out}/summary.json")
+        return 0
+    detector = detectors[0]
     if args.data is not None:
         samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
     else:
         from services.simulator.lidar import with_imperfections
 
-        spec = with_imperfections(args.noise)  # a bad condition is a ValueError: one line, exit 2
+        noise = args.noise[0]
+        spec = with_imperfections(noise)  # a bad condition is a ValueError: one line, exit 2
         samples = fresh_samples(
             args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec
         )
-        source = (
-            f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions},noise={args.noise}"
-        )
+        source = f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions},noise={noise}"
     report = evaluate(detector, samples, args.out, source=source)
     print(format_table(report))
     print(f"images {report.images}; mean ms: {report.mean_timings_ms}; written to {args.out}/metrics.json")

@@ -231,3 +231,34 @@ def test_fresh_worlds_under_a_condition_keep_their_labels_and_change_their_scans
     assert (
         sum(int(b.tensor[63].sum()) - int(a.tensor[63].sum()) for a, b in zip(clean, noisy, strict=True)) > 0
     )
+
+
+@pytest.mark.slow
+def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_path: Path) -> None:
+    """`triscan eval --model A --model B --noise clean drop5`: one grid, identical worlds per cell."""
+    from common.model_spec import SHIPPED_MODEL
+    from services.cli import main as cli_main
+    from training.offline import configure_offline
+
+    configure_offline(tmp_path / "yolo")
+    int8 = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
+    out = tmp_path / "grid"
+    argv = ["eval", "--model", str(SHIPPED_MODEL), "--model", str(int8), "--fresh", "1", "--positions", "3"]
+    assert cli_main([*argv, "--seed", "4242", "--noise", "clean", "drop5", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["results"]) == ["clean", "drop5"]
+    cells = [cell for row in summary["results"].values() for cell in row.values()]
+    assert len(cells) == 4 and len({cell["images"] for cell in cells}) == 1 and cells[0]["images"] > 0
+    for condition in ("clean", "drop5"):
+        for stem in (SHIPPED_MODEL.stem, int8.stem):
+            metrics = json.loads((out / condition / stem / "metrics.json").read_text())
+            assert metrics["source"].endswith(f"noise={condition}") and metrics["model_id"].startswith(stem)
+    # several conditions need simulated worlds; a bad condition fails before anything is simulated
+    assert (
+        cli_main(
+            ["eval", "--model", str(SHIPPED_MODEL), "--data", str(tmp_path), "--noise", "clean", "drop5"]
+        )
+        == 2
+    )
+    assert cli_main([*argv, "--noise", "clean", "bogus", "--out", str(tmp_path / "bad")]) == 2
+    assert not (tmp_path / "bad").exists()

@@ -398,3 +398,90 @@ def format_table(report: EvalReport) -> str:
             f"{m['mAP50']:6.3f} {m['mAP50-95']:8.3f}"
         )
     return "\n".join(lines)
+
+
+# --- one run, several models under several conditions -------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FreshWorlds:
+    """Which unseen worlds ``--fresh`` simulates; every condition is applied to these same worlds."""
+
+    seed: int
+    scenarios: int
+    positions: int
+    frame_stride: int
+
+
+def condition_matrix(
+    detectors: list[OnnxDetector],
+    conditions: list[str],
+    worlds: FreshWorlds,
+    out_dir: Path,
+    *,
+    plots: bool = True,
+) -> dict[str, dict[str, EvalReport]]:
+    """Every detector on the same fresh worlds under every LiDAR condition: reports[condition][model].
+
+    The worlds of a condition are simulated once and fed to each detector (fp32 and INT8 of one network
+    see identical tensors), which is also what makes the pair's difference a measure of quantisation
+    alone. Each cell lands in ``out_dir/<condition>/<model stem>/metrics.json``; ``summary.json`` holds
+    the grid.
+    """
+    from services.simulator.lidar import with_imperfections
+
+    paddings = {d.padding for d in detectors}
+    if len(paddings) != 1:
+        raise ValueError(f"the models disagree on the padding ({sorted(paddings)}): evaluate them apart")
+    specs = {condition: with_imperfections(condition) for condition in conditions}  # bad names fail first
+    stems = [d.model_id.partition("@")[0] for d in detectors]
+    if len(set(stems)) != len(stems):
+        raise ValueError(f"two models share a file stem: {stems}")
+    reports: dict[str, dict[str, EvalReport]] = {}
+    for condition, spec in specs.items():
+        samples = list(
+            fresh_samples(
+                worlds.seed, worlds.scenarios, worlds.positions, detectors[0].padding, worlds.frame_stride,
+                spec=spec,
+            )
+        )  # fmt: skip
+        source = (
+            f"fresh:seed={worlds.seed},scenarios={worlds.scenarios},positions={worlds.positions},"
+            f"noise={condition}"
+        )
+        reports[condition] = {
+            stem: evaluate(detector, iter(samples), out_dir / condition / stem, source=source, plots=plots)
+            for stem, detector in zip(stems, detectors, strict=True)
+        }
+    summary = {
+        "worlds": worlds.__dict__,
+        "models": {stem: d.model_id for stem, d in zip(stems, detectors, strict=True)},
+        "results": {
+            condition: {stem: _summary_cell(report) for stem, report in row.items()}
+            for condition, row in reports.items()
+        },
+    }
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return reports
+
+
+def _summary_cell(report: EvalReport) -> dict[str, Any]:
+    return {
+        "images": report.images,
+        "instances": report.instances,
+        **report.overall,
+        "per_class_mAP50": {name: row["mAP50"] for name, row in report.per_class.items()},
+    }
+
+
+def format_condition_table(reports: dict[str, dict[str, EvalReport]]) -> str:
+    """One row per condition and model: mAP@0.5, mAP@0.5:0.95 and the weakest class's mAP@0.5."""
+    lines = [f"{'condition':22s} {'model':32s} {'mAP50':>6s} {'50-95':>6s}  weakest class (mAP50)"]
+    for condition, row in reports.items():
+        for stem, report in row.items():
+            weakest = min(report.per_class.items(), key=lambda item: item[1]["mAP50"])
+            lines.append(
+                f"{condition:22s} {stem:32s} {report.overall['mAP50']:6.3f} {report.overall['mAP50-95']:6.3f}"
+                f"  {weakest[0]} {weakest[1]['mAP50']:.3f}"
+            )
+    return "\n".join(lines)
