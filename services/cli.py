@@ -295,6 +295,12 @@ def _run_eval(args: argparse.Namespace) -> int:
         return 0
     detector = detectors[0]
     if args.data is not None:
+        from training.onnx_export import dataset_invalid_rule
+
+        if (rule := dataset_invalid_rule(args.data)) != detector.invalid:
+            raise ValueError(
+                f"{args.data} puts invalid returns {rule!r}, {args.model[0]} reads them {detector.invalid!r}"
+            )
         samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
     else:
         from services.simulator.lidar import with_imperfections
@@ -302,8 +308,9 @@ def _run_eval(args: argparse.Namespace) -> int:
         noise = args.noise[0]
         spec = with_imperfections(noise)  # a bad condition is a ValueError: one line, exit 2
         samples = fresh_samples(
-            args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec
-        )
+            args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec,
+            invalid=detector.invalid,
+        )  # fmt: skip
         source = f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions},noise={noise}"
     report = evaluate(detector, samples, args.out, source=source)
     print(format_table(report))

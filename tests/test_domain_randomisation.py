@@ -241,16 +241,27 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
     from training.offline import configure_offline
 
     configure_offline(tmp_path / "yolo")
+    import onnx
+
+    from training.onnx_model import set_metadata
+
     int8 = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
+    # the same network declaring the other invalid-return rule: it must be fed tensors made that way
+    relabelled = onnx.load(SHIPPED_MODEL)
+    set_metadata(relabelled, {"triscan.invalid": "empty"})
+    empty_rule = tmp_path / "triscan-empty-rule.onnx"
+    onnx.save(relabelled, empty_rule)
     out = tmp_path / "grid"
     argv = ["eval", "--model", str(SHIPPED_MODEL), "--model", str(int8), "--fresh", "1", "--positions", "3"]
-    assert cli_main([*argv, "--seed", "4242", "--noise", "clean", "drop5", "--out", str(out)]) == 0
+    argv += ["--model", str(empty_rule)]
+    assert cli_main([*argv, "--seed", "4242", "--noise", "clean", "dropout=0.1", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert list(summary["results"]) == ["clean", "drop5"]
+    assert list(summary["results"]) == ["clean", "dropout=0.1"]
     cells = [cell for row in summary["results"].values() for cell in row.values()]
-    assert len(cells) == 4 and len({cell["images"] for cell in cells}) == 1 and cells[0]["images"] > 0
-    for condition in ("clean", "drop5"):
-        for stem in (SHIPPED_MODEL.stem, int8.stem):
+    assert len(cells) == 6 and len({cell["images"] for cell in cells}) == 1 and cells[0]["images"] > 0
+    assert list(summary["results"]["dropout=0.1"]) == [SHIPPED_MODEL.stem, int8.stem, empty_rule.stem]
+    for condition in ("clean", "dropout=0.1"):
+        for stem in (SHIPPED_MODEL.stem, int8.stem, empty_rule.stem):
             metrics = json.loads((out / condition / stem / "metrics.json").read_text())
             assert metrics["source"].endswith(f"noise={condition}") and metrics["model_id"].startswith(stem)
     # several conditions need simulated worlds; a bad condition fails before anything is simulated
@@ -261,4 +272,23 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
         == 2
     )
     assert cli_main([*argv, "--noise", "clean", "bogus", "--out", str(tmp_path / "bad")]) == 2
+    # a data set of the other rule is refused, not silently misread
+    (tmp_path / "summary.json").write_text(json.dumps({"config": {"invalid": "sentinel"}}))
+    assert cli_main(["eval", "--model", str(empty_rule), "--data", str(tmp_path)]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def test_fresh_worlds_are_encoded_with_the_models_invalid_rule() -> None:
+    """Under dropouts the sentinel rule lights row 63 where the empty rule leaves the columns dark."""
+    from common.encoding import SENTINEL_ROW
+    from services.simulator.lidar import with_imperfections
+    from training.evaluate import fresh_samples
+
+    drop10 = with_imperfections("dropout=0.1")
+    sentinel = list(fresh_samples(77, 1, 3, "zero", 6, spec=drop10))
+    empty = list(fresh_samples(77, 1, 3, "zero", 6, spec=drop10, invalid="empty"))
+    assert [s.name for s in sentinel] == [s.name for s in empty] and sentinel
+    assert all(int(s.tensor[SENTINEL_ROW].sum()) > 0 for s in sentinel)
+    for a, b in zip(sentinel, empty, strict=True):
+        assert int(b.tensor[SENTINEL_ROW].sum()) < int(a.tensor[SENTINEL_ROW].sum())
+        np.testing.assert_array_equal(a.boxes, b.boxes)

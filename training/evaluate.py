@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding
+from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, InvalidRule, Padding
 from common.inference import OnnxDetector, unwrap_seam_duplicates
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS
 from training.png import read_tensor_png
@@ -141,11 +141,13 @@ def fresh_samples(
     padding: Padding,
     frame_stride: int,
     spec: LidarSpec | None = None,
+    invalid: InvalidRule = "sentinel",
 ) -> Iterator[EvalSample]:
     """Newly simulated scenarios, straight through ScanStacker: data no model has seen.
 
     ``spec`` is the sensor (default: the clean LDS-01); the same seed gives the same worlds, motions and
-    Gaussian noise draws under every imperfection setting, with labels of the true geometry.
+    Gaussian noise draws under every imperfection setting, with labels of the true geometry. ``padding``
+    and ``invalid`` must be the model's own (:attr:`OnnxDetector.padding`, ``.invalid``).
     """
     from services.simulator.labels import arc_crosses_seam
     from services.simulator.lidar import DEFAULT_SPEC
@@ -158,7 +160,14 @@ def fresh_samples(
             scenario = sample_scenario(index, seed)
             motions = plan_motions(scenario, seed, positions)
             samples = simulate_samples(
-                world, scenario, motions, seed, padding, frame_stride, spec=spec or DEFAULT_SPEC
+                world,
+                scenario,
+                motions,
+                seed,
+                padding,
+                frame_stride,
+                spec=spec or DEFAULT_SPEC,
+                invalid=invalid,
             )
             for sample in samples:
                 boxes = [box for label in sample.labels for box in label.boxes_px]
@@ -423,36 +432,40 @@ def condition_matrix(
 ) -> dict[str, dict[str, EvalReport]]:
     """Every detector on the same fresh worlds under every LiDAR condition: reports[condition][model].
 
-    The worlds of a condition are simulated once and fed to each detector (fp32 and INT8 of one network
-    see identical tensors), which is also what makes the pair's difference a measure of quantisation
-    alone. Each cell lands in ``out_dir/<condition>/<model stem>/metrics.json``; ``summary.json`` holds
-    the grid.
+    The worlds of a condition are simulated once per encoding (padding and invalid-return rule) and fed
+    to each detector that reads that encoding: fp32 and INT8 of one network see identical tensors, which
+    makes the pair's difference a measure of quantisation alone, and models of another rule see the
+    same scans encoded their way. Each cell lands in ``out_dir/<condition>/<model stem>/metrics.json``;
+    ``summary.json`` holds the grid.
     """
     from services.simulator.lidar import with_imperfections
 
-    paddings = {d.padding for d in detectors}
-    if len(paddings) != 1:
-        raise ValueError(f"the models disagree on the padding ({sorted(paddings)}): evaluate them apart")
     specs = {condition: with_imperfections(condition) for condition in conditions}  # bad names fail first
     stems = [d.model_id.partition("@")[0] for d in detectors]
     if len(set(stems)) != len(stems):
         raise ValueError(f"two models share a file stem: {stems}")
+    encodings = list(dict.fromkeys((d.padding, d.invalid) for d in detectors))
     reports: dict[str, dict[str, EvalReport]] = {}
     for condition, spec in specs.items():
-        samples = list(
-            fresh_samples(
-                worlds.seed, worlds.scenarios, worlds.positions, detectors[0].padding, worlds.frame_stride,
-                spec=spec,
-            )
-        )  # fmt: skip
         source = (
             f"fresh:seed={worlds.seed},scenarios={worlds.scenarios},positions={worlds.positions},"
             f"noise={condition}"
         )
-        reports[condition] = {
-            stem: evaluate(detector, iter(samples), out_dir / condition / stem, source=source, plots=plots)
-            for stem, detector in zip(stems, detectors, strict=True)
-        }
+        reports[condition] = {}
+        for padding, invalid in encodings:
+            samples = list(
+                fresh_samples(
+                    worlds.seed, worlds.scenarios, worlds.positions, padding, worlds.frame_stride,
+                    spec=spec, invalid=invalid,
+                )
+            )  # fmt: skip
+            for stem, detector in zip(stems, detectors, strict=True):
+                if (detector.padding, detector.invalid) == (padding, invalid):
+                    cell = out_dir / condition / stem
+                    reports[condition][stem] = evaluate(
+                        detector, iter(samples), cell, source=source, plots=plots
+                    )
+        reports[condition] = {stem: reports[condition][stem] for stem in stems}  # the models' order
     summary = {
         "worlds": worlds.__dict__,
         "models": {stem: d.model_id for stem, d in zip(stems, detectors, strict=True)},
