@@ -59,6 +59,23 @@ def model_stem(network: str, padding: str) -> str:
     return f"{MODEL_PREFIX}{network}-{padding}"
 
 
+def network_of_stem(stem: str) -> str:
+    """``triscan-yolov8p-zero-int8`` → ``yolov8p``: the network a model file names (:func:`model_stem`)."""
+    if not stem.startswith(MODEL_PREFIX) or stem.count("-") < 2:
+        raise ValueError(f"{stem!r} is not a triscan model stem ({MODEL_PREFIX}<network>-<padding>…)")
+    return stem.removeprefix(MODEL_PREFIX).split("-")[0]
+
+
+NETWORK_TITLES: Final[dict[str, str]] = {
+    "yolov8n": "YOLOv8n",
+    "yolov8p": "YOLOv8p (pico: YOLOv8 at width 0.125)",
+}
+
+
+def network_title(network: str) -> str:
+    return NETWORK_TITLES.get(network, network)
+
+
 def batch_variant_path(model_path: Path) -> Path:
     """Where the free-batch-axis copy of a model goes: ``<stem>-batch.onnx`` beside it."""
     return model_path.with_name(f"{model_path.stem}{BATCH_SUFFIX}{model_path.suffix}")

@@ -344,12 +344,43 @@ def _add_card(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--ablation-command", default="", help="the wrap model's training command")
     p.add_argument("--ablation-notes", type=Path, default=None, help="markdown: what the ablation shows")
+    p.add_argument(
+        "--eval-conditions", type=Path, default=None,
+        help="summary.json of `triscan eval --model FP32 --model INT8 --fresh N --noise …` (unseen worlds, "
+        "LiDAR imperfections); INT8 is then recommended only within 0.5 points in every condition",
+    )  # fmt: skip
+    p.add_argument(
+        "--compare", type=Path, default=None,
+        help="summary.json of an eval grid with another network trained on the same data (e.g. YOLOv8n)",
+    )  # fmt: skip
+    p.add_argument("--compare-notes", type=Path, default=None, help="markdown: what the comparison shows")
+    p.add_argument(
+        "--invalid-ablation", type=Path, default=None,
+        help="summary.json of an eval grid with models of each invalid-return rule (sentinel, empty)",
+    )  # fmt: skip
+    p.add_argument("--invalid-ablation-notes", type=Path, default=None, help="markdown: what it shows")
     p.add_argument("--out", type=Path, default=Path("models"))
     p.set_defaults(run=_run_card)
 
 
 def _run_card(args: argparse.Namespace) -> int:
-    from training.model_card import write_card
+    from training.model_card import GridSection, write_card
+
+    def notes(path: Path | None) -> str:
+        return path.read_text() if path else ""
+
+    grids = [
+        GridSection(title, summary, notes(intro))
+        for title, summary, intro in (
+            ("Networks compared on the same data", args.compare, args.compare_notes),
+            (
+                "Ablation: invalid returns in the sentinel row vs left empty",
+                args.invalid_ablation,
+                args.invalid_ablation_notes,
+            ),
+        )
+        if summary is not None
+    ]
 
     card = write_card(
         dataset_dir=args.data,
@@ -366,14 +397,16 @@ def _run_card(args: argparse.Namespace) -> int:
             "frame_stride": args.gate_frame_stride,
         },
         train_command=args.train_command,
-        notes=args.notes.read_text() if args.notes else "",
+        notes=notes(args.notes),
         ablation=(
             {"zero": args.ablation_zero, "wrap": args.ablation_wrap}
             if args.ablation_zero and args.ablation_wrap
             else None
         ),
         ablation_command=args.ablation_command,
-        ablation_notes=args.ablation_notes.read_text() if args.ablation_notes else "",
+        ablation_notes=notes(args.ablation_notes),
+        conditions=args.eval_conditions,
+        grids=grids,
     )
     print(f"wrote {args.out}/MODEL_CARD.md (recommended: {card['recommended']})")
     return 0

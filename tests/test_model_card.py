@@ -1,0 +1,149 @@
+"""The model card is rendered from the artefacts that measured the model, and follows its own rules."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from common.model_spec import SHIPPED_MODEL, network_of_stem
+from training.model_card import GridSection, write_card
+
+INT8_MODEL = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
+CLASSES = ("chair", "box", "desk", "doorframe")
+
+
+def figures(map50: float) -> dict[str, float]:
+    return {"precision": 0.95, "recall": 0.94, "mAP50": map50, "mAP50-95": map50 - 0.2}
+
+
+def metrics(model_id: str, map50: float) -> dict[str, Any]:
+    """A metrics.json as `triscan eval` writes it."""
+    return {
+        "model_id": model_id,
+        "source": "x",
+        "images": 10,
+        "instances": 40,
+        "padding": "zero",
+        "overall": figures(map50),
+        "per_class": {name: {"instances": 10, **figures(map50)} for name in CLASSES},
+        "seam_crossing": {},
+        "mean_timings_ms": {"encode_ms": 0.1, "inference_ms": 1.0, "nms_ms": 0.1},
+        "files": {},
+    }
+
+
+def grid_cell(map50: float) -> dict[str, Any]:
+    return {"images": 10, "instances": 40, **figures(map50), "per_class_mAP50": dict.fromkeys(CLASSES, map50)}
+
+
+def artefacts(tmp_path: Path, grid_int8: dict[str, float]) -> dict[str, Any]:
+    """Data set summary, run directory, export report and evaluations of a pico model pair."""
+    import torch
+
+    data = tmp_path / "data"
+    data.mkdir(parents=True)
+    config = {
+        "scenarios": 480, "positions": 30, "seed": 0, "frame_stride": 15, "padding": "zero",
+        "noise_sigma_m": [0.01, 0.03], "dropout_rate": [0.0, 0.1], "spurious_rate": [0.0, 0.01],
+        "clutter": 3, "invalid": "sentinel",
+    }  # fmt: skip
+    splits = {"train": 408, "val": 48, "test": 24}
+    (data / "summary.json").write_text(json.dumps({"config": config, "scenarios": splits, "samples": splits}))
+    run = tmp_path / "run"
+    (run / "weights").mkdir(parents=True)
+    torch.save({"epoch": 1}, run / "weights" / "best.pt")  # 0-based: epoch 2
+    columns = ["epoch", "time", "train/box_loss", "metrics/precision(B)", "metrics/recall(B)"]
+    columns += ["metrics/mAP50(B)", "metrics/mAP50-95(B)"]
+    with (run / "results.csv").open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        writer.writerows([[1, 100, 1.2, 0.9, 0.9, 0.95, 0.6], [2, 200, 1.0, 0.95, 0.95, 0.98, 0.7]])
+    fp32_id, int8_id = "triscan-yolov8p-zero@aaaaaaaaaaaa", "triscan-yolov8p-zero-int8@bbbbbbbbbbbb"
+    export = {
+        "padding": "zero",
+        "fp32": {"path": "models/triscan-yolov8p-zero.onnx", "bytes": 1, "sha256": "a" * 64},
+        "int8": {"path": "models/triscan-yolov8p-zero-int8.onnx", "bytes": 1, "sha256": "b" * 64},
+        "latency_ms_1_thread": {"fp32": 1.2, "int8": 0.8},
+    }
+    paths = {}
+    for name, value in {
+        "export": export,
+        "fp32": metrics(fp32_id, 0.99),
+        "int8": metrics(int8_id, 0.99),  # equal on the test split
+        "gate": metrics(fp32_id, 0.99),
+        "grid": {
+            "worlds": {"seed": 9000, "scenarios": 20, "positions": 90, "frame_stride": 15},
+            "models": {"triscan-yolov8p-zero": fp32_id, "triscan-yolov8p-zero-int8": int8_id},
+            "results": {
+                condition: {
+                    "triscan-yolov8p-zero": grid_cell(0.98),
+                    "triscan-yolov8p-zero-int8": grid_cell(m),
+                }
+                for condition, m in grid_int8.items()
+            },
+        },
+    }.items():
+        paths[name] = tmp_path / f"{name}.json"
+        paths[name].write_text(json.dumps(value))
+    return {"data": data, "run": run, **paths}
+
+
+def card_of(tmp_path: Path, grid_int8: dict[str, float], **extra: Any) -> dict[str, Any]:
+    a = artefacts(tmp_path, grid_int8)
+    return write_card(
+        dataset_dir=a["data"], run_dir=a["run"], export_json=a["export"], eval_test_fp32=a["fp32"],
+        eval_test_int8=a["int8"], eval_gate=a["gate"],
+        gate={"seed": 1000, "scenarios": 6, "positions": 15, "frame_stride": 15},
+        out_dir=tmp_path / "card", train_command="triscan train --arch p", conditions=a["grid"], **extra,
+    )  # fmt: skip
+
+
+def test_int8_is_recommended_only_within_half_a_point_under_every_condition(tmp_path: Path) -> None:
+    close = card_of(tmp_path / "close", {"clean": 0.978, "drop5+sigma3": 0.976})
+    assert close["recommended"] == "int8"
+    # equal on the test split and clean, a point behind under one condition: fp32 stays the default
+    behind = card_of(tmp_path / "behind", {"clean": 0.98, "drop10+sigma3+spur1": 0.97})
+    assert behind["recommended"] == "fp32"
+    assert behind["int8_minus_fp32_map50"]["drop10+sigma3+spur1"] == pytest.approx(-0.01)
+
+
+def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path: Path) -> None:
+    grid = tmp_path / "compare.json"
+    grid.write_text(
+        json.dumps(
+            {
+                "worlds": {"seed": 9000, "scenarios": 20, "positions": 90, "frame_stride": 15},
+                "models": {"triscan-yolov8p-zero": "p@1", "triscan-yolov8n-zero": "n@2"},
+                "results": {
+                    "clean": {
+                        "triscan-yolov8p-zero": grid_cell(0.98),
+                        "triscan-yolov8n-zero": grid_cell(0.985),
+                    }
+                },
+            }
+        )
+    )
+    card = card_of(
+        tmp_path,
+        {"clean": 0.98, "sigma3": 0.979},
+        grids=[GridSection("Networks compared", grid, "Same data.")],
+    )
+    text = (tmp_path / "card" / "MODEL_CARD.md").read_text()
+    assert card["network"] == "yolov8p" and text.startswith("# Model card: triscan YOLOv8p")
+    assert "--noise-sigma 0.01 0.03 --dropout 0 0.1 --spurious 0 0.01 --clutter 3`" in text
+    assert "## Unseen worlds under LiDAR imperfections" in text and "| sigma3 | 10 | 0.980 |" in text
+    assert "## Networks compared" in text and "| clean | 0.980 / 0.780 | 0.985 / 0.785 |" in text
+    saved = json.loads((tmp_path / "card" / "MODEL_CARD.json").read_text())
+    assert set(saved["unseen_worlds"]["int8"]) == {"clean", "sigma3"}
+
+
+def test_network_of_a_model_file() -> None:
+    assert network_of_stem(SHIPPED_MODEL.stem) == "yolov8n"
+    assert network_of_stem(INT8_MODEL.stem) == "yolov8n"
+    assert network_of_stem("triscan-yolov8p-zero-int8-batch") == "yolov8p"
+    with pytest.raises(ValueError):
+        network_of_stem("yolov8n")
