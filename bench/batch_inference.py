@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -146,3 +147,60 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def measure_parallel_sessions(
+    model: Path, workers: int, batches: list[int], seconds: float, frames: np.ndarray
+) -> list[dict[str, float]]:
+    """Frames/s of ``workers`` single-threaded sessions running at once, one Python thread each (ONNX
+    Runtime releases the GIL), per batch size: the detector's ``--workers N --threads 1`` on the
+    network alone."""
+    rows = []
+    for batch in batches:
+        frames_per_s = _parallel_frames_per_s(model, workers, batch, seconds, frames)
+        rows.append(
+            {"workers": workers, "threads": 1, "batch": batch, "frames_per_s": round(frames_per_s, 1)}
+        )
+        log.info(
+            "%s %d sessions x 1 thread, batch %2d: %.1f frames/s", model.name, workers, batch, frames_per_s
+        )
+    return rows
+
+
+def _parallel_frames_per_s(
+    model: Path, workers: int, batch: int, seconds: float, frames: np.ndarray
+) -> float:
+    import onnxruntime as ort
+
+    sessions = [
+        ort.InferenceSession(str(model), session_options(1), providers=["CPUExecutionProvider"])
+        for _ in range(workers)
+    ]
+    name = sessions[0].get_inputs()[0].name
+    feeds = [
+        {name: np.take(frames, range(i, i + batch), axis=0, mode="wrap")}
+        for i in range(0, len(frames), batch)
+    ]
+    for session in sessions:
+        session.run(None, feeds[0])
+    counts = [0] * workers
+    go = threading.Barrier(workers + 1)
+    deadline = time.perf_counter() + seconds + 1.0  # reset once every thread waits at the barrier
+
+    def serve(index: int) -> None:
+        go.wait()
+        while time.perf_counter() < deadline:
+            sessions[index].run(None, feeds[counts[index] % len(feeds)])
+            counts[index] += 1
+
+    threads = [threading.Thread(target=serve, args=(i,)) for i in range(workers)]
+    for thread in threads:
+        thread.start()
+    while go.n_waiting < workers:
+        time.sleep(0.001)
+    started = time.perf_counter()
+    deadline = started + seconds
+    go.wait()
+    for thread in threads:
+        thread.join()
+    return sum(counts) * batch / (time.perf_counter() - started)

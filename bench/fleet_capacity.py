@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import proc_status_mb, recorded_scans, start_loopback_service
+from bench.harness import proc_cpu_s, proc_status_mb, recorded_scans, start_loopback_service
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
@@ -62,6 +62,9 @@ class FleetStep:
     detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
     detector_mean_batch: float = 0.0  # tensors per model call over the whole step (--batch)
     latency_ms_max_per_s: list[float] = field(default_factory=list)  # NaN: nothing answered that second
+    # Cores each process kept busy over the window (CPU seconds / wall seconds); "bench" is this process,
+    # the load generator, which the machine's two cores also carry.
+    cpu_cores: dict[str, float] = field(default_factory=dict)
     passed: bool = False
     why_not: str = ""
 
@@ -125,6 +128,7 @@ def _start_services(
     )
     detector_args = (
         *tuning,
+        *(("--no-spin",) if args.no_spin else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
     )
@@ -179,6 +183,7 @@ def _publish_fleet(
             if len(answered) == robots:
                 measure_from = time.monotonic()
                 step.rss_mb_start = _rss_mb(children)
+                cpu_start = _cpu_s(children)
             elif time.monotonic() - start > MAX_WARM_UP_S:
                 step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
                 break
@@ -200,7 +205,17 @@ def _publish_fleet(
             if (wait := slot - time.monotonic()) > 0:
                 time.sleep(wait)
         tick += 1
+    if measure_from is not None:
+        window = time.monotonic() - measure_from
+        step.cpu_cores = {
+            name: round((seconds - cpu_start[name]) / window, 3) for name, seconds in _cpu_s(children).items()
+        }
     return published
+
+
+def _cpu_s(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
+    """CPU seconds used so far by each child and by this process."""
+    return {**{n: proc_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time()}
 
 
 def _worst_latency_per_second(
@@ -260,6 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--detector-defaults",
         action="store_true",
         help="pass no --workers/--batch/--threads: measure the detector as it configures itself",
+    )
+    parser.add_argument(
+        "--no-spin", action="store_true", help="the detector's ONNX Runtime threads sleep instead of spinning"
     )
     parser.add_argument(
         "--from-scans",

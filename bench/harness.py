@@ -3,6 +3,7 @@ read a process's memory, and real scans recorded up front so a timed loop simula
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -35,6 +36,12 @@ def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:
         if line.startswith(f"{field_name}:"):
             return int(line.split()[1]) / 1024.0
     raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
+
+
+def proc_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system, every thread) a live process has used, from /proc/<pid>/stat."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (fields 14, 15)
 
 
 def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:

@@ -39,7 +39,7 @@ from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
-from services.detector.core import default_intra_op_threads
+from services.detector.core import default_intra_op_threads, default_workers
 from services.launcher import free_tcp_ports, stop_processes
 from services.simulator.fleet import SimulatedFleet
 
@@ -98,7 +98,7 @@ def run(
     model = model or default_model_path()
     report.zenoh_cfg = [f"{key}:{value}" for key, value in zenoh_cfg]
     # The detector's own default when --threads is not given, so the baseline times the same setting.
-    report.bare_threads = threads or default_intra_op_threads(1, from_scans)
+    report.bare_threads = threads or default_intra_op_threads(default_workers(), from_scans)
     report.bare_ms = bare_frame_latency(model, report.bare_threads, rate_hz, bare_frames)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
     children = _start_services(from_scans, threads, model, bench_port, encoder_port, detector_port, zenoh_cfg)

@@ -403,12 +403,16 @@ def _declared_padding(session: ort.InferenceSession, path: Path | str) -> Paddin
     return padding
 
 
-def session_options(intra_op_threads: int | None = None, *, optimise: bool = True) -> ort.SessionOptions:
+def session_options(
+    intra_op_threads: int | None = None, *, optimise: bool = True, spin_wait: bool = True
+) -> ort.SessionOptions:
     """The ONNX Runtime options every triscan session uses (detector, export checks, benchmarks).
 
     Sequential execution and one inter-op thread: the graph is one small chain with nothing to run
     in parallel. ``intra_op_threads`` None lets ONNX Runtime use every core. ``optimise`` False skips
-    graph optimisation, for sessions that only read a model's metadata and signature.
+    graph optimisation, for sessions that only read a model's metadata and signature. ``spin_wait``
+    False makes the intra-op threads sleep instead of spinning while they wait for work: slower to
+    wake, but the cores they would spin on go to the other processes of the pipeline.
     """
     options = ort.SessionOptions()
     options.graph_optimization_level = (
@@ -418,6 +422,8 @@ def session_options(intra_op_threads: int | None = None, *, optimise: bool = Tru
     options.inter_op_num_threads = 1
     if intra_op_threads is not None:
         options.intra_op_num_threads = intra_op_threads
+    if not spin_wait:
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return options
 
 
@@ -519,9 +525,11 @@ class OnnxDetector:
         padding: Padding | None = None,
         intra_op_threads: int | None = None,
         providers: list[str] | None = None,
+        spin_wait: bool = True,
     ) -> None:
         """``padding`` defaults to the model's own ``triscan.padding`` metadata (``zero`` if absent);
-        asking for the other one than the model was trained with is refused."""
+        asking for the other one than the model was trained with is refused. ``spin_wait``: see
+        :func:`session_options`."""
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"ONNX model {path} not found")
@@ -544,7 +552,7 @@ class OnnxDetector:
         try:
             self._session = ort.InferenceSession(
                 str(path),
-                sess_options=session_options(intra_op_threads),
+                sess_options=session_options(intra_op_threads, spin_wait=spin_wait),
                 providers=providers or default_providers(),
             )
         except Exception as exc:  # onnxruntime raises its own exception zoo for unreadable models

@@ -201,3 +201,8 @@ def test_default_threads_leave_a_core_to_the_encoder_in_the_same_process() -> No
     assert default_intra_op_threads(1, from_scans=True, cpus=1) == 1
     assert default_intra_op_threads(2, from_scans=False, cpus=8) == 4
     assert default_intra_op_threads(4, from_scans=True, cpus=2) == 1
+    # the defaults together: one single-threaded session per core
+    from services.detector.core import default_workers
+
+    assert default_workers(cpus=4) == 4
+    assert default_intra_op_threads(default_workers(cpus=4), from_scans=False, cpus=4) == 1

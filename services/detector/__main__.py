@@ -27,7 +27,12 @@ from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
 from common.model_spec import MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, settings_from_args
-from services.detector.core import DetectorCore, InferencePipeline, default_intra_op_threads
+from services.detector.core import (
+    DetectorCore,
+    InferencePipeline,
+    default_intra_op_threads,
+    default_workers,
+)
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
 from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
@@ -89,8 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--workers",
         type=int,
-        default=1,
-        help="parallel inference threads, each with its own session (fleets)",
+        default=None,
+        help="parallel inference threads, each with its own session (default: one per core)",
     )
     parser.add_argument(
         "--batch",
@@ -102,14 +107,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
     )
+    parser.add_argument(
+        "--no-spin",
+        dest="spin_wait",
+        action="store_false",
+        help="ONNX Runtime threads sleep instead of spinning between frames (frees the cores they spin on)",
+    )
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
-    if args.workers < 1:
+    if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
+    workers = args.workers or default_workers()
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
-    threads = args.threads or default_intra_op_threads(args.workers, args.from_scans)
+    threads = args.threads or default_intra_op_threads(workers, args.from_scans)
     try:
         model, batch = detector_model_and_batch(args.model, args.batch)
         detectors = [
@@ -118,8 +130,9 @@ def main(argv: list[str] | None = None) -> int:
                 conf_threshold=args.conf,
                 iou_threshold=args.iou,
                 intra_op_threads=threads,
+                spin_wait=args.spin_wait,
             )
-            for _ in range(args.workers)
+            for _ in range(workers)
         ]
     except (FileNotFoundError, ValueError) as exc:
         log.error("cannot load the model: %s", exc)

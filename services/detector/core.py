@@ -239,6 +239,18 @@ class DetectorCore:
         )
 
 
+def default_workers(cpus: int | None = None) -> int:
+    """Inference threads when the user gives none: one per core, each with a single-threaded session.
+
+    ONNX Runtime splits one 64×384 frame over several threads poorly: measured on a 2-core VM, one
+    2-thread session ran the batch model at 210 frames/s at best, two 1-thread sessions side by side at
+    about 300 (bench/README.md, "The fleet against the compute bound"), and the fleet a detector held
+    at 10 Hz grew from 12 to 16 robots. A lone robot waits a little longer per frame (one core instead
+    of two work on it), well inside its 100 ms period.
+    """
+    return cpus or os.cpu_count() or 1
+
+
 def default_intra_op_threads(workers: int, from_scans: bool, cpus: int | None = None) -> int | None:
     """ONNX Runtime threads per worker when the user gives none (``None``: every core).
 
