@@ -167,7 +167,9 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         "--data", type=Path, required=True, help="the data set (or its data.yaml) it was trained on"
     )
     p.add_argument("--out", type=Path, default=Path("models"), help="directory for the .onnx files")
-    p.add_argument("--name", required=True, help="file stem, e.g. triscan-yolov8n-zero")
+    p.add_argument(
+        "--name", default=None, help="file stem (default: triscan-<network>-<padding>: triscan-yolov8p-zero)"
+    )
     p.add_argument("--padding", choices=PADDINGS, default=None, help="default: read from the data set")
     p.add_argument("--calib-count", type=int, default=200, help="val images used to calibrate INT8")
     p.add_argument("--calib-method", choices=("percentile", "minmax", "entropy"), default="percentile")

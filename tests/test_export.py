@@ -402,3 +402,22 @@ def test_export_models_writes_and_describes_both_files(weights: Path, dataset: P
         export_models(weights, dataset, tmp_path / "other", name="x", padding="zero", calib_count=4)
     with pytest.raises(ValueError, match="name"):
         export_models(weights, dataset, tmp_path / "other", name="../x", padding="wrap", calib_count=4)
+    # no name: the files are named after the checkpoint's network and the set's padding
+    unnamed = export_models(
+        weights, dataset, tmp_path / "unnamed", calib_count=4, compare_count=1, timing_runs=0
+    )
+    assert Path(unnamed["fp32"]["path"]).name == "triscan-yolov8n-wrap.onnx"
+    assert Path(unnamed["int8"]["path"]).name == "triscan-yolov8n-wrap-int8.onnx"
+
+
+def test_checkpoints_name_their_network(tmp_path: Path) -> None:
+    from training.architectures import model_yaml, network_of_checkpoint
+
+    configure_offline()
+    from ultralytics import YOLO
+
+    for arch, network in (("p", "yolov8p"), ("n", "yolov8n")):
+        yolo = YOLO(model_yaml(arch, tmp_path))
+        yolo.ckpt = {}
+        yolo.save(str(tmp_path / f"{arch}.pt"))
+        assert network_of_checkpoint(tmp_path / f"{arch}.pt") == network

@@ -52,3 +52,16 @@ def model_yaml(arch: str, directory: Path) -> str:
     target = directory / f"{model_name(arch)}.yaml"
     YAML.save(target, spec)
     return str(target)
+
+
+def network_of_checkpoint(weights: Path) -> str:
+    """``yolov8n`` or ``yolov8p``: the network an Ultralytics checkpoint was built from (its model YAML's
+    file name, which :func:`model_yaml` names after the architecture)."""
+    import torch
+
+    checkpoint = torch.load(weights, map_location="cpu", weights_only=False)
+    model = checkpoint.get("ema") or checkpoint.get("model")
+    yaml_file = getattr(model, "yaml", {}).get("yaml_file") if model is not None else None
+    if not yaml_file:
+        raise ValueError(f"{weights}: no model YAML recorded, pass the file name (--name)")
+    return Path(yaml_file).stem

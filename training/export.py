@@ -16,7 +16,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from common.model_spec import CLASS_NAMES, batch_variant_path, file_sha256
+from common.model_spec import CLASS_NAMES, batch_variant_path, file_sha256, model_stem
+from training.architectures import network_of_checkpoint
 from training.batch_variant import add_batch_axis
 from training.export_checks import compare_outputs, median_latency_ms
 from training.onnx_export import export_onnx, resolve_padding
@@ -41,7 +42,7 @@ def export_models(
     dataset_dir: Path,
     models_dir: Path,
     *,
-    name: str,
+    name: str | None = None,
     padding: str | None = None,
     calib_count: int = DEFAULT_CALIB_COUNT,
     method: CalibMethod = "percentile",
@@ -51,6 +52,8 @@ def export_models(
 ) -> dict[str, Any]:
     """Write ``<name>.onnx`` (fp32) and ``<name>-int8.onnx`` into ``models_dir``, each with its batch
     variant (``-batch``, :func:`add_batch_axis`) for a detector serving many robots; describe them.
+    ``name`` None: ``triscan-<network>-<padding>`` (:func:`common.model_spec.model_stem`), the network
+    read from the checkpoint, so a pico model is never written under YOLOv8n's name.
 
     ``dataset_dir`` (or its ``data.yaml``) is the set the weights were trained on: it supplies the
     calibration images (its ``val`` split) and the padding; ``padding``, when given, must match it.
@@ -64,9 +67,11 @@ def export_models(
         dataset_dir = dataset_dir.parent
     if not weights.is_file():
         raise FileNotFoundError(f"weights {weights} not found")
+    recorded_padding = resolve_padding(padding, dataset_dir)
+    if name is None:
+        name = model_stem(network_of_checkpoint(weights), recorded_padding)
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
         raise ValueError(f"name must be a plain file stem ([A-Za-z0-9._-]), got {name!r}")
-    recorded_padding = resolve_padding(padding, dataset_dir)
     calibration = calibration_images(dataset_dir, calib_count)
     fp32 = export_onnx(weights, models_dir / f"{name}.onnx", padding=recorded_padding)
     int8 = quantize_int8(
