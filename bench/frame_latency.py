@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import json
 import logging
 import os
 import time
@@ -71,12 +72,15 @@ log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import p
 TRISCAN_FP32: Final[str] = "triscan_fp32"
 TRISCAN_INT8: Final[str] = "triscan_int8"
 ULTRALYTICS: Final[str] = "ultralytics_pt"
+ULTRALYTICS_SAME: Final[str] = "ultralytics_same_network_pt"
 GRID: Final[str] = "occupancy_grid"
 LABELS: Final[dict[str, str]] = {
     TRISCAN_FP32: "triscan 64×384, ONNX Runtime fp32",
-    TRISCAN_INT8: "triscan 64×384, ONNX Runtime INT8 (shipped)",
-    ULTRALYTICS: "triscan 64×384, Ultralytics predict on .pt (paper's runtime)",
+    TRISCAN_INT8: "triscan 64×384, ONNX Runtime INT8",
+    ULTRALYTICS: "triscan 64×384, Ultralytics predict on the paper's YOLOv8n .pt",
+    ULTRALYTICS_SAME: "triscan 64×384, Ultralytics predict on the fp32 model's own .pt",
 }
+PRECISION_PIPELINES: Final[dict[str, str]] = {"fp32": TRISCAN_FP32, "int8": TRISCAN_INT8}
 
 
 def label(name: str, grid_px: int = GRID_PX) -> str:
@@ -118,7 +122,10 @@ class BenchConfig:
     seed: int = 1
     fp32_model: Path = MODELS / "triscan-yolov8n-zero.onnx"
     int8_model: Path = MODELS / "triscan-yolov8n-zero-int8.onnx"
-    pt_model: Path = MODELS / "triscan-yolov8n-zero.pt"
+    pt_model: Path = MODELS / "triscan-yolov8n-zero.pt"  # the paper's runtime: its network, Ultralytics
+    # Ultralytics on the same network as fp32_model (its .pt beside it), when that is not pt_model's
+    same_network_pt: Path | None = None
+    default: str = "fp32"  # which triscan file the detector runs by default (the card's recommendation)
     grid_px: int = GRID_PX
     cache_dir: Path = DEFAULT_CACHE
     skip_int8: bool = False
@@ -332,23 +339,25 @@ def measure(
     )
 
 
-def ratios(rows: Sequence[LatencyRow]) -> list[RatioRow]:
-    """Baseline ÷ triscan fp32 (and INT8 ÷ fp32) for every thread count that has both rows."""
+def ratios(rows: Sequence[LatencyRow], default: str = TRISCAN_FP32) -> list[RatioRow]:
+    """Every baseline ÷ triscan fp32 (and INT8 ÷ fp32), for every thread count that has both rows;
+    Ultralytics on the same network ÷ fp32 (the runtime alone); and, when the detector's default is
+    another file (``default``: INT8), the baselines ÷ that default (what a user gains)."""
     by_key = {(row.pipeline, row.threads): row for row in rows}
+    pairs = [(name, TRISCAN_FP32) for name in (ULTRALYTICS, GRID, TRISCAN_INT8, ULTRALYTICS_SAME)]
+    if default != TRISCAN_FP32:
+        pairs += [(ULTRALYTICS, default), (GRID, default)]
     out = []
     for threads in sorted({row.threads for row in rows}):
-        base = by_key.get((TRISCAN_FP32, threads))
-        if base is None:
-            continue
-        for name in (ULTRALYTICS, GRID, TRISCAN_INT8):
-            row = by_key.get((name, threads))
-            if row is None:
+        for numerator, denominator in pairs:
+            row, base = by_key.get((numerator, threads)), by_key.get((denominator, threads))
+            if row is None or base is None:
                 continue
             out.append(
                 RatioRow(
                     threads=threads,
-                    numerator=name,
-                    denominator=TRISCAN_FP32,
+                    numerator=numerator,
+                    denominator=denominator,
                     paper_mean=round(row.paper_mean_ms / base.paper_mean_ms, 3),
                     p50=round(row.p50_ms / base.p50_ms, 3),
                     p99=round(row.p99_ms / base.p99_ms, 3),
@@ -357,8 +366,11 @@ def ratios(rows: Sequence[LatencyRow]) -> list[RatioRow]:
     return out
 
 
-def goals(rows: Sequence[LatencyRow], ratio_rows: Sequence[RatioRow]) -> dict[str, dict[str, Any]]:
-    """Issue 5's targets, evaluated (never asserted) on the 1-thread rows: medians."""
+def goals(
+    rows: Sequence[LatencyRow], ratio_rows: Sequence[RatioRow], default: str = TRISCAN_FP32
+) -> dict[str, dict[str, Any]]:
+    """The targets, evaluated (never asserted) on the 1-thread rows: medians. The speed ratios are
+    the detector's default file against the paper's runtime and the grid pipeline."""
     out: dict[str, dict[str, Any]] = {}
     fp32 = next((r for r in rows if r.pipeline == TRISCAN_FP32 and r.threads == 1), None)
     if fp32 is not None:
@@ -368,9 +380,11 @@ def goals(rows: Sequence[LatencyRow], ratio_rows: Sequence[RatioRow]) -> dict[st
             "met": fp32.p50_ms <= GOAL_P50_MS,
         }
     for name, target in ((ULTRALYTICS, GOAL_ULTRALYTICS_RATIO), (GRID, GOAL_GRID_RATIO)):
-        ratio = next((r for r in ratio_rows if r.numerator == name and r.threads == 1), None)
+        ratio = next(
+            (r for r in ratio_rows if (r.numerator, r.denominator, r.threads) == (name, default, 1)), None
+        )
         if ratio is not None:
-            out[f"{name}_over_triscan_fp32_p50_at_1_thread"] = {
+            out[f"{name}_over_{default}_p50_at_1_thread"] = {
                 "value": ratio.p50,
                 "target": f">= {target}",
                 "met": ratio.p50 >= target,
@@ -397,6 +411,9 @@ def _factories(config: BenchConfig, grid_model: Path | None) -> list[tuple[str, 
         factories.append((TRISCAN_INT8, lambda t: TriscanPipeline(config.int8_model, t)))
     if not config.skip_ultralytics:
         factories.append((ULTRALYTICS, lambda t: UltralyticsPipeline(config.pt_model, t)))
+        same = config.same_network_pt
+        if same is not None and same.resolve() != config.pt_model.resolve():
+            factories.append((ULTRALYTICS_SAME, lambda t: UltralyticsPipeline(same, t)))
     if grid_model is not None:
         factories.append((GRID, lambda t: GridPipeline(grid_model, t)))
     return factories
@@ -429,7 +446,8 @@ def run(config: BenchConfig) -> BenchReport:
             log.info("%-15s %d thread(s): p50 %.3f ms, p99 %.3f ms", name, threads, row.p50_ms, row.p99_ms)
             rows.append(row)
     machine.loadavg_end = [round(x, 2) for x in os.getloadavg()]
-    ratio_rows = ratios(rows)
+    default = PRECISION_PIPELINES[config.default]
+    ratio_rows = ratios(rows, default)
     config_dict = {k: (_shown(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()}
     return BenchReport(
         config=config_dict,
@@ -443,7 +461,7 @@ def run(config: BenchConfig) -> BenchReport:
         },
         rows=rows,
         ratios=ratio_rows,
-        goals=goals(rows, ratio_rows),
+        goals=goals(rows, ratio_rows, default),
         notes=[
             "frame = encode (+ FIFO) + model-input conversion + inference + decode/NMS, batch 1, wall clock",
             "paper_mean_ms: mean of paper_frames consecutive frames after paper_warmup_frames warm-up",
@@ -452,7 +470,8 @@ def run(config: BenchConfig) -> BenchReport:
             "at 64×384; its stage split is its own Results.speed",
             f"occupancy_grid: untrained YOLOv8n weights, timing only; encode = scan → "
             f"{config.grid_px}×{config.grid_px} occupancy image ({GRID_RADIUS_M:g} m centre to edge)",
-            "ratios: numerator ÷ triscan_fp32 (int8 < 1 means INT8 is faster)",
+            "ratios: numerator ÷ denominator (int8 ÷ fp32 < 1 means INT8 is faster); "
+            f"the detector's default file: {default}",
         ],
         wall_s=round(time.perf_counter() - started, 1),
     )
@@ -479,12 +498,10 @@ def format_table(report: BenchReport) -> str:
             + f" {row.detections_per_frame:>6.2f}"
         )
     lines.append("")
-    lines.append("ratios (÷ triscan fp32):        paper     p50     p99")
+    lines.append(f"{'ratios':<52} {'paper':>8} {'p50':>7} {'p99':>7}")
     for ratio in report.ratios:
-        lines.append(
-            f"  {ratio.numerator:<15} {ratio.threads} thread(s) {ratio.paper_mean:>8.2f} {ratio.p50:>7.2f} "
-            f"{ratio.p99:>7.2f}"
-        )
+        pair = f"{ratio.numerator} ÷ {ratio.denominator}, {ratio.threads} thread(s)"
+        lines.append(f"  {pair:<50} {ratio.paper_mean:>8.2f} {ratio.p50:>7.2f} {ratio.p99:>7.2f}")
     lines.append("")
     for name, goal in report.goals.items():
         lines.append(
@@ -504,6 +521,16 @@ def _parse_threads(text: str) -> tuple[int, ...]:
     return tuple(values)
 
 
+def _existing(path: Path) -> Path | None:
+    return path if path.is_file() else None
+
+
+def _card_recommendation() -> str:
+    """The file the shipped card recommends for the detector (``fp32`` without a card)."""
+    card = MODELS / "MODEL_CARD.json"
+    return str(json.loads(card.read_text()).get("recommended", "fp32")) if card.is_file() else "fp32"
+
+
 def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
     assert __doc__ is not None
     parser = argparse.ArgumentParser(
@@ -516,7 +543,15 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
     parser.add_argument("--seed", type=int, default=1, help="simulator seed of the scans")
     parser.add_argument("--fp32-model", type=Path, default=BenchConfig.fp32_model)
     parser.add_argument("--int8-model", type=Path, default=BenchConfig.int8_model)
-    parser.add_argument("--pt-model", type=Path, default=BenchConfig.pt_model)
+    parser.add_argument("--pt-model", type=Path, default=BenchConfig.pt_model, help="the paper's runtime")
+    parser.add_argument(
+        "--same-network-pt", type=Path, default=None,
+        help="Ultralytics checkpoint of the --fp32-model's network (default: its .pt beside it, if any)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--default", choices=sorted(PRECISION_PIPELINES), default=None,
+        help="the detector's default file (default: models/MODEL_CARD.json's recommendation)",
+    )  # fmt: skip
     parser.add_argument("--grid-px", type=int, default=GRID_PX, help="grid image side (640)")
     parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help="exported grid model cache")
     parser.add_argument("--skip-int8", action="store_true")
@@ -533,6 +568,8 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         fp32_model=args.fp32_model,
         int8_model=args.int8_model,
         pt_model=args.pt_model,
+        same_network_pt=args.same_network_pt or _existing(args.fp32_model.with_suffix(".pt")),
+        default=args.default or _card_recommendation(),
         grid_px=args.grid_px,
         cache_dir=args.cache_dir,
         skip_int8=args.skip_int8,

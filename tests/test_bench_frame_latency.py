@@ -21,10 +21,13 @@ from bench.frame_latency import (
     TRISCAN_FP32,
     TRISCAN_INT8,
     ULTRALYTICS,
+    ULTRALYTICS_SAME,
     LatencyRow,
     MachineInfo,
     RatioRow,
+    goals,
     main,
+    ratios,
 )
 from bench.occupancy_grid import rasterise_occupancy_grid
 
@@ -102,3 +105,33 @@ def test_occupancy_grid_is_robot_centred_forward_up_left_left() -> None:
     rows, cols = np.nonzero(image[..., 0])
     assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(160, 320), (320, 240)]
     assert (image[rows, cols] == 255).all() and int((image > 0).sum()) == 2 * 3
+
+
+def latency_row(pipeline: str, p50: float, threads: int = 1) -> LatencyRow:
+    return LatencyRow(
+        pipeline=pipeline, label=pipeline, threads=threads, paper_warmup_frames=1, paper_frames=3,
+        paper_mean_ms=p50, frames=5, p50_ms=p50, p99_ms=2 * p50, mean_ms=p50, max_ms=3 * p50,
+        stage_mean_ms=dict.fromkeys(STAGES, 0.0), detections_per_frame=1.0,
+    )  # fmt: skip
+
+
+def test_ratios_name_the_same_network_and_the_shipped_default() -> None:
+    """A pico default in INT8: the runtime alone (Ultralytics on the pico .pt ÷ pico fp32) and what a user
+    gains (the paper's YOLOv8n in Ultralytics ÷ the default file), the goals judged on the latter."""
+    rows = [
+        latency_row(TRISCAN_FP32, 4.0), latency_row(TRISCAN_INT8, 3.0), latency_row(ULTRALYTICS, 18.0),
+        latency_row(ULTRALYTICS_SAME, 12.0), latency_row(GRID, 120.0),
+    ]  # fmt: skip
+    got = {(r.numerator, r.denominator): r.p50 for r in ratios(rows, TRISCAN_INT8)}
+    assert got == {
+        (ULTRALYTICS, TRISCAN_FP32): 4.5, (GRID, TRISCAN_FP32): 30.0, (TRISCAN_INT8, TRISCAN_FP32): 0.75,
+        (ULTRALYTICS_SAME, TRISCAN_FP32): 3.0, (ULTRALYTICS, TRISCAN_INT8): 6.0, (GRID, TRISCAN_INT8): 40.0,
+    }  # fmt: skip
+    judged = goals(rows, ratios(rows, TRISCAN_INT8), TRISCAN_INT8)
+    assert judged["ultralytics_pt_over_triscan_int8_p50_at_1_thread"] == {
+        "value": 6.0,
+        "target": ">= 6.0",
+        "met": True,
+    }
+    assert judged["occupancy_grid_over_triscan_int8_p50_at_1_thread"]["met"]
+    assert not judged["triscan_fp32_p50_ms_at_1_thread"]["met"]
