@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -136,6 +137,10 @@ def test_fleet_bound_measures_the_default_models_best_throughput() -> None:
     bound = compute_bound(SHIPPED_BATCH_MODEL, seconds=0.2)
     rows = bound["rows"]
     assert bound["model"] == SHIPPED_BATCH_MODEL.name and len(rows) >= 4  # type: ignore[arg-type]
-    best_ms = min(row["ms_per_image"] for row in rows)  # type: ignore[union-attr]
-    assert bound["best_frames_per_s"] == round(1000.0 / best_ms, 1)
+    assert bound["best_frames_per_s"] == max(row["frames_per_s"] for row in rows)  # type: ignore[union-attr]
+    assert all(row["frames_per_s"] > 0 for row in rows)  # type: ignore[union-attr]
     assert bound["best_batch"] in (1, 2, 4, 8)
+    # every way to use the cores: one session with 1 or all threads, and one 1-thread session per core
+    cores = os.cpu_count() or 1
+    ways = {(row["workers"], row["threads"]) for row in rows}  # type: ignore[union-attr]
+    assert ways == ({(1, 1), (1, cores), (cores, 1)} if cores > 1 else {(1, 1)})
