@@ -136,14 +136,16 @@ class MarkerSpec(NamedTuple):
     text: str = ""
 
 
+DELETE_ALL_MARKER: Final[MarkerSpec] = MarkerSpec(
+    0, CUBE, DELETEALL, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
+)
+"""The first marker of every frame: clears the previous frame's boxes."""
+
+
 def marker_specs(detections: list[Detection]) -> list[MarkerSpec]:
     """``DELETEALL``, then a cube and a label per object (see the module docstring)."""
     boxes = Boxes.of(detections)
-    specs = [
-        MarkerSpec(
-            0, CUBE, DELETEALL, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
-        )
-    ]
+    specs = [DELETE_ALL_MARKER]
     for i, detection in enumerate(detections):
         x, y = float(boxes.x[i]), float(boxes.y[i])
         size = (float(boxes.length[i]), float(boxes.width[i]), SLAB_HEIGHT_M)
@@ -173,12 +175,14 @@ _MARKER_IDS = struct.Struct("<iii")
 _COLOR = struct.Struct("<4f")
 _LIFETIME_LOCKED = struct.Struct("<iI?")
 _PAD: Final[tuple[bytes, ...]] = tuple(bytes(n) for n in range(8))
-_EMPTY_STRING: Final[bytes] = b"\x01\x00\x00\x00\x00"  # length 1: the terminating NUL alone
 
 
 def _cdr_string(text: str) -> bytes:
     raw = text.encode("utf-8")
     return _U32.pack(len(raw) + 1) + raw + b"\x00"
+
+
+_EMPTY_STRING: Final[bytes] = _cdr_string("")
 
 
 class _CdrWriter:
@@ -282,27 +286,26 @@ class DetectionMessages:
         count = len(detections)
         buf = bytearray(b"\x00\x01\x00\x00")
         buf += _U32.pack(2 * count + 1)
-        _marker(buf, marker_head, 0, CUBE, DELETEALL, _DELETEALL_NUMBERS, b"")
+        d = DELETE_ALL_MARKER
+        _marker(buf, marker_head, d.marker_id, d.kind, d.action, _DELETE_ALL_NUMBERS, d.text)
         if not count:
             return bytes(buf)
         boxes = Boxes.of(detections) if boxes is None else boxes
-        slab = np.full(count, SLAB_HEIGHT_M)
-        cube_rows = _rows(
-            [*boxes.pose_columns(0.0), boxes.length, boxes.width, slab], count
-        )  # pose, scale: 10 doubles
+        # pose, scale: 10 doubles
+        cube_rows = _rows([*boxes.pose_columns(0.0), boxes.length, boxes.width, SLAB_HEIGHT_M], count)
         label_rows = _rows([*boxes.pose_columns(LABEL_LIFT_M), 0.0, 0.0, LABEL_HEIGHT_M], count)
         for i, detection in enumerate(detections):
             cube_colour, label_colour = _colours(detection.class_id)
-            _marker(buf, marker_head, 2 * i, CUBE, ADD, cube_rows[i] + cube_colour, b"")
+            _marker(buf, marker_head, 2 * i, CUBE, ADD, cube_rows[i] + cube_colour, "")
             _marker(
                 buf, marker_head, 2 * i + 1, TEXT_VIEW_FACING, ADD, label_rows[i] + label_colour,
-                label_text(detection).encode("utf-8"),
+                label_text(detection),
             )  # fmt: skip
         return bytes(buf)
 
 
 def _marker(
-    buf: bytearray, head: bytes, marker_id: int, kind: int, action: int, numbers: bytes, text: bytes
+    buf: bytearray, head: bytes, marker_id: int, kind: int, action: int, numbers: bytes, text: str
 ) -> None:
     """One Marker: ``numbers`` = pose and scale (10 doubles, 8-aligned) and the colour (4 floats)."""
     buf += _PAD[-(len(buf) - 4) % 4]
@@ -311,9 +314,7 @@ def _marker(
     buf += _PAD[-(len(buf) - 4) % 8]
     buf += numbers  # ends 8-aligned: the constant run below starts 4-aligned
     buf += _AFTER_COLOR
-    buf += _U32.pack(len(text) + 1)
-    buf += text
-    buf += b"\x00"
+    buf += _cdr_string(text)
     buf += _AFTER_TEXT[(len(buf) - 4) % 4]
 
 
@@ -328,7 +329,9 @@ def _colours(class_id: int) -> tuple[bytes, bytes]:
     return _COLOR.pack(*_rgba(class_id, CUBE_ALPHA)), _COLOR.pack(*_rgba(class_id, 1.0))
 
 
-_DELETEALL_NUMBERS: Final[bytes] = struct.pack("<10d", 0, 0, 0, 0, 0, 0, 1, 1, 1, 1) + _COLOR.pack(0, 0, 0, 0)
+_DELETE_ALL_NUMBERS: Final[bytes] = struct.pack(
+    "<10d", *DELETE_ALL_MARKER.position, *DELETE_ALL_MARKER.orientation, *DELETE_ALL_MARKER.scale
+) + _COLOR.pack(*DELETE_ALL_MARKER.rgba)
 
 
 def _after_color() -> bytes:
