@@ -275,6 +275,7 @@ def _run_eval(args: argparse.Namespace) -> int:
         fresh_samples,
     )
 
+    worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride)
     matrix = len(args.model) > 1 or len(args.noise) > 1
     if matrix and args.data is not None:
         raise ValueError("several --model or --noise values need --fresh worlds, not --data")
@@ -290,7 +291,6 @@ def _run_eval(args: argparse.Namespace) -> int:
         for model in args.model
     ]
     if matrix:
-        worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride)
         reports = condition_matrix(detectors, args.noise, worlds, args.out)
         print(format_condition_table(reports))
         print(f"per cell: {args.out}/<condition>/<model>/metrics.json; grid: {args.out}/summary.json")
@@ -313,7 +313,7 @@ def _run_eval(args: argparse.Namespace) -> int:
             args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec,
             invalid=detector.invalid,
         )  # fmt: skip
-        source = f"fresh:seed={args.seed},scenarios={args.fresh},positions={args.positions},noise={noise}"
+        source = worlds.source(noise)
     report = evaluate(detector, samples, args.out, source=source)
     print(format_table(report))
     print(f"images {report.images}; mean ms: {report.mean_timings_ms}; written to {args.out}/metrics.json")

@@ -421,6 +421,12 @@ class FreshWorlds:
     positions: int
     frame_stride: int
 
+    def source(self, condition: str) -> str:
+        """What metrics.json names as the source of these worlds under ``condition``."""
+        return (
+            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions},noise={condition}"
+        )
+
 
 def condition_matrix(
     detectors: list[OnnxDetector],
@@ -441,16 +447,12 @@ def condition_matrix(
     from services.simulator.lidar import with_imperfections
 
     specs = {condition: with_imperfections(condition) for condition in conditions}  # bad names fail first
-    stems = [d.model_id.partition("@")[0] for d in detectors]
+    stems = [d.model_path.stem for d in detectors]
     if len(set(stems)) != len(stems):
         raise ValueError(f"two models share a file stem: {stems}")
     encodings = list(dict.fromkeys((d.padding, d.invalid) for d in detectors))
     reports: dict[str, dict[str, EvalReport]] = {}
     for condition, spec in specs.items():
-        source = (
-            f"fresh:seed={worlds.seed},scenarios={worlds.scenarios},positions={worlds.positions},"
-            f"noise={condition}"
-        )
         reports[condition] = {}
         for padding, invalid in encodings:
             samples = list(
@@ -463,7 +465,7 @@ def condition_matrix(
                 if (detector.padding, detector.invalid) == (padding, invalid):
                     cell = out_dir / condition / stem
                     reports[condition][stem] = evaluate(
-                        detector, iter(samples), cell, source=source, plots=plots
+                        detector, iter(samples), cell, source=worlds.source(condition), plots=plots
                     )
         reports[condition] = {stem: reports[condition][stem] for stem in stems}  # the models' order
     summary = {
