@@ -82,10 +82,7 @@ def measure(
             name = session.get_inputs()[0].name
             base_per_image = None
             for batch in batches:
-                feeds = [
-                    {name: np.take(frames, range(i, i + batch), axis=0, mode="wrap")}
-                    for i in range(0, len(frames), batch)
-                ]
+                feeds = batched_feeds(name, frames, batch)
                 for feed in feeds[:3]:
                     session.run(None, feed)
                 calls, started = 0, time.perf_counter()
@@ -114,6 +111,65 @@ def measure(
                     row.speedup_per_image,
                 )
     return report
+
+
+def batched_feeds(input_name: str, frames: np.ndarray, batch: int) -> list[dict[str, np.ndarray]]:
+    """The frames cut into model inputs of ``batch`` frames (the last one wraps around)."""
+    return [
+        {input_name: np.take(frames, range(i, i + batch), axis=0, mode="wrap")}
+        for i in range(0, len(frames), batch)
+    ]
+
+
+def measure_parallel_sessions(
+    model: Path, workers: int, batches: list[int], seconds: float, frames: np.ndarray
+) -> list[dict[str, float]]:
+    """Frames/s of ``workers`` single-threaded sessions running at once, one Python thread each (ONNX
+    Runtime releases the GIL), per batch size: the detector's ``--workers N --threads 1`` on the
+    network alone."""
+    rows = []
+    for batch in batches:
+        frames_per_s = _parallel_frames_per_s(model, workers, batch, seconds, frames)
+        rows.append(
+            {"workers": workers, "threads": 1, "batch": batch, "frames_per_s": round(frames_per_s, 1)}
+        )
+        log.info(
+            "%s %d sessions x 1 thread, batch %2d: %.1f frames/s", model.name, workers, batch, frames_per_s
+        )
+    return rows
+
+
+def _parallel_frames_per_s(
+    model: Path, workers: int, batch: int, seconds: float, frames: np.ndarray
+) -> float:
+    import onnxruntime as ort
+
+    sessions = [
+        ort.InferenceSession(str(model), session_options(1), providers=["CPUExecutionProvider"])
+        for _ in range(workers)
+    ]
+    feeds = batched_feeds(sessions[0].get_inputs()[0].name, frames, batch)
+    for session in sessions:
+        session.run(None, feeds[0])
+    counts = [0] * workers
+    go, stop = threading.Barrier(workers + 1), threading.Event()
+
+    def serve(index: int) -> None:
+        go.wait()
+        while not stop.is_set():
+            sessions[index].run(None, feeds[counts[index] % len(feeds)])
+            counts[index] += 1
+
+    threads = [threading.Thread(target=serve, args=(i,)) for i in range(workers)]
+    for thread in threads:
+        thread.start()
+    go.wait()  # every session starts at once
+    started = time.perf_counter()
+    time.sleep(seconds)
+    stop.set()
+    for thread in threads:
+        thread.join()
+    return sum(counts) * batch / (time.perf_counter() - started)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,60 +203,3 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
-
-
-def measure_parallel_sessions(
-    model: Path, workers: int, batches: list[int], seconds: float, frames: np.ndarray
-) -> list[dict[str, float]]:
-    """Frames/s of ``workers`` single-threaded sessions running at once, one Python thread each (ONNX
-    Runtime releases the GIL), per batch size: the detector's ``--workers N --threads 1`` on the
-    network alone."""
-    rows = []
-    for batch in batches:
-        frames_per_s = _parallel_frames_per_s(model, workers, batch, seconds, frames)
-        rows.append(
-            {"workers": workers, "threads": 1, "batch": batch, "frames_per_s": round(frames_per_s, 1)}
-        )
-        log.info(
-            "%s %d sessions x 1 thread, batch %2d: %.1f frames/s", model.name, workers, batch, frames_per_s
-        )
-    return rows
-
-
-def _parallel_frames_per_s(
-    model: Path, workers: int, batch: int, seconds: float, frames: np.ndarray
-) -> float:
-    import onnxruntime as ort
-
-    sessions = [
-        ort.InferenceSession(str(model), session_options(1), providers=["CPUExecutionProvider"])
-        for _ in range(workers)
-    ]
-    name = sessions[0].get_inputs()[0].name
-    feeds = [
-        {name: np.take(frames, range(i, i + batch), axis=0, mode="wrap")}
-        for i in range(0, len(frames), batch)
-    ]
-    for session in sessions:
-        session.run(None, feeds[0])
-    counts = [0] * workers
-    go = threading.Barrier(workers + 1)
-    deadline = time.perf_counter() + seconds + 1.0  # reset once every thread waits at the barrier
-
-    def serve(index: int) -> None:
-        go.wait()
-        while time.perf_counter() < deadline:
-            sessions[index].run(None, feeds[counts[index] % len(feeds)])
-            counts[index] += 1
-
-    threads = [threading.Thread(target=serve, args=(i,)) for i in range(workers)]
-    for thread in threads:
-        thread.start()
-    while go.n_waiting < workers:
-        time.sleep(0.001)
-    started = time.perf_counter()
-    deadline = started + seconds
-    go.wait()
-    for thread in threads:
-        thread.join()
-    return sum(counts) * batch / (time.perf_counter() - started)
