@@ -156,7 +156,7 @@ def write_card(
         "",
         *_test_section(card, test32, test8),
         "",
-        *(_conditions_section(card, grid, conditions) if grid is not None and conditions is not None else []),
+        *(_conditions_section(card, conditions) if conditions is not None else []),
         *(line for section in grids or [] for line in section.lines()),
         *_latency_section(export, test32),
         "",
@@ -193,12 +193,13 @@ def _grid_cells(grid: dict[str, Any], model_id: str) -> dict[str, dict[str, Any]
 
 
 def _int8_deltas(
-    test32: dict[str, Any], test8: dict[str, Any], grid: dict[str, Any] | None
+    test32: dict[str, Any], test8: dict[str, Any], unseen: dict[str, Any] | None
 ) -> dict[str, float]:
-    """INT8 minus fp32 mAP@0.5 on the test split and, when measured, under every condition."""
+    """INT8 minus fp32 mAP@0.5 on the test split and, when measured (``unseen``: the card's
+    ``unseen_worlds``), under every condition."""
     deltas = {"test split": _map50_delta(test32, test8)}
-    if grid is not None:
-        fp32, int8 = _grid_cells(grid, test32["model_id"]), _grid_cells(grid, test8["model_id"])
+    if unseen is not None:
+        fp32, int8 = unseen["fp32"], unseen["int8"]
         deltas |= {condition: int8[condition]["mAP50"] - fp32[condition]["mAP50"] for condition in fp32}
     return deltas
 
@@ -225,7 +226,16 @@ def _card_json(
     """MODEL_CARD.json: the files, which one to run, the test figures and the shipped-model gate."""
     fp32, int8 = export["fp32"], export["int8"]
     lat32, lat8 = export["latency_ms_1_thread"]["fp32"], export["latency_ms_1_thread"]["int8"]
-    deltas = _int8_deltas(test32, test8, grid)
+    unseen = (
+        None
+        if grid is None
+        else {
+            "worlds": grid["worlds"],
+            "fp32": _grid_cells(grid, test32["model_id"]),
+            "int8": _grid_cells(grid, test8["model_id"]),
+        }
+    )
+    deltas = _int8_deltas(test32, test8, unseen)
     recommended = "int8" if lat8 < lat32 and min(deltas.values()) >= -INT8_TOLERANCE else "fp32"
     min_map50 = math.floor((gate_metrics["overall"]["mAP50"] - GATE_MARGIN) * 100) / 100
     card: dict[str, Any] = {
@@ -250,12 +260,8 @@ def _card_json(
         },
         "int8_minus_fp32_map50": deltas,
     }
-    if grid is not None:
-        card["unseen_worlds"] = {
-            "worlds": grid["worlds"],
-            "fp32": _grid_cells(grid, test32["model_id"]),
-            "int8": _grid_cells(grid, test8["model_id"]),
-        }
+    if unseen is not None:
+        card["unseen_worlds"] = unseen
     return card
 
 
@@ -292,9 +298,11 @@ def _files_section(
 
 def _randomisation_flags(cfg: dict[str, Any]) -> str:
     """The data set's domain randomisation as ``triscan dataset`` flags ('' for the paper's clean set)."""
+    from services.simulator.lidar import DEFAULT_SPEC  # the data set was simulated, so PyBullet is here
+
     flags = []
     sigma = cfg.get("noise_sigma_m")
-    if sigma is not None and list(sigma) != [0.015, 0.015]:
+    if sigma is not None and list(sigma) != [DEFAULT_SPEC.noise_sigma_m] * 2:
         flags.append(f"--noise-sigma {sigma[0]:g} {sigma[1]:g}")
     for key, flag in (("dropout_rate", "--dropout"), ("spurious_rate", "--spurious")):
         low, high = cfg.get(key) or (0.0, 0.0)
@@ -397,10 +405,11 @@ def _gate_section(card: dict[str, Any], gate: dict[str, int], gate_metrics: dict
     ]
 
 
-def _conditions_section(card: dict[str, Any], grid: dict[str, Any], path: Path) -> list[str]:
-    """This card's fp32 and INT8 on unseen worlds, clean and under LiDAR imperfections, per class."""
-    worlds = grid["worlds"]
-    fp32, int8 = card["unseen_worlds"]["fp32"], card["unseen_worlds"]["int8"]
+def _conditions_section(card: dict[str, Any], path: Path) -> list[str]:
+    """This card's fp32 and INT8 on unseen worlds (``path``: their grid), clean and under LiDAR
+    imperfections, per class."""
+    unseen = card["unseen_worlds"]
+    worlds, fp32, int8 = unseen["worlds"], unseen["fp32"], unseen["int8"]
     classes = list(next(iter(fp32.values()))["per_class_mAP50"])
     lines = [
         "## Unseen worlds under LiDAR imperfections",
