@@ -144,3 +144,16 @@ def test_fleet_bound_measures_the_default_models_best_throughput() -> None:
     cores = os.cpu_count() or 1
     ways = {(row["workers"], row["threads"]) for row in rows}  # type: ignore[union-attr]
     assert ways == ({(1, 1), (1, cores), (cores, 1)} if cores > 1 else {(1, 1)})
+
+
+def test_zenoh_rtt_bounces_every_payload_through_every_transport(tmp_path: Path) -> None:
+    from bench import zenoh_rtt
+
+    out = tmp_path / "rtt.json"
+    assert zenoh_rtt.main(["--count", "12", "--rate", "100", "--out", str(out)]) == 0
+    results = json.loads(out.read_text())["results"]
+    cases = {(r["kind"], r["variant"], r["bytes"]) for r in results}
+    assert cases == {("zenoh", v, b) for v in zenoh_rtt.VARIANTS for b in zenoh_rtt.PAYLOADS} | {
+        ("tcp", "-", b) for b in zenoh_rtt.PAYLOADS
+    }
+    assert all(r["answered"] == r["sent"] == 12 and r["rtt_ms"]["p50"] > 0 for r in results)

@@ -1,0 +1,177 @@
+"""What one Zenoh hop costs between two processes on this host, against a bare TCP socket.
+
+A ping process and an echo process (this module again, ``--echo``) bounce a payload at ``--rate`` Hz,
+as the pipeline's messages travel: a 100-byte one and the 73 KB tensor, with Zenoh's defaults, with
+express publishers (no batching) and with the low-latency transport, then a plain TCP ping-pong
+between the same two kinds of process. Round trip = two hops. Peers on loopback, multicast off.
+
+    python -m bench.zenoh_rtt                     # → bench/results/zenoh_rtt.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from bench.machine import machine_info
+from bench.report import latency_quantiles_ms, write_report
+from services.launcher import free_tcp_ports
+
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+
+PAYLOADS: Final[tuple[int, ...]] = (100, 73_728)
+VARIANTS: Final[tuple[str, ...]] = ("default", "express", "lowlatency")
+DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
+
+
+def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
+    import zenoh
+
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    if listen is not None:
+        config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen}"]))
+    if connect is not None:
+        config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect}"]))
+    if variant == "lowlatency":
+        config.insert_json5("transport/unicast/lowlatency", "true")
+        config.insert_json5("transport/unicast/qos/enabled", "false")
+    return config
+
+
+def echo(kind: str, variant: str, port: int, stop_after_s: float) -> None:
+    """The far end: send back whatever arrives, until ``stop_after_s``."""
+    if kind == "tcp":
+        server = socket.create_server(("127.0.0.1", port))
+        conn, _ = server.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        while data := conn.recv(1 << 17):
+            conn.sendall(data)
+        return
+    import zenoh
+
+    with zenoh.open(zenoh_config(variant, port, None)) as session:
+        pub = session.declare_publisher("rtt/pong", express=variant == "express")
+        sub = session.declare_subscriber("rtt/ping", lambda sample: pub.put(sample.payload))
+        time.sleep(stop_after_s)
+        sub.undeclare()
+
+
+def ping_zenoh(variant: str, port: int, size: int, count: int, rate_hz: float) -> list[float]:
+    import zenoh
+
+    got = threading.Event()
+    rtts = []
+    with zenoh.open(zenoh_config(variant, None, port)) as session:
+        sub = session.declare_subscriber("rtt/pong", lambda sample: got.set())
+        pub = session.declare_publisher("rtt/ping", express=variant == "express")
+        payload = bytes(size)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:  # until the echo answers: peers connect on retry
+            got.clear()
+            pub.put(payload)
+            if got.wait(0.2):
+                break
+        for _ in range(count):
+            got.clear()
+            started = time.perf_counter_ns()
+            pub.put(payload)
+            if got.wait(2.0):
+                rtts.append((time.perf_counter_ns() - started) / 1e6)
+            time.sleep(1.0 / rate_hz)
+        sub.undeclare()
+    return rtts
+
+
+def ping_tcp(port: int, size: int, count: int, rate_hz: float) -> list[float]:
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            conn = socket.create_connection(("127.0.0.1", port))
+            break
+        except ConnectionRefusedError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    payload, rtts = bytes(size), []
+    for _ in range(count):
+        started = time.perf_counter_ns()
+        conn.sendall(payload)
+        received = 0
+        while received < size:
+            received += len(conn.recv(1 << 17))
+        rtts.append((time.perf_counter_ns() - started) / 1e6)
+        time.sleep(1.0 / rate_hz)
+    conn.close()
+    return rtts
+
+
+def run_case(kind: str, variant: str, size: int, count: int, rate_hz: float) -> dict[str, Any]:
+    (port,) = free_tcp_ports(1)
+    far = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "bench.zenoh_rtt",
+            "--echo",
+            kind,
+            variant,
+            str(port),
+            str(count / rate_hz + 15),
+        ]
+    )
+    try:
+        rtts = (
+            ping_tcp(port, size, count, rate_hz)
+            if kind == "tcp"
+            else ping_zenoh(variant, port, size, count, rate_hz)
+        )
+    finally:
+        far.kill()
+        far.wait()
+    warm = np.array(rtts[10:])
+    return {"kind": kind, "variant": variant, "bytes": size, "answered": len(rtts), "sent": count,
+            "rtt_ms": latency_quantiles_ms(warm)}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--count", type=int, default=100, help="round trips per case")
+    parser.add_argument("--rate", type=float, default=10.0, help="round trips per second (the scan rate)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument(
+        "--echo", nargs=4, metavar=("KIND", "VARIANT", "PORT", "SECONDS"), help=argparse.SUPPRESS
+    )
+    args = parser.parse_args(argv)
+    if args.echo:
+        kind, variant, port, seconds = args.echo
+        echo(kind, variant, int(port), float(seconds))
+        return 0
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    cases = [("zenoh", variant, size) for variant in VARIANTS for size in PAYLOADS]
+    cases += [("tcp", "-", size) for size in PAYLOADS]
+    results = []
+    for kind, variant, size in cases:
+        result = run_case(kind, variant, size, args.count, args.rate)
+        log.info("%-5s %-10s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
+                 result["sent"], result["rtt_ms"])  # fmt: skip
+        results.append(result)
+    write_report({"rate_hz": args.rate, "results": results, "machine": asdict(machine_info())}, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
