@@ -23,6 +23,7 @@ Conventions, fixed here once for every process:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from typing import Literal, get_args
@@ -66,7 +67,7 @@ def _check_scan(
         ("range_min", range_min),
         ("range_max", range_max),
     ):
-        if not np.isfinite(value):
+        if not math.isfinite(value):
             raise ScanError(f"{name} must be finite, got {value}")
     if angle_increment == 0.0:
         raise ScanError("angle_increment must be non-zero")
@@ -90,6 +91,18 @@ def beam_bearings_rad(angle_min: float, angle_increment: float, beams: int) -> n
 def angle_columns(bearings_rad: np.ndarray) -> np.ndarray:
     """Column of each bearing: ``round(deg(θ)) mod 360``, rounding half up."""
     return (np.floor(np.degrees(bearings_rad) + 0.5).astype(np.int64)) % ANGLE_COLUMNS
+
+
+@functools.lru_cache(maxsize=64)
+def beam_columns(angle_min: float, angle_increment: float, beams: int) -> np.ndarray:
+    """Column of each beam of a sensor (read-only), computed once per sensor geometry.
+
+    A sensor sends the same angles with every scan, so the encoder looks its columns up instead of
+    recomputing them per scan; a fleet of mixed sensors holds one entry per geometry.
+    """
+    columns = angle_columns(beam_bearings_rad(angle_min, angle_increment, beams))
+    columns.flags.writeable = False
+    return columns
 
 
 def valid_returns(ranges: np.ndarray, range_min: float, range_max: float) -> np.ndarray:
@@ -116,6 +129,29 @@ def range_rows(ranges_m: np.ndarray) -> np.ndarray:
     return np.floor(np.clip(ranges_m * ROW_SCALE, 0.0, SENTINEL_ROW)).astype(np.int64)
 
 
+def scan_hits(
+    ranges: np.ndarray,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+    invalid: InvalidRule = "sentinel",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns (``int64[K]`` each) of the pixels one scan lights in its ``[64, 360]`` raster.
+
+    A scan lights at most one pixel per beam, a few hundred of the raster's 23,040: the stacker
+    keeps these instead of whole rasters. ``invalid`` as in :func:`encode_scan`.
+    """
+    values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
+    check_invalid_rule(invalid)
+    cols = beam_columns(float(angle_min), float(angle_increment), values.size)
+    valid = valid_returns(values, range_min, range_max)
+    rows = range_rows(np.where(valid, values, R_MAX_M))  # sanitize_ranges, with the mask kept
+    if invalid == "empty":
+        return rows[valid], cols[valid]
+    return rows, cols
+
+
 def encode_scan(
     ranges: np.ndarray,
     angle_min: float,
@@ -130,14 +166,8 @@ def encode_scan(
     may share a column (denser sensors) and columns no beam points at stay 0 (narrower sensors).
     ``invalid`` says where an invalid return goes: the sentinel row (the paper) or nowhere.
     """
-    values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
-    check_invalid_rule(invalid)
-    cols = angle_columns(beam_bearings_rad(angle_min, angle_increment, values.size))
-    rows = range_rows(sanitize_ranges(values, range_min, range_max))
+    rows, cols = scan_hits(ranges, angle_min, angle_increment, range_min, range_max, invalid)
     raster = np.zeros((RANGE_ROWS, ANGLE_COLUMNS), dtype=np.uint8)
-    if invalid == "empty":
-        keep = valid_returns(values, range_min, range_max)
-        rows, cols = rows[keep], cols[keep]
     raster[rows, cols] = HIT
     return raster
 
@@ -178,10 +208,24 @@ def to_model_input(tensor: np.ndarray) -> np.ndarray:
     return (tensor.transpose(2, 0, 1)[None].astype(np.float32)) / np.float32(255.0)
 
 
+def padded_hits(
+    rows: np.ndarray, cols: np.ndarray, padding: Padding = "zero"
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pad_raster` for lit pixels: ``wrap`` repeats the hits in columns 0–23 at 360–383."""
+    if padding == "zero":
+        return rows, cols
+    if padding != "wrap":
+        raise ScanError(f"padding must be one of {PADDINGS}, got {padding!r}")
+    seam = cols < PAD_COLUMNS
+    return np.concatenate([rows, rows[seam]]), np.concatenate([cols, cols[seam] + ANGLE_COLUMNS])
+
+
 class ScanStacker:
     """The FIFO of Algorithm 1: the last three padded rasters of ONE sensor.
 
-    One stacker per robot; mixing two robots' scans in one FIFO would fuse unrelated geometry.
+    One stacker per robot; mixing two robots' scans in one FIFO would fuse unrelated geometry. It
+    holds each raster as its lit pixels and writes them into a zeroed tensor: the same tensor as
+    :func:`stack_rasters` of the padded rasters, without copying three mostly empty planes.
     """
 
     def __init__(self, padding: Padding = "zero", invalid: InvalidRule = "sentinel") -> None:
@@ -189,7 +233,7 @@ class ScanStacker:
             raise ScanError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.padding: Padding = padding
         self.invalid: InvalidRule = check_invalid_rule(invalid)
-        self._frames: deque[np.ndarray] = deque(maxlen=STACK_DEPTH)
+        self._frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=STACK_DEPTH)
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -201,17 +245,19 @@ class ScanStacker:
     def reset(self) -> None:
         self._frames.clear()
 
-    def push_raster(self, raster: np.ndarray) -> np.ndarray | None:
-        """Add an unpadded ``uint8[64, 360]`` raster; return the stacked tensor once three are held."""
-        self._frames.append(pad_raster(raster, self.padding))
-        return stack_rasters(*self._frames) if self.ready else None
-
     def push_scan(
         self, ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
     ) -> np.ndarray | None:
-        """Encode a scan and push it; a scan that cannot be encoded raises and leaves the FIFO as it was."""
-        raster = encode_scan(ranges, angle_min, angle_increment, range_min, range_max, self.invalid)
-        return self.push_raster(raster)
+        """Encode a scan and push it; return the stacked ``uint8[64, 384, 3]`` tensor once three are
+        held. A scan that cannot be encoded raises and leaves the FIFO as it was."""
+        rows, cols = scan_hits(ranges, angle_min, angle_increment, range_min, range_max, self.invalid)
+        self._frames.append(padded_hits(rows, cols, self.padding))
+        if not self.ready:
+            return None
+        tensor = np.zeros((RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH), dtype=np.uint8)
+        for channel, (frame_rows, frame_cols) in enumerate(self._frames):  # channel 0 = oldest
+            tensor[frame_rows, frame_cols, channel] = HIT
+        return tensor
 
 
 # --- inverse mapping: raster pixels <-> bearing/range <-> metric position --------------------------------

@@ -17,6 +17,7 @@ honestly immutable. Call ``.copy()`` on an array to get a writable one.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -89,15 +90,18 @@ class NDArraySpec:
     max_elements: int | None = None
     finite: bool = False
 
+    # Cached: every message carrying an array validates it, several hundred times a second in a fleet.
+    @functools.cached_property
     def _allowed(self) -> tuple[np.dtype[Any], ...]:
         return tuple(np.dtype(d).newbyteorder("<") for d in self.dtypes)
 
+    @functools.cached_property
     def _wire_names(self) -> dict[str, np.dtype[Any]]:
         # Accept the canonical numpy spelling ("<f4", "|u1") and, for one-byte types, "<u1"/"u1",
         # which non-numpy producers naturally write. A fixed table means we never hand an arbitrary
         # network string to np.dtype().
         names: dict[str, np.dtype[Any]] = {}
-        for dt in self._allowed():
+        for dt in self._allowed:
             names[dt.str] = dt
             if dt.itemsize == 1:
                 names["<" + dt.str[1:]] = dt
@@ -105,7 +109,7 @@ class NDArraySpec:
         return names
 
     def _describe_allowed(self) -> str:
-        return "/".join(dt.name for dt in self._allowed())
+        return "/".join(dt.name for dt in self._allowed)
 
     def _check_shape(self, shape: tuple[int, ...]) -> int:
         if len(shape) != len(self.shape):
@@ -141,7 +145,7 @@ class NDArraySpec:
 
     def _from_ndarray(self, arr: np.ndarray) -> np.ndarray:
         target = arr.dtype.newbyteorder("<")
-        if target not in self._allowed():
+        if target not in self._allowed:
             raise ValueError(f"dtype must be {self._describe_allowed()}, got {arr.dtype.name}")
         self._check_shape(arr.shape)
         out = np.ascontiguousarray(arr, dtype=target)
@@ -156,7 +160,7 @@ class NDArraySpec:
                 f"array map must have exactly the keys dtype, shape, data; got {sorted(map(str, value))}"
             )
         dtype_name, shape_raw, data = value["dtype"], value["shape"], value["data"]
-        dt = self._wire_names().get(dtype_name) if isinstance(dtype_name, str) else None
+        dt = self._wire_names.get(dtype_name) if isinstance(dtype_name, str) else None
         if dt is None:
             raise ValueError(f"dtype must be {self._describe_allowed()} (little-endian), got {dtype_name!r}")
         if not isinstance(shape_raw, list | tuple) or not all(type(d) is int and d >= 0 for d in shape_raw):

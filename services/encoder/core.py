@@ -219,6 +219,7 @@ class EncoderCore:
             self.counters.warming_up += 1
             return None
         self.counters.published += 1
+        tensor.flags.writeable = False  # no one else holds it: the message keeps it without a copy
         return StackedTensor(
             robot_id=scan.robot_id,
             seq=scan.seq,
