@@ -11,7 +11,10 @@ of the children is their ``VmHWM``.
 
 The network's bare cost is measured in the same run, first: the same model and thread setting on the
 same recorded tensors, one frame every 1/rate s in this process (``bare_ms``), so ``overhead_ms`` =
-pipeline − bare is what the pipeline adds, free of this VM's drift between runs.
+pipeline − bare is what the pipeline adds, free of this VM's drift between runs. The VM also drifts
+within a run, between the bare phase and the pipeline phase, by as much as the goal; so
+``added_per_frame_ms`` takes from each frame's latency that frame's own inference and NMS times: what
+the pipeline added to the very frames it measured.
 
     python -m bench.pipeline_latency --duration 60                # 3 processes: sim, encoder, detector
     python -m bench.pipeline_latency --duration 60 --from-scans   # encoder + detector in one process
@@ -70,6 +73,9 @@ class LatencyReport:
     stage_ms_p99: dict[str, float] = field(default_factory=dict)
     bare_ms: dict[str, float] = field(default_factory=dict)  # the network alone, same model and threads
     overhead_ms: dict[str, float] = field(default_factory=dict)  # pipeline − bare: p50, p99
+    # Per frame, its latency minus its own inference and NMS: what the pipeline added to that very
+    # frame, free of the drift between the bare phase and the pipeline phase (p50, p99).
+    added_per_frame_ms: dict[str, float] = field(default_factory=dict)
     zenoh_cfg: list[str] = field(default_factory=list)  # --cfg entries every process ran with
     bare_threads: int | None = None  # ONNX Runtime threads of the baseline and the detector (None: all)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
@@ -241,6 +247,10 @@ def _summarise(
             q: round(report.latency_ms[q] - report.bare_ms[q], 3)
             for q in ("p50", "p99")
             if q in report.bare_ms
+        }
+        added = np.array(latencies) - np.array(stages["inference"]) - np.array(stages["nms"])
+        report.added_per_frame_ms = {
+            q: round(float(np.percentile(added, p)), 3) for q, p in (("p50", 50), ("p99", 99))
         }
     return latencies, stages
 

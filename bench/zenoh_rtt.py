@@ -2,10 +2,11 @@
 
 A ping process and an echo process (this module again, ``--echo``) bounce a payload at ``--rate`` Hz,
 as the pipeline's messages travel: a 100-byte one and the 73 KB tensor, with Zenoh's defaults, with
-express publishers (no batching) and with the low-latency transport, then a plain TCP ping-pong
+express publishers (no batching), with the low-latency transport and with direct callbacks (run on
+Zenoh's receiving thread instead of being handed to a Python thread), then a plain TCP ping-pong
 between the same two kinds of process. Round trip = two hops. Peers on loopback, multicast off.
 
-    python -m bench.zenoh_rtt                     # → bench/results/zenoh_rtt.json
+    python -m bench.zenoh_rtt --rounds 3          # → bench/results/zenoh_rtt.json
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Final
@@ -31,7 +33,7 @@ from services.launcher import free_tcp_ports
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 PAYLOADS: Final[tuple[int, ...]] = (100, 73_728)
-VARIANTS: Final[tuple[str, ...]] = ("default", "express", "lowlatency")
+VARIANTS: Final[tuple[str, ...]] = ("default", "express", "lowlatency", "direct", "lowlatency+direct")
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
 
 
@@ -45,10 +47,18 @@ def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
         config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen}"]))
     if connect is not None:
         config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect}"]))
-    if variant == "lowlatency":
+    if "lowlatency" in variant.split("+"):
         config.insert_json5("transport/unicast/lowlatency", "true")
         config.insert_json5("transport/unicast/qos/enabled", "false")
     return config
+
+
+def subscriber_callback(variant: str, callback: Callable[[Any], Any]) -> Any:
+    """The callback as the variant declares it: ``direct`` runs it on Zenoh's receiving thread."""
+    import zenoh
+
+    direct = "direct" in variant.split("+")
+    return zenoh.handlers.Callback(callback, indirect=False) if direct else callback
 
 
 def echo(kind: str, variant: str, port: int, stop_after_s: float) -> None:
@@ -64,7 +74,9 @@ def echo(kind: str, variant: str, port: int, stop_after_s: float) -> None:
 
     with zenoh.open(zenoh_config(variant, port, None)) as session:
         pub = session.declare_publisher("rtt/pong", express=variant == "express")
-        sub = session.declare_subscriber("rtt/ping", lambda sample: pub.put(sample.payload))
+        sub = session.declare_subscriber(
+            "rtt/ping", subscriber_callback(variant, lambda sample: pub.put(sample.payload))
+        )
         time.sleep(stop_after_s)
         sub.undeclare()
 
@@ -75,7 +87,7 @@ def ping_zenoh(variant: str, port: int, size: int, count: int, rate_hz: float) -
     got = threading.Event()
     rtts = []
     with zenoh.open(zenoh_config(variant, None, port)) as session:
-        sub = session.declare_subscriber("rtt/pong", lambda sample: got.set())
+        sub = session.declare_subscriber("rtt/pong", subscriber_callback(variant, lambda sample: got.set()))
         pub = session.declare_publisher("rtt/ping", express=variant == "express")
         payload = bytes(size)
         deadline = time.monotonic() + 10.0
@@ -147,10 +159,24 @@ def run_case(kind: str, variant: str, size: int, count: int, rate_hz: float) -> 
             "rtt_ms": latency_quantiles_ms(warm)}  # fmt: skip
 
 
+def median_p50s(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per case: the median over rounds of its p50 round trip."""
+    p50s: dict[tuple[str, str, int], list[float]] = {}
+    for result in results:
+        p50s.setdefault((result["kind"], result["variant"], result["bytes"]), []).append(
+            result["rtt_ms"]["p50"]
+        )
+    return [
+        {"kind": kind, "variant": variant, "bytes": size, "median_p50_ms": round(float(np.median(values)), 3)}
+        for (kind, variant, size), values in p50s.items()
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--count", type=int, default=100, help="round trips per case")
     parser.add_argument("--rate", type=float, default=10.0, help="round trips per second (the scan rate)")
+    parser.add_argument("--rounds", type=int, default=1, help="times every case runs, in turns")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument(
         "--echo", nargs=4, metavar=("KIND", "VARIANT", "PORT", "SECONDS"), help=argparse.SUPPRESS
@@ -164,12 +190,18 @@ def main(argv: list[str] | None = None) -> int:
     cases = [("zenoh", variant, size) for variant in VARIANTS for size in PAYLOADS]
     cases += [("tcp", "-", size) for size in PAYLOADS]
     results = []
-    for kind, variant, size in cases:
-        result = run_case(kind, variant, size, args.count, args.rate)
-        log.info("%-5s %-10s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
-                 result["sent"], result["rtt_ms"])  # fmt: skip
-        results.append(result)
-    write_report({"rate_hz": args.rate, "results": results, "machine": asdict(machine_info())}, args.out)
+    for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all
+        for kind, variant, size in cases:
+            result = run_case(kind, variant, size, args.count, args.rate) | {"round": round_index}
+            log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
+                     result["sent"], result["rtt_ms"])  # fmt: skip
+            results.append(result)
+    summary = median_p50s(results)
+    for row in summary:
+        log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms", args.rounds, row["kind"],
+                 row["variant"], row["bytes"], row["median_p50_ms"])  # fmt: skip
+    report = {"rate_hz": args.rate, "rounds": args.rounds, "summary": summary, "results": results}
+    write_report(report | {"machine": asdict(machine_info())}, args.out)
     return 0
 
 

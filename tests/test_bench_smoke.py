@@ -33,6 +33,8 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
     assert report.stage_ms_p50["decode"] > 0 and report.stage_ms_p50["queue"] > 0  # measured, not defaulted
     assert report.bare_ms["frames"] == 20 and report.bare_ms["p50"] > 0
     assert set(report.overhead_ms) == {"p50", "p99"}
+    # What the pipeline added per frame is positive (three hops cost something) and below the latency.
+    assert 0 < report.added_per_frame_ms["p50"] < report.latency_ms["p50"]
     rows = trace.read_text().splitlines()
     assert rows[0].startswith("total_ms,encode_ms") and len(rows) == report.scans_answered + 1
     assert set(report.peak_rss_mb) == {"encoder", "detector"} and all(
@@ -157,3 +159,5 @@ def test_zenoh_rtt_bounces_every_payload_through_every_transport(tmp_path: Path)
         ("tcp", "-", b) for b in zenoh_rtt.PAYLOADS
     }
     assert all(r["answered"] == r["sent"] == 12 and r["rtt_ms"]["p50"] > 0 for r in results)
+    summary = json.loads(out.read_text())["summary"]
+    assert {(r["kind"], r["variant"], r["bytes"]) for r in summary} == cases and len(summary) == len(cases)
