@@ -4,7 +4,8 @@ This VM's throughput drifts between minutes, so settings measured one after the 
 machine's moods as much as the settings. Here every robot count of ``--robots`` is run ``--rounds``
 times for each ``--setting`` in turn (each a full ``bench.fleet_capacity`` step: fresh services,
 warm-up, measured window, p99 < 100 ms and ≥ 95 % answered to pass), and the medians per setting and
-count are printed and written as JSON. ``bench.fleet_batch_ab`` is the batch-size special case.
+count are printed and written as JSON. ``bench.fleet_batch_ab`` is the batch-size special case, run
+through :func:`run_rounds` here.
 
     python -m bench.fleet_ab --robots 14,17 --rounds 2 \\
         --setting "defaults=--detector-defaults" --setting "one-session=--workers 1 --batch 4"
@@ -15,11 +16,11 @@ from __future__ import annotations
 import argparse
 import logging
 import shlex
+import statistics
 from dataclasses import asdict
 from pathlib import Path
 
 from bench import fleet_capacity
-from bench.fleet_batch_ab import summary
 from bench.harness import recorded_scans
 from bench.machine import machine_info
 from bench.report import write_report
@@ -33,6 +34,38 @@ def parse_setting(text: str) -> tuple[str, list[str]]:
     if not sep or not name.strip():
         raise argparse.ArgumentTypeError(f"{text!r}: use NAME=FLAGS, e.g. 'defaults=--detector-defaults'")
     return name.strip(), shlex.split(flags)
+
+
+def summary(steps: list[fleet_capacity.FleetStep]) -> dict[str, float]:
+    """Medians over the rounds of one setting at one fleet size."""
+    return {
+        "answered_share": statistics.median(s.answered_share for s in steps),
+        "p50_ms": statistics.median(s.latency_ms.get("p50", float("nan")) for s in steps),
+        "p99_ms": statistics.median(s.latency_ms.get("p99", float("nan")) for s in steps),
+        "mean_batch": statistics.median(s.detector_mean_batch for s in steps),
+        "rounds_passed": sum(s.passed for s in steps),
+    }
+
+
+def run_rounds(
+    sizes: list[int], settings: dict[str, argparse.Namespace], rounds: int
+) -> dict[str, dict[int, list[fleet_capacity.FleetStep]]]:
+    """Every size under every setting, ``rounds`` times, the settings taking turns within a round."""
+    scans = recorded_scans(fleet_capacity.RECORDED_SCANS, seed=7)
+    steps: dict[str, dict[int, list[fleet_capacity.FleetStep]]] = {
+        n: {r: [] for r in sizes} for n in settings
+    }
+    for round_index in range(rounds):
+        for robots in sizes:
+            for name, step_args in settings.items():
+                step = fleet_capacity.run_step(robots, scans, step_args)
+                steps[name][robots].append(step)
+                log.info(
+                    "round %d, %d robots, %s: %s, p99 %s ms, answered %.1f %%, mean batch %.2f",
+                    round_index + 1, robots, name, "pass" if step.passed else "FAIL",
+                    step.latency_ms.get("p99"), 100 * step.answered_share, step.detector_mean_batch,
+                )  # fmt: skip
+    return steps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,19 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         name: fleet_capacity.build_parser().parse_args(["--seconds", str(args.seconds), *flags])
         for name, flags in args.setting
     }
-    scans = recorded_scans(fleet_capacity.RECORDED_SCANS, seed=7)
-    steps: dict[str, dict[int, list[fleet_capacity.FleetStep]]] = {
-        n: {r: [] for r in sizes} for n in settings
-    }
-    for round_index in range(args.rounds):
-        for robots in sizes:
-            for name, step_args in settings.items():
-                step = fleet_capacity.run_step(robots, scans, step_args)
-                steps[name][robots].append(step)
-                log.info(
-                    "round %d, %d robots, %s: %s, p99 %s ms, answered %.1f %%", round_index + 1, robots, name,
-                    "pass" if step.passed else "FAIL", step.latency_ms.get("p99"), 100 * step.answered_share,
-                )  # fmt: skip
+    steps = run_rounds(sizes, settings, args.rounds)
     report = {
         "settings": {name: flags for name, flags in args.setting},
         "seconds_per_step": args.seconds,

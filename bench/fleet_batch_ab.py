@@ -5,7 +5,8 @@ put the knee anywhere from 10 to 20 robots), so two ladders run one after the ot
 machine's moods as much as the two settings. Here one fleet size is run ``--rounds`` times with the
 batch-1 model at ``--batch 1`` and the ``-batch`` model at ``--batch N``, alternating, each round a
 full ``bench.fleet_capacity`` step (fresh services, warm-up, measured window); the medians per
-setting are printed and written as JSON.
+setting are printed and written as JSON. The rounds are ``bench.fleet_ab``'s, with the two settings
+built from ``--precision`` and ``--batch``.
 
     python -m bench.fleet_batch_ab --robots 24 --rounds 3 --precision int8
 """
@@ -14,12 +15,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import statistics
 from dataclasses import asdict
 from pathlib import Path
 
 from bench import fleet_capacity
-from bench.harness import recorded_scans
+from bench.fleet_ab import run_rounds, summary
 from bench.machine import machine_info
 from bench.report import write_report
 
@@ -36,17 +36,6 @@ MODELS = {
         ROOT / "models" / "triscan-yolov8n-zero-int8-batch.onnx",
     ),
 }
-
-
-def summary(steps: list[fleet_capacity.FleetStep]) -> dict[str, float]:
-    """Medians over the rounds of one setting."""
-    return {
-        "answered_share": statistics.median(s.answered_share for s in steps),
-        "p50_ms": statistics.median(s.latency_ms.get("p50", float("nan")) for s in steps),
-        "p99_ms": statistics.median(s.latency_ms.get("p99", float("nan")) for s in steps),
-        "mean_batch": statistics.median(s.detector_mean_batch for s in steps),
-        "rounds_passed": sum(s.passed for s in steps),
-    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,20 +61,10 @@ def main(argv: list[str] | None = None) -> int:
             [*common, "--model", str(batch_model), "--batch", str(args.batch)]
         ),
     }
-    scans = recorded_scans(fleet_capacity.RECORDED_SCANS, seed=7)
-    rounds: dict[str, list[fleet_capacity.FleetStep]] = {name: [] for name in settings}
-    for round_index in range(args.rounds):
-        for name, step_args in settings.items():
-            step = fleet_capacity.run_step(args.robots, scans, step_args)
-            rounds[name].append(step)
-            log.info(
-                "round %d %s: p99 %s ms, answered %.1f %%, mean batch %.2f",
-                round_index + 1,
-                name,
-                step.latency_ms.get("p99"),
-                100 * step.answered_share,
-                step.detector_mean_batch,
-            )
+    rounds = {
+        name: by_size[args.robots]
+        for name, by_size in run_rounds([args.robots], settings, args.rounds).items()
+    }
     report = {
         "robots": args.robots,
         "precision": args.precision,

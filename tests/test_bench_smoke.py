@@ -86,6 +86,23 @@ def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:
         assert step["robots"] == 2 and step["scans_answered"] > 0 and figures["mean_batch"] >= 1.0
 
 
+def test_fleet_ab_runs_every_size_under_every_setting(tmp_path: Path) -> None:
+    from bench import fleet_ab
+
+    out = tmp_path / "ab.json"
+    settings = ["--setting", "defaults=--detector-defaults", "--setting", "one-session=--workers 1"]
+    assert (
+        fleet_ab.main(["--robots", "1,2", "--rounds", "1", "--seconds", "2", *settings, "--out", str(out)])
+        == 0
+    )
+    report = json.loads(out.read_text())
+    assert report["settings"] == {"defaults": ["--detector-defaults"], "one-session": ["--workers", "1"]}
+    for name in ("defaults", "one-session"):
+        assert set(report["summary"][name]) == set(report["steps"][name]) == {"1", "2"}
+        for robots, (step,) in report["steps"][name].items():
+            assert step["robots"] == int(robots) and step["scans_answered"] > 0
+
+
 def test_dataset_rate_reports_rate_and_paper_scale(tmp_path: Path) -> None:
     out = tmp_path / "rate.json"
     assert (
