@@ -112,12 +112,6 @@ def valid_returns(ranges: np.ndarray, range_min: float, range_max: float) -> np.
         return np.isfinite(values) & (values >= range_min) & (values <= range_max)
 
 
-def sanitize_ranges(ranges: np.ndarray, range_min: float, range_max: float) -> np.ndarray:
-    """Replace every invalid return by ``R_MAX`` (the sentinel), keeping the beam."""
-    values = np.asarray(ranges, dtype=np.float64)
-    return np.where(valid_returns(values, range_min, range_max), values, R_MAX_M)
-
-
 def check_invalid_rule(invalid: str) -> InvalidRule:
     if invalid not in INVALID_RULES:
         raise ScanError(f"invalid must be one of {INVALID_RULES}, got {invalid!r}")
@@ -146,7 +140,7 @@ def scan_hits(
     check_invalid_rule(invalid)
     cols = beam_columns(float(angle_min), float(angle_increment), values.size)
     valid = valid_returns(values, range_min, range_max)
-    rows = range_rows(np.where(valid, values, R_MAX_M))  # sanitize_ranges, with the mask kept
+    rows = range_rows(np.where(valid, values, R_MAX_M))  # an invalid return reads R_MAX: the sentinel row
     if invalid == "empty":
         return rows[valid], cols[valid]
     return rows, cols
