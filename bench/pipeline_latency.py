@@ -19,6 +19,8 @@ the pipeline added to the very frames it measured.
     python -m bench.pipeline_latency --duration 60                # 3 processes: sim, encoder, detector
     python -m bench.pipeline_latency --duration 60 --from-scans   # encoder + detector in one process
     python -m bench.pipeline_latency --duration 30 --trace trace.csv   # per-frame stage rows too
+    python -m bench.pipeline_latency --cfg transport/unicast/lowlatency:true \
+        --cfg transport/unicast/qos/enabled:false                    # any zenoh setting, every process
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.model_spec import default_model_path
-from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from common.transport import ZenohSettings, open_session, parse_cfg_entry, payload_bytes, wait_for_subscriber
 from services.detector.core import default_intra_op_threads, default_workers
 from services.launcher import free_tcp_ports, stop_processes
 from services.simulator.fleet import SimulatedFleet
@@ -306,6 +308,14 @@ def main() -> int:
     parser.add_argument(
         "--no-shm", action="store_true", help="zenoh shared memory off in every process (the comparison)"
     )
+    parser.add_argument(
+        "--cfg",
+        action="append",
+        default=[],
+        type=parse_cfg_entry,
+        metavar="KEY:VALUE",
+        help="a zenoh config entry for every process, this one included (as the services' --cfg)",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     report = run(
@@ -317,7 +327,7 @@ def main() -> int:
         args.model,
         trace=args.trace,
         bare_frames=args.bare_frames,
-        zenoh_cfg=NO_SHM if args.no_shm else (),
+        zenoh_cfg=(*(NO_SHM if args.no_shm else ()), *args.cfg),
     )
     write_report(report, args.out)
     return 0 if report.scans_answered else 1

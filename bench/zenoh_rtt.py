@@ -2,9 +2,11 @@
 
 A ping process and an echo process (this module again, ``--echo``) bounce a payload at ``--rate`` Hz,
 as the pipeline's messages travel: a 100-byte one and the 73 KB tensor, with Zenoh's defaults, with
-express publishers (no batching), with the low-latency transport and with direct callbacks (run on
-Zenoh's receiving thread instead of being handed to a Python thread), then a plain TCP ping-pong
-between the same two kinds of process. Round trip = two hops. Peers on loopback, multicast off.
+express publishers (no batching), with QoS off (one priority queue instead of eight; negotiated per
+link, so a peer that keeps it on still connects), with the low-latency transport and with direct
+callbacks (run on Zenoh's receiving thread instead of being handed to a Python thread), then a plain
+TCP ping-pong between the same two kinds of process. Round trip = two hops. Peers on loopback,
+multicast off.
 
     python -m bench.zenoh_rtt --rounds 3          # → bench/results/zenoh_rtt.json
 """
@@ -33,7 +35,14 @@ from services.launcher import free_tcp_ports
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 PAYLOADS: Final[tuple[int, ...]] = (100, 73_728)
-VARIANTS: Final[tuple[str, ...]] = ("default", "express", "lowlatency", "direct", "lowlatency+direct")
+VARIANTS: Final[tuple[str, ...]] = (
+    "default",
+    "express",
+    "noqos",
+    "lowlatency",
+    "direct",
+    "lowlatency+direct",
+)
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
 
 
@@ -47,8 +56,10 @@ def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
         config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen}"]))
     if connect is not None:
         config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect}"]))
-    if "lowlatency" in variant.split("+"):
+    flags = variant.split("+")
+    if "lowlatency" in flags:
         config.insert_json5("transport/unicast/lowlatency", "true")
+    if "lowlatency" in flags or "noqos" in flags:  # the low-latency transport requires QoS off
         config.insert_json5("transport/unicast/qos/enabled", "false")
     return config
 
@@ -177,6 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=int, default=100, help="round trips per case")
     parser.add_argument("--rate", type=float, default=10.0, help="round trips per second (the scan rate)")
     parser.add_argument("--rounds", type=int, default=1, help="times every case runs, in turns")
+    parser.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"Zenoh variants, comma-separated (of {', '.join(VARIANTS)})",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument(
         "--echo", nargs=4, metavar=("KIND", "VARIANT", "PORT", "SECONDS"), help=argparse.SUPPRESS
@@ -187,7 +203,10 @@ def main(argv: list[str] | None = None) -> int:
         echo(kind, variant, int(port), float(seconds))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    cases = [("zenoh", variant, size) for variant in VARIANTS for size in PAYLOADS]
+    variants = args.variants.split(",")
+    if unknown := set(variants) - set(VARIANTS):
+        parser.error(f"unknown --variants {sorted(unknown)}; choose from {', '.join(VARIANTS)}")
+    cases = [("zenoh", variant, size) for variant in variants for size in PAYLOADS]
     cases += [("tcp", "-", size) for size in PAYLOADS]
     results = []
     for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all

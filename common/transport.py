@@ -132,13 +132,13 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
         "--cfg",
         action="append",
         default=[],
-        type=_cfg_entry,
+        type=parse_cfg_entry,
         metavar="KEY:VALUE",
         help="one zenoh config entry as zenoh's tools take it, e.g. 'scouting/multicast/enabled:false'",
     )
 
 
-def _cfg_entry(text: str) -> tuple[str, str]:
+def parse_cfg_entry(text: str) -> tuple[str, str]:
     """``KEY:VALUE`` of zenoh's ``--cfg`` flag: a config path and a JSON5 value."""
     key, sep, value = text.partition(":")
     if not sep or not key or not value:
