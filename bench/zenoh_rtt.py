@@ -9,6 +9,7 @@ TCP ping-pong between the same two kinds of process. Round trip = two hops. Peer
 multicast off.
 
     python -m bench.zenoh_rtt --rounds 3          # → bench/results/zenoh_rtt.json
+    python -m bench.zenoh_rtt --delivery          # → bench/results/zenoh_delivery.json
 """
 
 from __future__ import annotations
@@ -44,6 +45,11 @@ VARIANTS: Final[tuple[str, ...]] = (
     "lowlatency+direct",
 )
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
+# --delivery: one put of each size, under each transport, with and without shared memory. The
+# low-latency transport does not fragment; the 73 KB tensor is the pipeline's largest message.
+DELIVERY_SIZES: Final[tuple[int, ...]] = (1_000, 60_000, 73_728)
+DELIVERY_VARIANTS: Final[tuple[str, ...]] = ("default", "noshm", "lowlatency", "lowlatency+noshm")
+DELIVERY_OUT: Final[Path] = DEFAULT_OUT.with_name("zenoh_delivery.json")
 
 
 def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
@@ -61,6 +67,8 @@ def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
         config.insert_json5("transport/unicast/lowlatency", "true")
     if "lowlatency" in flags or "noqos" in flags:  # the low-latency transport requires QoS off
         config.insert_json5("transport/unicast/qos/enabled", "false")
+    if "noshm" in flags:
+        config.insert_json5("transport/shared_memory/enabled", "false")
     return config
 
 
@@ -142,20 +150,55 @@ def ping_tcp(port: int, size: int, count: int, rate_hz: float) -> list[float]:
     return rtts
 
 
+def delivered_zenoh(variant: str, port: int, sizes: tuple[int, ...]) -> list[int]:
+    """Put each of ``sizes`` once, 0.3 s apart; the sizes that came back from the echo, in order."""
+    import zenoh
+
+    answered = threading.Event()
+    back: list[int] = []
+
+    def on_pong(sample: Any) -> None:
+        back.append(len(sample.payload.to_bytes()))
+        answered.set()
+
+    with zenoh.open(zenoh_config(variant, None, port)) as session:
+        sub = session.declare_subscriber("rtt/pong", subscriber_callback(variant, on_pong))
+        pub = session.declare_publisher("rtt/ping")
+        deadline = time.monotonic() + 10.0
+        while not answered.is_set() and time.monotonic() < deadline:  # until the echo is connected
+            pub.put(bytes(100))
+            answered.wait(0.2)
+        time.sleep(0.5)  # late answers to the probes
+        back.clear()
+        for size in sizes:
+            pub.put(bytes(size))
+            time.sleep(0.3)
+        time.sleep(1.0)
+        sub.undeclare()
+    return back
+
+
+def start_echo(kind: str, variant: str, port: int, seconds: float) -> subprocess.Popen[bytes]:
+    """This module again as the far end (``--echo``), for ``seconds``."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "bench.zenoh_rtt", "--echo", kind, variant, str(port), str(seconds)]
+    )
+
+
+def run_delivery(variant: str, sizes: tuple[int, ...] = DELIVERY_SIZES) -> dict[str, Any]:
+    (port,) = free_tcp_ports(1)
+    far = start_echo("zenoh", variant, port, 30.0)
+    try:
+        delivered = delivered_zenoh(variant, port, sizes)
+    finally:
+        far.kill()
+        far.wait()
+    return {"variant": variant, "sent": list(sizes), "delivered": delivered}
+
+
 def run_case(kind: str, variant: str, size: int, count: int, rate_hz: float) -> dict[str, Any]:
     (port,) = free_tcp_ports(1)
-    far = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "bench.zenoh_rtt",
-            "--echo",
-            kind,
-            variant,
-            str(port),
-            str(count / rate_hz + 15),
-        ]
-    )
+    far = start_echo(kind, variant, port, count / rate_hz + 15)
     try:
         rtts = (
             ping_tcp(port, size, count, rate_hz)
@@ -193,7 +236,12 @@ def main(argv: list[str] | None = None) -> int:
         default=",".join(VARIANTS),
         help=f"Zenoh variants, comma-separated (of {', '.join(VARIANTS)})",
     )
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument(
+        "--delivery",
+        action="store_true",
+        help="instead of timing: which message sizes arrive under each transport, shared memory on and off",
+    )
+    parser.add_argument("--out", type=Path, default=None, help=f"default {DEFAULT_OUT} ({DELIVERY_OUT})")
     parser.add_argument(
         "--echo", nargs=4, metavar=("KIND", "VARIANT", "PORT", "SECONDS"), help=argparse.SUPPRESS
     )
@@ -203,6 +251,12 @@ def main(argv: list[str] | None = None) -> int:
         echo(kind, variant, int(port), float(seconds))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.delivery:
+        checks = [run_delivery(variant) for variant in DELIVERY_VARIANTS]
+        for check in checks:
+            log.info("%-17s sent %s, delivered %s", check["variant"], check["sent"], check["delivered"])
+        write_report({"checks": checks, "machine": asdict(machine_info())}, args.out or DELIVERY_OUT)
+        return 0
     variants = args.variants.split(",")
     if unknown := set(variants) - set(VARIANTS):
         parser.error(f"unknown --variants {sorted(unknown)}; choose from {', '.join(VARIANTS)}")
@@ -220,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
         log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms", args.rounds, row["kind"],
                  row["variant"], row["bytes"], row["median_p50_ms"])  # fmt: skip
     report = {"rate_hz": args.rate, "rounds": args.rounds, "summary": summary, "results": results}
-    write_report(report | {"machine": asdict(machine_info())}, args.out)
+    write_report(report | {"machine": asdict(machine_info())}, args.out or DEFAULT_OUT)
     return 0
 
 
