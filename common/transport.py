@@ -22,6 +22,7 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 ZENOH_CONFIG_ENV = "ZENOH_CONFIG"
+LOW_LATENCY_KEY = "transport/unicast/lowlatency"  # measured unsafe for triscan's messages: warned about
 MODES = ("peer", "client", "router")
 
 
@@ -100,6 +101,12 @@ class ZenohSettings:
                 config.insert_json5(key, value)
             except Exception as exc:  # zenoh raises its own error type for a bad path or value
                 raise ValueError(f"--cfg {key}:{value}: {exc}") from exc
+        if config.get_json(LOW_LATENCY_KEY) == "true":
+            log.warning(
+                "%s is on: that transport does not fragment and drops messages larger than its batch "
+                "without an error, among them the 73 KB tensors (bench/README.md, 'Pipeline latency')",
+                LOW_LATENCY_KEY,
+            )
         return config
 
 

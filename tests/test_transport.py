@@ -117,3 +117,15 @@ def test_zenoh_own_flag_names_are_accepted(tmp_path: Path) -> None:
         parser.parse_args(["--cfg", "no-colon"])
     with pytest.raises(ValueError, match="--cfg"):
         ZenohSettings(cfg=(("no/such/key", "1"),)).to_config()
+
+
+def test_the_low_latency_transport_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    """It drops messages larger than its batch (bench.zenoh_rtt --delivery): whoever turns it on hears why."""
+    with caplog.at_level("WARNING", logger="common.transport"):
+        parse("--cfg", "transport/unicast/qos/enabled:false").to_config()
+        assert not caplog.records
+        parse(
+            "--cfg", "transport/unicast/qos/enabled:false", "--cfg", "transport/unicast/lowlatency:true"
+        ).to_config()
+    (record,) = caplog.records
+    assert "transport/unicast/lowlatency" in record.getMessage() and "73 KB" in record.getMessage()
