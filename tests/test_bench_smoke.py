@@ -99,6 +99,17 @@ def test_zenoh_delivery_check_sees_the_default_transport_deliver_every_size(tmp_
         assert checks[variant]["delivered"] == list(zenoh_rtt.DELIVERY_SIZES)
 
 
+def test_hot_path_times_both_services_python_per_frame(tmp_path: Path) -> None:
+    from bench import hot_path
+
+    report = hot_path.run(frames=3, rate_hz=50.0)
+    assert [cost.path.split(":")[0] for cost in report.paths] == ["encoder", "detector"]
+    for cost in report.paths:
+        assert cost.warm_us["p50"] > 0 and cost.paced_us["p50"] > 0
+        # At least the tensor itself (64 × 384 × 3 bytes) passes through each service's frame.
+        assert cost.peak_alloc_kb > 73
+
+
 def test_fleet_ab_runs_every_size_under_every_setting(tmp_path: Path) -> None:
     from bench import fleet_ab
 

@@ -1,0 +1,171 @@
+"""The Python each message costs the services, outside the network: time and memory per frame.
+
+The pipeline's stage split (``bench.pipeline_latency``) times the stages inside running services;
+this bench times the same code paths alone, on recorded scans, so a change to them can be measured
+in seconds: the encoder's (scan payload → decoded scan → raster → stacked tensor → tensor payload)
+and the detector's (tensor payload → decoded tensor → ``DetectorCore.detect_many``: model input,
+``session.run``, decode, NMS, wire detections → ``Detections`` payload) minus the ``session.run``
+time the frame itself reports. Each path runs back to back (*warm*: caches hot) and paced at the
+scan rate (*paced*: one frame every 1/rate s, as a robot sends them, caches cooled by the sleep),
+and ``tracemalloc`` records the peak memory each frame allocates in Python and numpy (ONNX Runtime's
+own arena is not traced).
+
+    python -m bench.hot_path --out bench/results/hot_path.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+import tracemalloc
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bench.harness import recorded_scans
+from bench.machine import MachineInfo, machine_info
+from bench.report import latency_quantiles_ms, write_report
+from common.inference import OnnxDetector
+from common.messages import encode_message
+from common.model_spec import default_model_path
+from services.detector.core import DetectorCore
+from services.encoder.core import EncoderCore
+
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+
+SCANS = 60  # recorded scans: 58 tensors, cycled through
+ALLOC_FRAMES = 50  # frames traced by tracemalloc (slower: not timed)
+
+
+@dataclass
+class PathCost:
+    """One code path's cost per frame: p50 µs back to back and paced, and peak bytes allocated."""
+
+    path: str
+    warm_us: dict[str, float]
+    paced_us: dict[str, float]
+    peak_alloc_kb: float
+
+
+@dataclass
+class HotPathReport:
+    model: str
+    frames: int
+    rate_hz: float
+    paths: list[PathCost] = field(default_factory=list)
+    machine: MachineInfo = field(default_factory=machine_info)
+
+
+def timed_us(frame: Callable[[int], float], frames: int, period_s: float) -> list[float]:
+    """µs of ``frame(i)`` for ``i`` in range(frames), less the µs each call says it spent elsewhere
+    (the network); ``period_s`` apart when above 0."""
+    times = []
+    next_due = time.monotonic()
+    for i in range(frames):
+        started = time.perf_counter_ns()
+        excluded_us = frame(i)
+        times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
+        if period_s > 0:
+            next_due += period_s
+            time.sleep(max(0.0, next_due - time.monotonic()))
+    return times
+
+
+def peak_alloc_kb(frame: Callable[[int], float], frames: int) -> float:
+    """Median over frames of the peak memory one frame allocates (``tracemalloc``), in kB."""
+    peaks = []
+    tracemalloc.start()
+    try:
+        for i in range(frames):
+            baseline, _ = tracemalloc.get_traced_memory()
+            tracemalloc.reset_peak()
+            frame(i)
+            peaks.append(tracemalloc.get_traced_memory()[1] - baseline)
+    finally:
+        tracemalloc.stop()
+    return round(float(np.median(peaks)) / 1e3, 1)
+
+
+def measure(name: str, frame: Callable[[int], float], frames: int, rate_hz: float) -> PathCost:
+    frame(0)  # first-call costs (imports, caches) are not what a running service pays
+    return PathCost(
+        name,
+        latency_quantiles_ms(timed_us(frame, frames, 0.0)),  # quantiles of µs, in µs
+        latency_quantiles_ms(timed_us(frame, frames, 1.0 / rate_hz)),
+        peak_alloc_kb(frame, ALLOC_FRAMES),
+    )
+
+
+def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport:
+    """Both services' per-frame Python on recorded scans; see the module docstring."""
+    model = model or default_model_path()
+    scans = recorded_scans(SCANS)
+    robot_id = scans[0].robot_id
+    reference = EncoderCore("zero")
+    tensor_payloads = [encode_message(t) for scan in scans if (t := reference.push(scan)) is not None]
+    core = DetectorCore(OnnxDetector(model, intra_op_threads=1))
+    core.detector.warmup()
+    report = HotPathReport(model.name, frames, rate_hz)
+    # One unbroken stream for the encoder, the recorded scans cycled with ever larger seqs and stamps,
+    # so every frame after the first two yields a tensor (a restarted stream would warm up again).
+    period_ns = round(1e9 / rate_hz)
+    stream = iter(
+        [
+            encode_message(scans[k % len(scans)].model_copy(update={"seq": k, "stamp_ns": k * period_ns}))
+            for k in range(2 * (frames + 1) + ALLOC_FRAMES + 2)
+        ]
+    )
+    encoder = EncoderCore("zero")
+    encoder.handle_payload(next(stream), robot_id)
+    encoder.handle_payload(next(stream), robot_id)
+
+    def encoder_frame(_: int) -> float:
+        tensor = encoder.handle_payload(next(stream), robot_id)
+        if tensor is None:
+            raise RuntimeError("the recorded stream broke: the encoder made no tensor")
+        encode_message(tensor)
+        return 0.0
+
+    def detector_frame(i: int) -> float:
+        tensor = core.decode(tensor_payloads[i % len(tensor_payloads)], robot_id)
+        if tensor is None:
+            raise RuntimeError("the detector rejected a recorded tensor")
+        (message,) = core.detect_many([tensor])
+        encode_message(message)
+        return message.timings.inference_ms * 1e3
+
+    for name, frame in (
+        ("encoder: scan payload → tensor payload", encoder_frame),
+        ("detector: tensor payload → Detections payload, less session.run", detector_frame),
+    ):
+        cost = measure(name, frame, frames, rate_hz)
+        log.info(
+            "%-62s warm p50 %7.1f µs, paced p50 %7.1f µs, peak %6.1f kB a frame",
+            name,
+            cost.warm_us["p50"],
+            cost.paced_us["p50"],
+            cost.peak_alloc_kb,
+        )
+        report.paths.append(cost)
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=200, help="frames per path and pacing")
+    parser.add_argument("--rate", type=float, default=10.0, help="paced frames per second")
+    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
+    parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
+    args = parser.parse_args(argv)
+    if args.frames < 1 or args.rate <= 0:
+        parser.error("--frames must be >= 1 and --rate > 0")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    write_report(asdict(run(args.frames, args.rate, args.model)), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
