@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import proc_cpu_s, proc_status_mb, recorded_scans, start_loopback_service
+from bench.harness import proc_cpu_s, proc_status_mb, recorded_scans, start_loopback_service, thread_cpu_s
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
@@ -65,6 +65,9 @@ class FleetStep:
     # Cores each process kept busy over the window (CPU seconds / wall seconds); "bench" is this process,
     # the load generator, which the machine's two cores also carry.
     cpu_cores: dict[str, float] = field(default_factory=dict)
+    # The detector's cores by thread name: its inference threads, Zenoh's threads, "python" (main and
+    # Zenoh's callback thread).
+    detector_thread_cores: dict[str, float] = field(default_factory=dict)
     passed: bool = False
     why_not: str = ""
 
@@ -184,6 +187,7 @@ def _publish_fleet(
                 measure_from = time.monotonic()
                 step.rss_mb_start = _rss_mb(children)
                 cpu_start = _cpu_s(children)
+                threads_start = thread_cpu_s(children["detector"].pid)
             elif time.monotonic() - start > MAX_WARM_UP_S:
                 step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
                 break
@@ -209,6 +213,11 @@ def _publish_fleet(
         window = time.monotonic() - measure_from
         step.cpu_cores = {
             name: round((seconds - cpu_start[name]) / window, 3) for name, seconds in _cpu_s(children).items()
+        }
+        threads_end = thread_cpu_s(children["detector"].pid)
+        used = {name: (seconds - threads_start.get(name, 0.0)) / window for name, seconds in threads_end.items()}
+        step.detector_thread_cores = {
+            name: round(cores, 3) for name, cores in sorted(used.items(), key=lambda item: -item[1])
         }
     return published
 

@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from common.inference import OnnxDetector
+from common.keys import tensor_key
 from common.messages import Detections, StackedTensor, decode_message, encode_message
-from services.detector.core import DetectorCore, LatestPerRobot
+from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
 from services.encoder.core import EncoderCore
 from tests.scan_replay import replay_scans
+from tests.waiting import wait_for
 from training.evaluate import box_iou
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "triscan-yolov8n-zero.onnx"
@@ -206,3 +208,24 @@ def test_default_threads_leave_a_core_to_the_encoder_in_the_same_process() -> No
 
     assert default_workers(cpus=4) == 4
     assert default_intra_op_threads(default_workers(cpus=4), from_scans=False, cpus=4) == 1
+
+
+def test_pipeline_serves_a_sample_on_named_inference_threads(
+    detector: OnnxDetector, replayed_tensors: list[tuple[StackedTensor, list]]
+) -> None:
+    """Sample in, detections out through ``publish``; the workers carry their names into the OS
+    (``top -H``, and the bench's CPU split by thread, read them there)."""
+    published: list[Detections] = []
+    pipeline = InferencePipeline([detector], published.append)
+    pipeline.start()
+    try:
+        tensor, _ = replayed_tensors[0]
+        pipeline.handle_sample(tensor_key(tensor.robot_id), encode_message(tensor))
+        assert wait_for(lambda: published, timeout=30.0)
+        tasks = Path("/proc/self/task")
+        names = {t.joinpath("comm").read_text().strip() for t in tasks.iterdir()} if tasks.is_dir() else None
+    finally:
+        pipeline.stop()
+    (message,) = published
+    assert message.robot_id == tensor.robot_id and message.seq == tensor.seq
+    assert names is None or "inference-0" in names  # None: no /proc, not Linux
