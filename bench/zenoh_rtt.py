@@ -232,6 +232,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="round trips per second (the scan rate)")
     parser.add_argument("--rounds", type=int, default=1, help="times every case runs, in turns")
     parser.add_argument(
+        "--busy",
+        type=int,
+        default=0,
+        help="lowest-priority processes spinning meanwhile (one per CPU: none idles)",
+    )
+    parser.add_argument(
         "--variants",
         default=",".join(VARIANTS),
         help=f"Zenoh variants, comma-separated (of {', '.join(VARIANTS)})",
@@ -263,17 +269,32 @@ def main(argv: list[str] | None = None) -> int:
     cases = [("zenoh", variant, size) for variant in variants for size in PAYLOADS]
     cases += [("tcp", "-", size) for size in PAYLOADS]
     results = []
-    for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all
-        for kind, variant, size in cases:
-            result = run_case(kind, variant, size, args.count, args.rate) | {"round": round_index}
-            log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
-                     result["sent"], result["rtt_ms"])  # fmt: skip
-            results.append(result)
+    spinners = [  # --busy: keep the CPUs from idling, to tell wake-up costs from work per message
+        subprocess.Popen([sys.executable, "-c", "import os\nos.nice(19)\nwhile True: pass"])
+        for _ in range(args.busy)
+    ]
+    try:
+        for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all
+            for kind, variant, size in cases:
+                result = run_case(kind, variant, size, args.count, args.rate) | {"round": round_index}
+                log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
+                         result["sent"], result["rtt_ms"])  # fmt: skip
+                results.append(result)
+    finally:
+        for spinner in spinners:
+            spinner.kill()
+            spinner.wait()
     summary = median_p50s(results)
     for row in summary:
         log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms", args.rounds, row["kind"],
                  row["variant"], row["bytes"], row["median_p50_ms"])  # fmt: skip
-    report = {"rate_hz": args.rate, "rounds": args.rounds, "summary": summary, "results": results}
+    report = {
+        "rate_hz": args.rate,
+        "rounds": args.rounds,
+        "busy_spinners": args.busy,
+        "summary": summary,
+        "results": results,
+    }
     write_report(report | {"machine": asdict(machine_info())}, args.out or DEFAULT_OUT)
     return 0
 

@@ -88,6 +88,26 @@ def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:
         assert step["robots"] == 2 and step["scans_answered"] > 0 and figures["mean_batch"] >= 1.0
 
 
+def test_zenoh_rtt_busy_spinners_run_only_while_it_measures(tmp_path: Path) -> None:
+    from bench import zenoh_rtt
+
+    out = tmp_path / "busy.json"
+    argv = ["--count", "12", "--rate", "100", "--variants", "default", "--busy", "1", "--out", str(out)]
+    assert zenoh_rtt.main(argv) == 0
+    report = json.loads(out.read_text())
+    assert report["busy_spinners"] == 1 and {r["variant"] for r in report["summary"]} == {"default", "-"}
+    assert not [proc for proc in Path("/proc").glob("[0-9]*") if _spins_for_us(proc)]
+
+
+def _spins_for_us(proc: Path) -> bool:
+    """A live child of this process running the bench's busy loop."""
+    try:
+        parent = int((proc / "stat").read_text().rpartition(")")[2].split()[1])
+        return parent == os.getpid() and b"while True" in (proc / "cmdline").read_bytes()
+    except (FileNotFoundError, ProcessLookupError, ValueError, IndexError):
+        return False
+
+
 def test_zenoh_delivery_check_sees_the_default_transport_deliver_every_size(tmp_path: Path) -> None:
     from bench import zenoh_rtt
 
