@@ -215,7 +215,9 @@ def _publish_fleet(
             name: round((seconds - cpu_start[name]) / window, 3) for name, seconds in _cpu_s(children).items()
         }
         threads_end = thread_cpu_s(children["detector"].pid)
-        used = {name: (seconds - threads_start.get(name, 0.0)) / window for name, seconds in threads_end.items()}
+        used = {
+            name: (seconds - threads_start.get(name, 0.0)) / window for name, seconds in threads_end.items()
+        }
         step.detector_thread_cores = {
             name: round(cores, 3) for name, cores in sorted(used.items(), key=lambda item: -item[1])
         }
