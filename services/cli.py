@@ -14,6 +14,7 @@ from pathlib import Path
 from common.encoding import INVALID_RULES, PADDINGS
 from services.runtime import LOG_FORMAT
 from training.architectures import ARCHS, DEFAULT_ARCH
+from training.quantization import ACTIVATION_TYPES, CALIB_METHODS, DEFAULT_CALIB_COUNT, DEFAULT_CALIB_METHOD
 
 
 def _add_dataset(sub: argparse._SubParsersAction) -> None:
@@ -171,11 +172,18 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         "--name", default=None, help="file stem (default: triscan-<network>-<padding>: triscan-yolov8p-zero)"
     )
     p.add_argument("--padding", choices=PADDINGS, default=None, help="default: read from the data set")
-    p.add_argument("--calib-count", type=int, default=200, help="val images used to calibrate INT8")
-    p.add_argument("--calib-method", choices=("percentile", "minmax", "entropy"), default="percentile")
+    p.add_argument(
+        "--calib-count", type=int, default=DEFAULT_CALIB_COUNT, help="val images used to calibrate INT8"
+    )
+    p.add_argument("--calib-method", choices=CALIB_METHODS, default=DEFAULT_CALIB_METHOD)
+    p.add_argument(
+        "--quantize-stem",
+        action="store_true",
+        help="quantise the first conv block too (default: float; `python -m training.int8_recipes` says why)",
+    )
     p.add_argument(
         "--activations",
-        choices=("uint8", "int8"),
+        choices=ACTIVATION_TYPES,
         default="uint8",
         help="INT8 activation type: uint8 for x86 (VNNI), int8 for ARM",
     )
@@ -218,6 +226,7 @@ def _run_export(args: argparse.Namespace) -> int:
         calib_count=args.calib_count,
         method=args.calib_method,
         activation_type=args.activations,
+        keep_stem_float=not args.quantize_stem,
         compare_count=args.compare_count,
         timing_runs=args.timing_runs,
     )

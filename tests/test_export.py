@@ -22,11 +22,18 @@ from training.batch_variant import BATCH_AXIS, add_batch_axis
 from training.dataset import DatasetConfig, generate_dataset
 from training.export import export_models
 from training.export_checks import compare_outputs, median_latency_ms
+from training.int8_recipes import compare_recipes, format_recipe_table
 from training.offline import configure_offline
 from training.onnx_export import export_onnx
 from training.onnx_model import BOX_CHANNELS, ExportError, check_io
 from training.png import read_tensor_png, write_rgb_png
-from training.quantization import calibration_images, calibration_reader, head_decode_nodes, quantize_int8
+from training.quantization import (
+    calibration_images,
+    calibration_reader,
+    head_decode_nodes,
+    quantize_int8,
+    stem_nodes,
+)
 
 pytest.importorskip("ultralytics")
 onnx = pytest.importorskip("onnx")
@@ -209,6 +216,28 @@ def test_int8_keeps_the_head_decode_in_float(int8: Path) -> None:
     assert produced_by[model.graph.output[0].name].op_type == "Concat"
 
 
+def test_int8_keeps_the_stem_float_unless_asked(
+    int8: Path, fp32: Path, dataset: Path, tmp_path: Path
+) -> None:
+    def stem_conv_weight_is_int8(path: Path) -> bool:
+        model = onnx.load(str(path))
+        stem = set(stem_nodes(model))
+        (conv,) = [n for n in model.graph.node if n.name in stem and n.op_type == "Conv"]
+        produced_by = {o: n for n in model.graph.node for o in n.output}
+        weight = produced_by.get(conv.input[1])  # a DequantizeLinear of int8 weights when quantised
+        return weight is not None and weight.op_type == "DequantizeLinear"
+
+    assert not stem_conv_weight_is_int8(int8)
+    model = onnx.load(str(int8))
+    feed = model.graph.input[0].name
+    assert not any(n.op_type == "QuantizeLinear" and n.input[0] == feed for n in model.graph.node)
+    quantised = quantize_int8(
+        fp32, tmp_path / "all.onnx", calibration_images(dataset, CALIB_COUNT), keep_stem_float=False
+    )
+    assert stem_conv_weight_is_int8(quantised)
+    assert json.loads(onnx_metadata(quantised)["triscan.quantization"])["float_stem_nodes"] == 0
+
+
 def test_int8_metadata_is_carried_over(int8: Path, fp32: Path) -> None:
     meta, source = onnx_metadata(int8), onnx_metadata(fp32)
     for key in ("names", "imgsz", "stride", "triscan.padding", "triscan.classes", "triscan.source_weights"):
@@ -216,7 +245,8 @@ def test_int8_metadata_is_carried_over(int8: Path, fp32: Path) -> None:
     assert meta["triscan.precision"] == "int8"
     quant = json.loads(meta["triscan.quantization"])
     assert quant["format"] == "QDQ" and "per-channel" in quant["weights"]
-    assert quant["calibration"].startswith("percentile") and quant["activations"] == "uint8"
+    assert quant["calibration"] == "minmax" and quant["activations"] == "uint8"
+    assert quant["float_stem_nodes"] >= 2 and quant["float_head_nodes"] > 10
     assert quant["calibration_images"] == CALIB_COUNT
 
 
@@ -247,10 +277,10 @@ def _activation_scales(path: Path) -> dict[str, float]:
 def test_calibration_method_changes_the_activation_ranges(
     int8: Path, fp32: Path, dataset: Path, tmp_path: Path
 ) -> None:
-    minmax = quantize_int8(
-        fp32, tmp_path / "mm.onnx", calibration_images(dataset, CALIB_COUNT), method="minmax"
+    percentile = quantize_int8(
+        fp32, tmp_path / "pc.onnx", calibration_images(dataset, CALIB_COUNT), method="percentile"
     )
-    a, b = _activation_scales(int8), _activation_scales(minmax)
+    a, b = _activation_scales(percentile), _activation_scales(int8)  # the default is MinMax
     assert a.keys() == b.keys() and len(a) > 50
     # Percentile clips outliers, so its ranges are never wider than MinMax's and, where a tensor has
     # tails (17 of 218 with this random-weight net and 8 images), narrower. Equal ranges everywhere
@@ -421,3 +451,21 @@ def test_checkpoints_name_their_network(tmp_path: Path) -> None:
         yolo.ckpt = {}
         yolo.save(str(tmp_path / f"{arch}.pt"))
         assert network_of_checkpoint(tmp_path / f"{arch}.pt") == network
+
+
+# --- INT8 recipes --------------------------------------------------------------------------------------
+
+
+def test_int8_recipes_score_every_recipe_beside_fp32_on_the_same_samples(fp32: Path, dataset: Path) -> None:
+    scores = compare_recipes(
+        fp32, dataset, methods=["minmax"], split="test", every=1, calib_count=CALIB_COUNT
+    )
+    assert [s.recipe for s in scores] == ["fp32", "minmax, stem int8", "minmax, stem float"]
+    assert scores[0].delta_map50 == 0.0
+    for s in scores[1:]:  # each Δ is its own mAP minus the reference's, not a copied figure
+        assert s.delta_map50 == pytest.approx(s.map50 - scores[0].map50, abs=2e-4)
+        assert s.worst_class in CLASS_NAMES and 0.0 <= s.worst_class_map50 <= s.map50 + 1e-9 <= 1.0 + 1e-9
+    table = format_recipe_table(scores)
+    assert table.count("\n") == 4 and "| minmax, stem float |" in table
+    with pytest.raises(ValueError, match="every"):
+        compare_recipes(fp32, dataset, methods=["minmax"], every=0)

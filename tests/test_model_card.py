@@ -68,6 +68,9 @@ def artefacts(tmp_path: Path, grid_int8: dict[str, float]) -> dict[str, Any]:
         "fp32": {"path": "models/triscan-yolov8p-zero.onnx", "bytes": 1, "sha256": "a" * 64},
         "int8": {"path": "models/triscan-yolov8p-zero-int8.onnx", "bytes": 1, "sha256": "b" * 64},
         "latency_ms_1_thread": {"fp32": 1.2, "int8": 0.8},
+        "calibration_method": "minmax",
+        "calibration_images": 200,
+        "float_stem": True,
     }
     paths = {}
     for name, value in {
@@ -135,6 +138,7 @@ def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path
     text = (tmp_path / "card" / "MODEL_CARD.md").read_text()
     assert card["network"] == "yolov8p" and text.startswith("# Model card: triscan YOLOv8p")
     assert "--noise-sigma 0.01 0.03 --dropout 0 0.1 --spurious 0 0.01 --clutter 3`" in text
+    assert "uint8 activations, minmax ranges from 200 val images, stem and head decode in float |" in text
     assert "## Unseen worlds under LiDAR imperfections" in text and "| sigma3 | 10 | 0.980 |" in text
     assert "## Networks compared" in text and "| clean | 0.980 / 0.780 | 0.985 / 0.785 |" in text
     saved = json.loads((tmp_path / "card" / "MODEL_CARD.json").read_text())

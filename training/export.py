@@ -23,6 +23,7 @@ from training.export_checks import compare_outputs, median_latency_ms
 from training.onnx_export import export_onnx, resolve_padding
 from training.quantization import (
     DEFAULT_CALIB_COUNT,
+    DEFAULT_CALIB_METHOD,
     ActivationType,
     CalibMethod,
     calibration_images,
@@ -45,8 +46,9 @@ def export_models(
     name: str | None = None,
     padding: str | None = None,
     calib_count: int = DEFAULT_CALIB_COUNT,
-    method: CalibMethod = "percentile",
+    method: CalibMethod = DEFAULT_CALIB_METHOD,
     activation_type: ActivationType = "uint8",
+    keep_stem_float: bool = True,
     compare_count: int = 20,
     timing_runs: int = 200,
 ) -> dict[str, Any]:
@@ -80,6 +82,7 @@ def export_models(
         calibration,
         method=method,
         activation_type=activation_type,
+        keep_stem_float=keep_stem_float,
     )
     fp32_batch = add_batch_axis(fp32, batch_variant_path(fp32))
     int8_batch = add_batch_axis(int8, batch_variant_path(int8))
@@ -95,6 +98,7 @@ def export_models(
         "classes": list(CLASS_NAMES),
         "calibration_images": len(calibration),
         "calibration_method": method,
+        "float_stem": keep_stem_float,
         "int8_vs_fp32": compare_outputs(fp32, int8, compare),
     }
     log.info("INT8 vs fp32 on %d unseen val images: %s", len(compare), result["int8_vs_fp32"])

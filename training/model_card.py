@@ -270,6 +270,9 @@ def _files_section(
 ) -> list[str]:
     """The shipped files with their sizes and hashes, and which one the detector should run."""
     fp32, int8 = export["fp32"], export["int8"]
+    recipe = f"{export['calibration_method']} ranges from {export['calibration_images']} val images, " + (
+        "stem and head decode in float" if export.get("float_stem") else "head decode in float"
+    )  # reports from before the stem rule lack float_stem: only their head stayed float
     return [
         "## Files",
         "",
@@ -278,7 +281,7 @@ def _files_section(
         f"| `{card['files']['fp32']}` | ONNX fp32, input float32[1,3,64,384] | {fp32['bytes']} | "
         f"`{fp32['sha256'][:16]}…` |",
         f"| `{card['files']['int8']}` | ONNX INT8 static QDQ, per-channel weights, uint8 activations, "
-        f"head in float | {int8['bytes']} | `{int8['sha256'][:16]}…` |",
+        f"{recipe} | {int8['bytes']} | `{int8['sha256'][:16]}…` |",
         *(
             f"| `{card['files'][f'{kind}_batch']}` | the {kind} file with a free batch axis (same graph "
             "and weights, outputs checked equal) for `python -m services.detector --batch N` | "

@@ -1,11 +1,14 @@
 """fp32 ONNX → static INT8 (QDQ) ONNX, calibrated on the data set's own validation PNGs.
 
 The INT8 model is ONNX Runtime static quantisation in QDQ format with per-channel weight scales and
-percentile activation ranges, calibrated on validation PNGs fed through exactly the run-time
-conversion (:func:`common.encoding.to_model_input`). The detection head's decode tail (DFL softmax,
-box arithmetic, class sigmoid, the final concat of pixel boxes with 0–1 scores) stays float: one
-8-bit scale spanning boxes up to 384 px and scores below 1 rounds scores to a few levels (measured:
-28 % of candidate detections changed class). Whether INT8 ships is decided by evaluation, not here.
+MinMax activation ranges, calibrated on validation PNGs fed through exactly the run-time conversion
+(:func:`common.encoding.to_model_input`). Two ends of the network stay float. The detection head's
+decode tail (DFL softmax, box arithmetic, class sigmoid, the final concat of pixel boxes with 0–1
+scores): one 8-bit scale spanning boxes up to 384 px and scores below 1 rounds scores to a few levels
+(measured: 28 % of candidate detections changed class). And the stem, the first conv block, which
+reads the sparse 0/1 raster at full resolution: quantising it is where a trained pico model lost the
+most (``python -m training.int8_recipes`` compares the recipes by mAP; the card quotes its table).
+Whether INT8 ships is decided by evaluation, not here.
 
 Choosing the calibration images lives here as well (:func:`calibration_images`): which frames the
 ranges are fitted to is part of the quantisation recipe, recorded in the model's metadata.
@@ -38,6 +41,7 @@ ENTROPY_QUANTIZED_BINS = 128  # ONNX Runtime's default target bin count for the 
 
 CalibMethod = Literal["minmax", "entropy", "percentile"]
 CALIB_METHODS: tuple[str, ...] = get_args(CalibMethod)
+DEFAULT_CALIB_METHOD: CalibMethod = "minmax"
 ActivationType = Literal["uint8", "int8"]
 ACTIVATION_TYPES: tuple[str, ...] = get_args(ActivationType)
 
@@ -97,6 +101,14 @@ def calibration_reader(feed_name: str, images: Sequence[Path]) -> Any:
 # --- INT8 quantisation ---------------------------------------------------------------------------------
 
 
+def _module_ids(model: Any) -> list[int]:
+    """The Ultralytics module index N of every ``/model.N/…`` node name (ONNX names follow module paths)."""
+    ids = [int(m.group(1)) for n in model.graph.node if (m := re.match(r"/model\.(\d+)/", n.name))]
+    if not ids:
+        raise ExportError("no /model.N/ node names: not an Ultralytics YOLO ONNX export")
+    return ids
+
+
 def head_decode_nodes(model: Any) -> list[str]:
     """Names of the detection head's decode nodes: everything after its per-stride conv branches.
 
@@ -105,10 +117,7 @@ def head_decode_nodes(model: Any) -> list[str]:
     The rest of the head — reshapes, concats, DFL softmax and conv, box arithmetic, sigmoid, the output
     concat — mixes pixel-scale boxes with 0–1 scores and is left in float.
     """
-    head_ids = [int(m.group(1)) for n in model.graph.node if (m := re.match(r"/model\.(\d+)/", n.name))]
-    if not head_ids:
-        raise ExportError("no /model.N/ node names: not an Ultralytics YOLO ONNX export")
-    prefix = f"/model.{max(head_ids)}/"
+    prefix = f"/model.{max(_module_ids(model))}/"
     branches = (f"{prefix}cv2.", f"{prefix}cv3.")
     tail = [n.name for n in model.graph.node if n.name.startswith(prefix) and not n.name.startswith(branches)]
     output = model.graph.output[0].name
@@ -116,6 +125,18 @@ def head_decode_nodes(model: Any) -> list[str]:
     if producers.get(output) not in tail:
         raise ExportError(f"the head's decode tail under {prefix} does not produce the output {output!r}")
     return tail
+
+
+def stem_nodes(model: Any) -> list[str]:
+    """Names of the stem's nodes: the first module (``/model.0/``, a conv, its batch norm folded, SiLU).
+
+    It is the only layer that sees the raster itself: a few lit pixels per column in a field of zeros,
+    at full resolution. Kept float it costs the least of any layer (one 3→c conv) and, on a trained
+    pico network, it was the difference between a usable INT8 model and one that lost a fifth of its
+    recall (``python -m training.int8_recipes``).
+    """
+    prefix = f"/model.{min(_module_ids(model))}/"
+    return [n.name for n in model.graph.node if n.name.startswith(prefix)]
 
 
 def _entropy_ranges(model_path: Path, reader: Any, cache: Path, scratch: Path) -> None:
@@ -212,6 +233,7 @@ def _quantization_record(
     activation_type: ActivationType,
     calibration_count: int,
     float_head_nodes: int,
+    float_stem_nodes: int,
 ) -> str:
     """The ``triscan.quantization`` metadata value: how this INT8 file was made, as sorted JSON."""
     return json.dumps(
@@ -222,6 +244,7 @@ def _quantization_record(
             "calibration": f"percentile {PERCENTILE} asymmetric" if method == "percentile" else method,
             "calibration_images": calibration_count,
             "float_head_nodes": float_head_nodes,
+            "float_stem_nodes": float_stem_nodes,
             "source_fp32": provenance(fp32_onnx),
         },
         sort_keys=True,
@@ -234,9 +257,10 @@ def quantize_int8(
     calibration_images: Sequence[Path],
     *,
     per_channel: bool = True,
-    method: CalibMethod = "percentile",
+    method: CalibMethod = DEFAULT_CALIB_METHOD,
     activation_type: ActivationType = "uint8",
     keep_head_float: bool = True,
+    keep_stem_float: bool = True,
     preprocess: bool = True,
 ) -> Path:
     """Statically quantise an fp32 ONNX model to INT8 (QDQ) at ``out``.
@@ -248,11 +272,17 @@ def quantize_int8(
     8-bit, ONNX Runtime's advice for x86 CPUs; ``int8`` is its advice for ARM (on this x86 machine it
     ran 3× slower than ``uint8``, slower than fp32, so build the ARM model for ARM and time it there).
 
-    ``method`` picks the activation ranges. ``percentile`` (the default) keeps 99.999 % of each
-    tensor's calibration values in an asymmetric range and clips the rare outliers that otherwise
-    stretch the 256 levels: on an epoch-1 checkpoint it moved candidate boxes by 0.25 px on average
-    where ``minmax`` (every value representable) moved them 1.15 px, with no class flips against
-    1.3 %. ``entropy`` is TensorRT's KL search; it clipped too hard on these sparse scans (6 px).
+    ``method`` picks the activation ranges. ``minmax`` (the default) makes every calibration value
+    representable. ``percentile`` keeps 99.999 % of each tensor's values in an asymmetric range and
+    clips the rare outliers: on an untrained epoch-1 checkpoint it moved candidate boxes less
+    (0.25 px against 1.15), but on the trained pico network with everything but the head's decode
+    quantised it fell to test mAP@0.5 0.745 against fp32's 0.985, where ``minmax`` kept 0.982; with
+    the stem float as well, ``minmax`` matched fp32. Accuracy, not raw-output distance, decides, and
+    ``python -m training.int8_recipes`` reruns that comparison for any model. ``entropy`` is
+    TensorRT's KL search; it clipped too hard on these sparse scans (6 px).
+
+    ``keep_stem_float`` leaves the first conv block float (:func:`stem_nodes`), ``keep_head_float``
+    the head's decode tail (:func:`head_decode_nodes`).
 
     ``preprocess`` runs ONNX Runtime's ``quant_pre_process`` (shape inference and graph
     optimisation) first, which its quantiser recommends so that every tensor has a known shape.
@@ -271,12 +301,13 @@ def quantize_int8(
             quant_pre_process(str(fp32_onnx), str(model_in))
         # Found on the graph actually quantised: pre-processing may fuse or rename nodes.
         graph_in = onnx.load(str(model_in))
-        exclude = head_decode_nodes(graph_in) if keep_head_float else []
+        head = head_decode_nodes(graph_in) if keep_head_float else []
+        stem = stem_nodes(graph_in) if keep_stem_float else []
         reader = calibration_reader(input_name(graph_in), images)
         model = _quantize_static(
             model_in,
             reader,
-            exclude,
+            head + stem,
             Path(scratch),
             method=method,
             per_channel=per_channel,
@@ -290,17 +321,19 @@ def quantize_int8(
         per_channel=per_channel,
         activation_type=activation_type,
         calibration_count=len(images),
-        float_head_nodes=len(exclude),
+        float_head_nodes=len(head),
+        float_stem_nodes=len(stem),
     )
     set_metadata(model, {f"{META_PREFIX}precision": "int8", f"{META_PREFIX}quantization": quantization})
     save_checked(model, out)
     log.info(
-        "quantised %s → %s (%s, %d calibration images, %d head nodes float, %.1f MB, %.1f s)",
+        "quantised %s → %s (%s, %d calibration images, %d head and %d stem nodes float, %.1f MB, %.1f s)",
         fp32_onnx,
         out,
         method,
         len(images),
-        len(exclude),
+        len(head),
+        len(stem),
         out.stat().st_size / 1e6,
         time.perf_counter() - started,
     )
