@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from common.model_spec import SHIPPED_MODEL, network_of_stem
-from training.model_card import GridSection, write_card
+from training.model_card import GridSection, checkpoint_epoch, write_card
 
 INT8_MODEL = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
 CLASSES = ("chair", "box", "desk", "doorframe")
@@ -139,6 +139,10 @@ def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path
     assert card["network"] == "yolov8p" and text.startswith("# Model card: triscan YOLOv8p")
     assert "--noise-sigma 0.01 0.03 --dropout 0 0.1 --spurious 0 0.01 --clutter 3`" in text
     assert "uint8 activations, minmax ranges from 200 val images, stem and head decode in float |" in text
+    assert (
+        "`triscan eval --model models/triscan-yolov8p-zero.onnx --model models/triscan-yolov8p-zero-int8.onnx"
+        in text
+    )
     assert "## Unseen worlds under LiDAR imperfections" in text and "| sigma3 | 10 | 0.980 |" in text
     assert "## Networks compared" in text and "| clean | 0.980 / 0.780 | 0.985 / 0.785 |" in text
     saved = json.loads((tmp_path / "card" / "MODEL_CARD.json").read_text())
@@ -151,3 +155,23 @@ def test_network_of_a_model_file() -> None:
     assert network_of_stem("triscan-yolov8p-zero-int8-batch") == "yolov8p"
     with pytest.raises(ValueError):
         network_of_stem("yolov8n")
+
+
+def test_a_stripped_checkpoint_is_dated_by_the_validation_figures_it_keeps(tmp_path: Path) -> None:
+    import torch
+
+    history = [
+        {"epoch": 1.0, "metrics/mAP50(B)": 0.95, "metrics/mAP50-95(B)": 0.6, "metrics/precision(B)": 0.9,
+         "metrics/recall(B)": 0.9},
+        {"epoch": 2.0, "metrics/mAP50(B)": 0.98, "metrics/mAP50-95(B)": 0.7, "metrics/precision(B)": 0.95,
+         "metrics/recall(B)": 0.95},
+    ]  # fmt: skip
+    stripped = tmp_path / "best.pt"
+    figures = {k: v for k, v in history[0].items() if k != "epoch"}
+    torch.save({"epoch": -1, "train_metrics": figures | {"fitness": 0.6}}, stripped)
+    assert checkpoint_epoch(stripped, history) == 1
+    torch.save({"epoch": 4}, stripped)  # unstripped: its own epoch, 0-based
+    assert checkpoint_epoch(stripped, history) == 5
+    torch.save({"epoch": -1}, stripped)
+    with pytest.raises(ValueError, match="stripped"):
+        checkpoint_epoch(stripped, history)

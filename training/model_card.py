@@ -36,11 +36,28 @@ def training_history(run_dir: Path) -> list[dict[str, float]]:
         return [{k.strip(): float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
 
 
-def checkpoint_epoch(weights: Path) -> int:
-    """1-based epoch a checkpoint was saved at (Ultralytics stores it 0-based; -1 once stripped)."""
+def checkpoint_epoch(weights: Path, history: list[dict[str, float]]) -> int:
+    """1-based epoch a checkpoint was saved at (Ultralytics stores it 0-based).
+
+    A run that finishes strips its checkpoints, epoch set to -1, but keeps the validation figures of
+    the epoch the weights are from (``train_metrics``): that epoch is the row of results.csv with the
+    same figures.
+    """
     import torch
 
-    return int(torch.load(weights, map_location="cpu", weights_only=False).get("epoch", -2)) + 1
+    checkpoint = torch.load(weights, map_location="cpu", weights_only=False)
+    epoch = int(checkpoint.get("epoch", -2)) + 1
+    if epoch >= 1:
+        return epoch
+    held = checkpoint.get("train_metrics") or {}
+    keys = ("metrics/mAP50(B)", "metrics/mAP50-95(B)", "metrics/precision(B)", "metrics/recall(B)")
+    matches = [int(row["epoch"]) for row in history if held and all(row.get(k) == held.get(k) for k in keys)]
+    if len(matches) != 1:
+        raise ValueError(
+            f"{weights} is stripped (no epoch) and its validation figures match {len(matches)} rows of "
+            "results.csv: pass the run directory the checkpoint came from"
+        )
+    return matches[0]
 
 
 def training_wall_time_s(history: list[dict[str, float]]) -> float:
@@ -138,7 +155,7 @@ def write_card(
     test32, test8, gate_metrics = (_read_json(p) for p in (eval_test_fp32, eval_test_int8, eval_gate))
     grid = _read_json(conditions) if conditions is not None else None
     history = training_history(run_dir)
-    best_epoch = checkpoint_epoch(run_dir / "weights" / "best.pt")
+    best_epoch = checkpoint_epoch(run_dir / "weights" / "best.pt", history)
     best_row = next(r for r in history if int(r["epoch"]) == best_epoch)
     card = _card_json(export, test32, test8, gate_metrics, gate, history, best_epoch, grid)
     lines = [
@@ -240,6 +257,7 @@ def _card_json(
     min_map50 = math.floor((gate_metrics["overall"]["mAP50"] - GATE_MARGIN) * 100) / 100
     card: dict[str, Any] = {
         "network": network_of_stem(Path(fp32["path"]).stem),
+        "directory": Path(fp32["path"]).parent.as_posix(),  # where `triscan export` wrote them
         "files": {
             "fp32": Path(fp32["path"]).name,
             "int8": Path(int8["path"]).name,
@@ -370,12 +388,13 @@ def _test_section(card: dict[str, Any], test32: dict[str, Any], test8: dict[str,
     return [
         "## Test metrics (held-out test scenarios, through `OnnxDetector`)",
         "",
-        f"fp32 — `triscan eval --model models/{card['files']['fp32']} --data DATA --split test` "
+        f"fp32 — `triscan eval --model {card['directory']}/{card['files']['fp32']} --data DATA --split test` "
         f"({test32['images']} images):",
         "",
         *_metrics_rows(test32),
         "",
-        f"INT8 — same command with `--model models/{card['files']['int8']}` ({test8['images']} images):",
+        f"INT8 — same command with `--model {card['directory']}/{card['files']['int8']}` "
+        f"({test8['images']} images):",
         "",
         *_metrics_rows(test8),
     ]
@@ -417,7 +436,8 @@ def _conditions_section(card: dict[str, Any], path: Path) -> list[str]:
     lines = [
         "## Unseen worlds under LiDAR imperfections",
         "",
-        f"`triscan eval --model models/{card['files']['fp32']} --model models/{card['files']['int8']} "
+        f"`triscan eval --model {card['directory']}/{card['files']['fp32']} "
+        f"--model {card['directory']}/{card['files']['int8']} "
         f"--fresh {worlds['scenarios']} --seed {worlds['seed']} --positions {worlds['positions']} "
         f"--frame-stride {worlds['frame_stride']} --noise {' '.join(fp32)}` ({path.name}): "
         f"{worlds['scenarios']} scenarios of a seed never trained on, the same worlds under every "
