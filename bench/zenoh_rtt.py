@@ -4,7 +4,8 @@ A ping process and an echo process (this module again, ``--echo``) bounce a payl
 as the pipeline's messages travel: a 100-byte one and the 73 KB tensor, with Zenoh's defaults, with
 express publishers (no batching), with QoS off (one priority queue instead of eight; negotiated per
 link, so a peer that keeps it on still connects), with the low-latency transport and with direct
-callbacks (run on Zenoh's receiving thread instead of being handed to a Python thread), then a plain
+callbacks (run on Zenoh's receiving thread instead of being handed to a Python thread), over a Unix
+stream socket instead of TCP, then a plain
 TCP ping-pong between the same two kinds of process. Round trip = two hops. Peers on loopback,
 multicast off.
 
@@ -20,6 +21,7 @@ import logging
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -43,6 +45,7 @@ VARIANTS: Final[tuple[str, ...]] = (
     "lowlatency",
     "direct",
     "lowlatency+direct",
+    "unix",
 )
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
 # --delivery: one put of each size, under each transport, with and without shared memory. The
@@ -52,17 +55,26 @@ DELIVERY_VARIANTS: Final[tuple[str, ...]] = ("default", "noshm", "lowlatency", "
 DELIVERY_OUT: Final[Path] = DEFAULT_OUT.with_name("zenoh_delivery.json")
 
 
+def loopback_endpoint(port: int, unix: bool) -> str:
+    """TCP on loopback, or (``unix``) a Unix stream socket named after the same free port."""
+    return (
+        f"unixsock-stream/{tempfile.gettempdir()}/triscan-rtt-{port}.sock"
+        if unix
+        else f"tcp/127.0.0.1:{port}"
+    )
+
+
 def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
     import zenoh
 
     config = zenoh.Config()
     config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
-    if listen is not None:
-        config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen}"]))
-    if connect is not None:
-        config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect}"]))
     flags = variant.split("+")
+    if listen is not None:
+        config.insert_json5("listen/endpoints", json.dumps([loopback_endpoint(listen, "unix" in flags)]))
+    if connect is not None:
+        config.insert_json5("connect/endpoints", json.dumps([loopback_endpoint(connect, "unix" in flags)]))
     if "lowlatency" in flags:
         config.insert_json5("transport/unicast/lowlatency", "true")
     if "lowlatency" in flags or "noqos" in flags:  # the low-latency transport requires QoS off
