@@ -26,6 +26,7 @@ from training.int8_recipes import compare_recipes, format_recipe_table
 from training.offline import configure_offline
 from training.onnx_export import export_onnx
 from training.onnx_model import BOX_CHANNELS, ExportError, check_io
+from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
 from training.png import read_tensor_png, write_rgb_png
 from training.quantization import (
     calibration_images,
@@ -145,6 +146,18 @@ def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: P
     assert json.loads(meta["triscan.classes"]) == list(CLASS_NAMES)
     assert meta["triscan.source_weights"] == f"last.pt sha256:{file_sha256(weights)[:12]}"
     assert meta["triscan.precision"] == "fp32"
+    assert meta["triscan.rewrites"] == DFL_SOFTMAX_LAST_AXIS
+
+
+def test_the_dfl_softmax_runs_on_the_innermost_axis_and_a_second_rewrite_is_refused(fp32: Path) -> None:
+    """The rewrite's numbers are the torch model's (next test); here its shape, once and only once."""
+    model = onnx.load(str(fp32))
+    (softmax,) = [n for n in model.graph.node if n.op_type == "Softmax"]
+    assert [a.i for a in softmax.attribute if a.name == "axis"] == [-1]
+    assert not any(n.op_type == "Conv" and "/dfl/" in n.name for n in model.graph.node)
+    assert any(n.op_type == "MatMul" and "/dfl/" in n.name for n in model.graph.node)
+    with pytest.raises(ExportError, match="DFL"):
+        dfl_softmax_on_last_axis(model)  # already rewritten: the pattern is gone
 
 
 def test_fp32_output_equals_the_torch_model(fp32: Path, weights: Path) -> None:

@@ -23,6 +23,7 @@ from pathlib import Path
 from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS
 from common.model_spec import CLASS_NAMES, META_CLASSES, META_INVALID, META_PADDING, META_PREFIX
 from training.onnx_model import ExportError, provenance, save_checked, set_metadata
+from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +124,7 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
             verbose=False,
         )
         model = onnx.load(str(exported))
+    dfl_softmax_on_last_axis(model)
     set_metadata(
         model,
         {
@@ -131,6 +133,7 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
             META_CLASSES: json.dumps(list(CLASS_NAMES)),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",
+            f"{META_PREFIX}rewrites": DFL_SOFTMAX_LAST_AXIS,
         },
     )
     save_checked(model, out)
