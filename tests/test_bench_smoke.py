@@ -224,3 +224,16 @@ def test_zenoh_rtt_bounces_every_payload_through_every_transport(tmp_path: Path)
     assert all(r["answered"] == r["sent"] == 12 and r["rtt_ms"]["p50"] > 0 for r in results)
     summary = json.loads(out.read_text())["summary"]
     assert {(r["kind"], r["variant"], r["bytes"]) for r in summary} == cases and len(summary) == len(cases)
+
+
+def test_dfl_rewrite_times_both_exports_of_one_checkpoint(tmp_path: Path) -> None:
+    from bench import dfl_rewrite
+
+    out = tmp_path / "dfl.json"
+    assert dfl_rewrite.main(["--runs", "5", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["max_abs_output_difference"] < 1e-3  # pixel boxes up to 384 and 0-1 scores
+    assert report["median_ms"]["before"] > 0 and report["median_ms"]["after"] > 0
+    assert report["saved_ms"] == pytest.approx(
+        report["median_ms"]["before"] - report["median_ms"]["after"], abs=1e-3
+    )

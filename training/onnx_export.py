@@ -78,12 +78,22 @@ def resolve_padding(requested: str | None, dataset_dir: Path | None) -> str:
     return requested
 
 
-def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: str | None = None) -> Path:
+def export_onnx(
+    weights: Path,
+    out: Path,
+    *,
+    opset: int | None = None,
+    padding: str | None = None,
+    rewrite_dfl: bool = True,
+) -> Path:
     """Export an Ultralytics checkpoint to a fixed-shape fp32 ONNX file at ``out``.
 
     ``padding`` is read from the data set the checkpoint was trained on (its ``train_args.data``)
     when that set is still on disk; ``padding`` must then agree with it. If neither says, ``zero``
     (the paper's default) is recorded with a warning.
+
+    ``rewrite_dfl`` applies :func:`training.onnx_rewrites.dfl_softmax_on_last_axis` (exact, faster);
+    off only to measure what it buys (``python -m bench.dfl_rewrite``).
 
     Ultralytics writes the ONNX next to the file it loaded, so the checkpoint is copied into a scratch
     directory first: exporting never litters the run directory or the working directory.
@@ -124,7 +134,8 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
             verbose=False,
         )
         model = onnx.load(str(exported))
-    dfl_softmax_on_last_axis(model)
+    if rewrite_dfl:
+        dfl_softmax_on_last_axis(model)
     set_metadata(
         model,
         {
@@ -133,7 +144,7 @@ def export_onnx(weights: Path, out: Path, *, opset: int | None = None, padding: 
             META_CLASSES: json.dumps(list(CLASS_NAMES)),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",
-            f"{META_PREFIX}rewrites": DFL_SOFTMAX_LAST_AXIS,
+            f"{META_PREFIX}rewrites": DFL_SOFTMAX_LAST_AXIS if rewrite_dfl else "",
         },
     )
     save_checked(model, out)
