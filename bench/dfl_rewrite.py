@@ -63,9 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         after = export_onnx(args.weights, Path(scratch) / "after.onnx")
         tensor = simulated_tensor()
         x = to_model_input(tensor)
-        outputs = [
-            cpu_session(p).run(None, {cpu_session(p).get_inputs()[0].name: x})[0] for p in (before, after)
-        ]
+        sessions = [cpu_session(path) for path in (before, after)]
+        outputs = [session.run(None, {session.get_inputs()[0].name: x})[0] for session in sessions]
         max_abs = float(np.abs(outputs[0] - outputs[1]).max())
         image = Path(scratch) / "frame.png"
         write_rgb_png(image, tensor)
