@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Final
 
-from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
+from common.encoding import IMAGE_WIDTH, PADDINGS, RANGE_ROWS, STACK_DEPTH
 
 CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe")
 NUM_CLASSES: Final[int] = len(CLASS_NAMES)
@@ -60,15 +60,19 @@ def model_stem(network: str, padding: str) -> str:
 
 
 def network_of_stem(stem: str) -> str:
-    """``triscan-yolov8p-zero-int8`` → ``yolov8p``: the network a model file names (:func:`model_stem`)."""
-    if not stem.startswith(MODEL_PREFIX) or stem.count("-") < 2:
+    """``triscan-yolov8p-zero-int8`` → ``yolov8p``, ``triscan-yolov8p-relu-zero`` → ``yolov8p-relu``: the
+    network a model file names (:func:`model_stem`), everything between the prefix and the padding."""
+    parts = stem.removeprefix(MODEL_PREFIX).split("-")
+    padding_at = next((i for i, part in enumerate(parts) if part in PADDINGS), 0)
+    if not stem.startswith(MODEL_PREFIX) or padding_at == 0:
         raise ValueError(f"{stem!r} is not a triscan model stem ({MODEL_PREFIX}<network>-<padding>…)")
-    return stem.removeprefix(MODEL_PREFIX).split("-")[0]
+    return "-".join(parts[:padding_at])
 
 
 NETWORK_TITLES: Final[dict[str, str]] = {
     "yolov8n": "YOLOv8n",
     "yolov8p": "YOLOv8p (pico: YOLOv8 at width 0.125)",
+    "yolov8p-relu": "YOLOv8p-ReLU (pico with ReLU instead of SiLU)",
 }
 
 

@@ -237,3 +237,21 @@ def test_dfl_rewrite_times_both_exports_of_one_checkpoint(tmp_path: Path) -> Non
     assert report["saved_ms"] == pytest.approx(
         report["median_ms"]["before"] - report["median_ms"]["after"], abs=1e-3
     )
+
+
+def test_activation_speed_times_and_profiles_both_activations(tmp_path: Path) -> None:
+    from bench import activation_speed
+
+    out = tmp_path / "activation.json"
+    assert activation_speed.main(["--runs", "3", "--profile-runs", "2", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    files = {"silu fp32", "silu int8", "relu fp32", "relu int8"}
+    assert set(report["median_ms"]) == files and all(ms > 0 for ms in report["median_ms"].values())
+    profiles = report["node_time_percent_by_op"]
+    assert set(profiles) == files
+    # The graphs differ exactly by the activation: SiLU's nodes appear only in the SiLU files.
+    assert "QuickGelu" in profiles["silu fp32"] and "QuickGelu" not in profiles["relu fp32"]
+    assert {"QLinearSigmoid", "QLinearMul"} <= set(profiles["silu int8"])
+    assert "QLinearSigmoid" not in profiles["relu int8"]
+    for shares in profiles.values():
+        assert sum(shares.values()) == pytest.approx(100.0, abs=1.0)

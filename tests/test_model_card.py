@@ -153,6 +153,7 @@ def test_network_of_a_model_file() -> None:
     assert network_of_stem(SHIPPED_MODEL.stem) == "yolov8n"
     assert network_of_stem(INT8_MODEL.stem) == "yolov8n"
     assert network_of_stem("triscan-yolov8p-zero-int8-batch") == "yolov8p"
+    assert network_of_stem("triscan-yolov8p-relu-wrap-int8") == "yolov8p-relu"
     with pytest.raises(ValueError):
         network_of_stem("yolov8n")
 

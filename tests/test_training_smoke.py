@@ -102,3 +102,24 @@ def test_pico_architecture_is_ultralytics_yolov8_at_width_0125(tmp_path: Path) -
     assert model_name("p") == "yolov8p"
     with pytest.raises(ValueError, match="arch must be one of"):
         model_yaml("q", tmp_path)
+
+
+def test_relu_networks_are_the_same_graph_with_relu_in_place_of_silu(tmp_path: Path) -> None:
+    from torch import nn
+
+    from training.architectures import model_yaml
+    from training.offline import configure_offline
+
+    configure_offline(tmp_path / "yolo")
+    from ultralytics import YOLO
+
+    for arch in ("p", "n"):
+        relu_yaml = model_yaml(arch, tmp_path, "relu")
+        assert Path(relu_yaml).name == f"yolov8{arch}-relu.yaml"
+        silu, relu = YOLO(model_yaml(arch, tmp_path)).model, YOLO(relu_yaml).model
+        activations = {type(m.act) for m in relu.modules() if hasattr(m, "act")}
+        assert activations == {nn.ReLU}, activations
+        assert nn.SiLU in {type(m.act) for m in silu.modules() if hasattr(m, "act")}
+        assert sum(p.numel() for p in relu.parameters()) == sum(p.numel() for p in silu.parameters())
+    with pytest.raises(ValueError, match="activation must be one of"):
+        model_yaml("p", tmp_path, "gelu")

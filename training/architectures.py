@@ -5,6 +5,11 @@ The 64×384 three-channel scan image is sparse and small, and YOLOv8n has more c
 0.125, 0.9 M parameters against 3.0 M). Nothing is hand-written: the architecture file is
 Ultralytics' with one scale entry added, so the ``p`` model trains, exports and decodes exactly like
 ``n``.
+
+Each scale can also be built with ReLU instead of YOLOv8's SiLU (Ultralytics' own ``activation`` key
+in the model YAML). SiLU is ``x·sigmoid(x)``: two more nodes after every conv, which ONNX Runtime runs
+as a lookup and a multiply in INT8 (a quarter of the pico INT8 graph's node time) while ReLU folds
+into the conv itself; ``python -m bench.activation_speed`` times both, untrained, in turns.
 """
 
 from __future__ import annotations
@@ -17,6 +22,11 @@ ARCHS: tuple[str, ...] = get_args(Arch)
 DEFAULT_ARCH: Arch = "n"  # the paper's YOLOv8n
 # Ultralytics' scale triple: depth multiple, width multiple, max channels.
 EXTRA_SCALES: dict[str, tuple[float, float, int]] = {"p": (0.33, 0.125, 1024)}
+Activation = Literal["silu", "relu"]
+ACTIVATIONS: tuple[str, ...] = get_args(Activation)
+DEFAULT_ACTIVATION: Activation = "silu"  # YOLOv8's own, the paper's
+# What Ultralytics' YAML ``activation`` key takes (it evaluates the expression); SiLU is its default.
+_ACTIVATION_EXPRESSIONS: dict[str, str] = {"relu": "nn.ReLU()"}
 
 
 def model_name(arch: str) -> str:
@@ -31,32 +41,45 @@ def check_arch(arch: str) -> Arch:
     return arch  # type: ignore[return-value]
 
 
-def model_yaml(arch: str, directory: Path) -> str:
+def check_activation(activation: str) -> Activation:
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {ACTIVATIONS}, got {activation!r}")
+    return activation  # type: ignore[return-value]
+
+
+def model_yaml(arch: str, directory: Path, activation: str = DEFAULT_ACTIVATION) -> str:
     """What to hand ``YOLO()`` for a new model of ``arch``.
 
-    Ultralytics' own scales (``n``) are named directly (``yolov8n.yaml``). Another scale is written to
-    ``directory/yolov8<arch>.yaml``: Ultralytics' ``yolov8.yaml`` whose ``scales`` hold that entry
-    alone, which Ultralytics then picks (it reads a scale letter from the file name only for
-    n/s/m/l/x, and otherwise takes the first scale listed).
+    Ultralytics' own scales with its own activation (``n``, SiLU) are named directly
+    (``yolov8n.yaml``). Anything else is written to ``directory``: Ultralytics' ``yolov8.yaml`` whose
+    ``scales`` hold that scale alone, which Ultralytics then picks (it reads a scale letter from the
+    file name only for n/s/m/l/x, and otherwise takes the first scale listed), plus the ``activation``
+    key for ReLU. The file is named after the network (``yolov8p.yaml``, ``yolov8p-relu.yaml``), and
+    so are the checkpoint and the exported files (:func:`network_of_checkpoint`).
     """
     check_arch(arch)
-    if arch not in EXTRA_SCALES:
+    check_activation(activation)
+    if arch not in EXTRA_SCALES and activation == DEFAULT_ACTIVATION:
         return f"{model_name(arch)}.yaml"
     import ultralytics
     from ultralytics.utils import YAML
 
     base = Path(ultralytics.__file__).parent / "cfg" / "models" / "v8" / "yolov8.yaml"
     spec = YAML.load(base)
-    spec["scales"] = {arch: list(EXTRA_SCALES[arch])}
+    spec["scales"] = {arch: list(EXTRA_SCALES.get(arch) or spec["scales"][arch])}
+    name = model_name(arch)
+    if activation != DEFAULT_ACTIVATION:
+        spec["activation"] = _ACTIVATION_EXPRESSIONS[activation]
+        name += f"-{activation}"
     directory.mkdir(parents=True, exist_ok=True)
-    target = directory / f"{model_name(arch)}.yaml"
+    target = directory / f"{name}.yaml"
     YAML.save(target, spec)
     return str(target)
 
 
 def network_of_checkpoint(weights: Path) -> str:
-    """``yolov8n`` or ``yolov8p``: the network an Ultralytics checkpoint was built from (its model YAML's
-    file name, which :func:`model_yaml` names after the architecture)."""
+    """``yolov8n``, ``yolov8p``, ``yolov8p-relu``: the network an Ultralytics checkpoint was built from
+    (its model YAML's file name, which :func:`model_yaml` names after the architecture)."""
     import torch
 
     checkpoint = torch.load(weights, map_location="cpu", weights_only=False)

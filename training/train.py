@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from training.architectures import DEFAULT_ARCH, check_arch, model_yaml
+from training.architectures import DEFAULT_ACTIVATION, DEFAULT_ARCH, check_activation, check_arch, model_yaml
 from training.offline import configure_offline
 
 log = logging.getLogger(__name__)
@@ -47,9 +47,11 @@ class TrainConfig:
     seed: int = 0
     fraction: float = 1.0  # share of the training images used per epoch (Ultralytics' `fraction`)
     arch: str = DEFAULT_ARCH  # training.architectures: n (the paper's YOLOv8n) or p (pico)
+    activation: str = DEFAULT_ACTIVATION  # silu (YOLOv8's) or relu (cheaper in INT8)
 
     def __post_init__(self) -> None:
         check_arch(self.arch)
+        check_activation(self.activation)
 
 
 def pick_device(requested: str) -> str:
@@ -273,7 +275,7 @@ def train(
         if resume:
             log.info("no %s yet: starting a new run", last)
         # Architecture only: no pretrained weights exist offline.
-        model = YOLO(model_yaml(config.arch, config.out.resolve()))
+        model = YOLO(model_yaml(config.arch, config.out.resolve(), config.activation))
         _add_callbacks(model, watch, stopper)
         model.train(trainer=triscan_trainer(), **recipe(config, device))
     if stopper is not None:

@@ -1,0 +1,153 @@
+"""What SiLU costs the network at run time: one architecture built with SiLU and with ReLU, timed in turns.
+
+YOLOv8 follows every conv with SiLU, ``x·sigmoid(x)``. ONNX Runtime fuses a ReLU into the conv before
+it (``Conv`` with an activation, ``QLinearConv`` with a clipped output range), but SiLU stays two
+nodes after each conv: in fp32 one fused ``QuickGelu``, in INT8 a ``QLinearSigmoid`` lookup and a
+``QLinearMul``. This builds the same untrained network (``training.architectures.model_yaml``) with
+each activation, exports it the way ``triscan export`` does (fp32, then INT8 with the default recipe,
+calibrated on simulated frames), times ``session.run`` of the four files run by run in turns (1 ONNX
+Runtime thread, the detector's setting), and profiles each file's node time by operator type.
+
+Speed does not depend on the weights, so no training is needed to price the activation; what ReLU
+costs in accuracy only a trained model can say (``triscan train --activation relu``).
+
+    python -m bench.activation_speed                 # the pico network
+    python -m bench.activation_speed --arch n --out bench/results/activation_speed_n.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import tempfile
+from collections import Counter
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Final
+
+from bench.dfl_rewrite import simulated_tensor
+from bench.machine import machine_info
+from bench.report import write_report
+
+log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+
+DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "activation_speed.json"
+CALIBRATION_FRAMES: Final[int] = 16  # simulated frames: enough for ranges, speed does not depend on them
+
+
+def untrained_checkpoint(arch: str, activation: str, directory: Path) -> Path:
+    """An Ultralytics checkpoint of the untrained network, with triscan's classes (what export checks)."""
+    from ultralytics import YOLO
+    from ultralytics.nn.tasks import DetectionModel
+
+    from common.model_spec import CLASS_NAMES
+    from training.architectures import model_yaml
+
+    network_yaml = model_yaml(arch, directory, activation)
+    yolo = YOLO(network_yaml)
+    yolo.model = DetectionModel(network_yaml, nc=len(CLASS_NAMES), verbose=False)  # as training sets it
+    yolo.model.names = dict(enumerate(CLASS_NAMES))
+    yolo.ckpt = {}
+    path = directory / f"{Path(network_yaml).stem}.pt"
+    yolo.save(str(path))
+    return path
+
+
+def calibration_frames(directory: Path, count: int) -> list[Path]:
+    """``count`` simulated three-scan frames as PNGs, as ``triscan dataset`` writes them."""
+    from training.png import write_rgb_png
+
+    directory.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for seed in range(1, count + 1):
+        path = directory / f"frame{seed:03d}.png"
+        write_rgb_png(path, simulated_tensor(seed))
+        frames.append(path)
+    return frames
+
+
+def node_time_by_op(model: Path, runs: int) -> dict[str, float]:
+    """Share (%) of the node time each operator type takes over ``runs`` profiled runs, largest first."""
+    import numpy as np
+    import onnxruntime as ort
+
+    from common.encoding import to_model_input
+    from common.inference import session_options
+
+    options = session_options(1)
+    options.enable_profiling = True
+    with tempfile.TemporaryDirectory(prefix="triscan-profile-") as scratch:
+        options.profile_file_prefix = str(Path(scratch) / "profile")
+        session = ort.InferenceSession(str(model), sess_options=options, providers=["CPUExecutionProvider"])
+        feed = {session.get_inputs()[0].name: to_model_input(simulated_tensor())}
+        for _ in range(runs):
+            session.run(None, feed)
+        events = json.loads(Path(session.end_profiling()).read_text())
+    total: Counter[str] = Counter()
+    for event in events:
+        if event.get("cat") == "Node" and event["name"].endswith("_kernel_time"):
+            total[event["args"]["op_name"]] += event["dur"]
+    whole = sum(total.values()) or 1
+    return {op: float(np.round(100.0 * us / whole, 1)) for op, us in total.most_common()}
+
+
+def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
+    """Build, export, quantise and time the network with each activation; see the module docstring."""
+    from training.architectures import ACTIVATIONS, model_name
+    from training.export_checks import median_latency_ms
+    from training.offline import configure_offline
+    from training.onnx_export import export_onnx
+    from training.quantization import quantize_int8
+
+    with tempfile.TemporaryDirectory(prefix="triscan-activation-") as tmp:
+        scratch = Path(tmp)
+        configure_offline()
+        frames = calibration_frames(scratch / "frames", CALIBRATION_FRAMES)
+        files: dict[str, Path] = {}
+        for activation in ACTIVATIONS:
+            weights = untrained_checkpoint(arch, activation, scratch)
+            fp32 = export_onnx(weights, scratch / f"{activation}.onnx", padding="zero")
+            files[f"{activation} fp32"] = fp32
+            files[f"{activation} int8"] = quantize_int8(fp32, scratch / f"{activation}-int8.onnx", frames)
+        medians = median_latency_ms(list(files.values()), frames[0], runs=runs)
+        profiles = {name: node_time_by_op(path, profile_runs) for name, path in files.items()}
+    median_ms = {name: round(ms, 4) for name, ms in zip(files, medians, strict=True)}
+    for precision in ("fp32", "int8"):
+        silu, relu = median_ms[f"silu {precision}"], median_ms[f"relu {precision}"]
+        log.info(
+            "%s %s, session.run median of %d in turns: SiLU %.3f ms, ReLU %.3f ms (%.1f %% less)",
+            *(model_name(arch), precision, runs, silu, relu, 100 * (1 - relu / silu)),
+        )
+    return {
+        "network": model_name(arch),
+        "runs": runs,
+        "profile_runs": profile_runs,
+        "median_ms": median_ms,
+        "relu_saves_percent": {
+            precision: round(100 * (1 - median_ms[f"relu {precision}"] / median_ms[f"silu {precision}"]), 1)
+            for precision in ("fp32", "int8")
+        },
+        "node_time_percent_by_op": profiles,
+        "machine": asdict(machine_info()),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    from training.architectures import ARCHS
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--arch", choices=ARCHS, default="p", help="network scale (default: pico)")
+    parser.add_argument("--runs", type=int, default=2000, help="timed runs of each file")
+    parser.add_argument("--profile-runs", type=int, default=200, help="profiled runs of each file")
+    parser.add_argument("--out", type=Path, default=None, help=f"default {DEFAULT_OUT}")
+    args = parser.parse_args(argv)
+    if args.runs < 1 or args.profile_runs < 1:
+        parser.error("--runs and --profile-runs must be >= 1")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    write_report(run(args.arch, args.runs, args.profile_runs), args.out or DEFAULT_OUT, echo=False)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
