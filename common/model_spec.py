@@ -54,9 +54,11 @@ SHIPPED_MODEL: Final[Path] = MODELS_DIR / "triscan-yolov8n-zero.onnx"
 SHIPPED_BATCH_MODEL: Final[Path] = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}{BATCH_SUFFIX}.onnx")
 
 
-def model_stem(network: str, padding: str) -> str:
-    """``triscan-yolov8p-zero``: the file stem that names the network and the padding."""
-    return f"{MODEL_PREFIX}{network}-{padding}"
+def model_stem(network: str, padding: str, invalid: str = "sentinel") -> str:
+    """``triscan-yolov8p-zero``: the file stem that names the network, the padding and, when it is not
+    the paper's sentinel row, the invalid-return rule (``triscan-yolov8p-zero-invalid-empty``), so two
+    models of one network that read scans differently never share a file name."""
+    return f"{MODEL_PREFIX}{network}-{padding}" + ("" if invalid == "sentinel" else f"-invalid-{invalid}")
 
 
 def network_of_stem(stem: str) -> str:

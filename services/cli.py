@@ -174,7 +174,9 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", type=Path, default=Path("models"), help="directory for the .onnx files")
     p.add_argument(
-        "--name", default=None, help="file stem (default: triscan-<network>-<padding>: triscan-yolov8p-zero)"
+        "--name",
+        default=None,
+        help="file stem (default: triscan-<network>-<padding>[-invalid-<rule>]: triscan-yolov8p-zero)",
     )
     p.add_argument("--padding", choices=PADDINGS, default=None, help="default: read from the data set")
     p.add_argument(

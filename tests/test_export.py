@@ -179,9 +179,15 @@ def test_fp32_output_equals_the_torch_model(fp32: Path, weights: Path) -> None:
     )
 
 
-def test_export_refuses_a_padding_that_contradicts_the_training_set(weights: Path, tmp_path: Path) -> None:
+def test_export_refuses_a_padding_or_invalid_rule_that_contradicts_the_training_set(
+    weights: Path, tmp_path: Path
+) -> None:
     with pytest.raises(ExportError, match="padding"):
         export_onnx(weights, tmp_path / "m.onnx", padding="zero")
+    with pytest.raises(ExportError, match="invalid rule 'sentinel' requested but the data set"):
+        export_onnx(weights, tmp_path / "m.onnx", invalid="sentinel")
+    with pytest.raises(ExportError, match="invalid must be one of"):
+        export_onnx(weights, tmp_path / "m.onnx", invalid="dark")
     assert not (tmp_path / "m.onnx").exists()
 
 
@@ -445,12 +451,14 @@ def test_export_models_writes_and_describes_both_files(weights: Path, dataset: P
         export_models(weights, dataset, tmp_path / "other", name="x", padding="zero", calib_count=4)
     with pytest.raises(ValueError, match="name"):
         export_models(weights, dataset, tmp_path / "other", name="../x", padding="wrap", calib_count=4)
-    # no name: the files are named after the checkpoint's network and the set's padding
+    # no name: the files are named after the checkpoint's network, the set's padding and its
+    # invalid-return rule (this set's is not the sentinel row)
     unnamed = export_models(
         weights, dataset, tmp_path / "unnamed", calib_count=4, compare_count=1, timing_runs=0
     )
-    assert Path(unnamed["fp32"]["path"]).name == "triscan-yolov8n-wrap.onnx"
-    assert Path(unnamed["int8"]["path"]).name == "triscan-yolov8n-wrap-int8.onnx"
+    assert Path(unnamed["fp32"]["path"]).name == "triscan-yolov8n-wrap-invalid-empty.onnx"
+    assert Path(unnamed["int8"]["path"]).name == "triscan-yolov8n-wrap-invalid-empty-int8.onnx"
+    assert onnx_metadata(Path(unnamed["int8"]["path"]))["triscan.invalid"] == "empty"
 
 
 def test_checkpoints_name_their_network(tmp_path: Path) -> None:

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from common.model_spec import SHIPPED_MODEL, network_of_stem
+from common.model_spec import SHIPPED_MODEL, model_stem, network_of_stem
 from training.model_card import GridSection, checkpoint_epoch, write_card
 
 INT8_MODEL = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
@@ -154,6 +154,10 @@ def test_network_of_a_model_file() -> None:
     assert network_of_stem(INT8_MODEL.stem) == "yolov8n"
     assert network_of_stem("triscan-yolov8p-zero-int8-batch") == "yolov8p"
     assert network_of_stem("triscan-yolov8p-relu-wrap-int8") == "yolov8p-relu"
+    assert model_stem("yolov8p", "zero") == "triscan-yolov8p-zero"
+    empty = model_stem("yolov8p", "zero", "empty")
+    assert empty == "triscan-yolov8p-zero-invalid-empty"
+    assert network_of_stem(f"{empty}-int8") == "yolov8p"
     with pytest.raises(ValueError):
         network_of_stem("yolov8n")
 

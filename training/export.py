@@ -20,7 +20,7 @@ from common.model_spec import CLASS_NAMES, batch_variant_path, file_sha256, mode
 from training.architectures import network_of_checkpoint
 from training.batch_variant import add_batch_axis
 from training.export_checks import compare_outputs, median_latency_ms
-from training.onnx_export import export_onnx, resolve_padding
+from training.onnx_export import dataset_invalid_rule, export_onnx, resolve_padding
 from training.quantization import (
     DEFAULT_CALIB_COUNT,
     DEFAULT_CALIB_METHOD,
@@ -54,8 +54,9 @@ def export_models(
 ) -> dict[str, Any]:
     """Write ``<name>.onnx`` (fp32) and ``<name>-int8.onnx`` into ``models_dir``, each with its batch
     variant (``-batch``, :func:`add_batch_axis`) for a detector serving many robots; describe them.
-    ``name`` None: ``triscan-<network>-<padding>`` (:func:`common.model_spec.model_stem`), the network
-    read from the checkpoint, so a pico model is never written under YOLOv8n's name.
+    ``name`` None: ``triscan-<network>-<padding>[-invalid-<rule>]`` (:func:`common.model_spec.model_stem`),
+    the network read from the checkpoint and the rule from the data set, so a pico model is never
+    written under YOLOv8n's name, nor an ``--invalid empty`` model under the sentinel one's.
 
     ``dataset_dir`` (or its ``data.yaml``) is the set the weights were trained on: it supplies the
     calibration images (its ``val`` split) and the padding; ``padding``, when given, must match it.
@@ -70,12 +71,15 @@ def export_models(
     if not weights.is_file():
         raise FileNotFoundError(f"weights {weights} not found")
     recorded_padding = resolve_padding(padding, dataset_dir)
+    recorded_invalid = dataset_invalid_rule(dataset_dir)
     if name is None:
-        name = model_stem(network_of_checkpoint(weights), recorded_padding)
+        name = model_stem(network_of_checkpoint(weights), recorded_padding, recorded_invalid)
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
         raise ValueError(f"name must be a plain file stem ([A-Za-z0-9._-]), got {name!r}")
     calibration = calibration_images(dataset_dir, calib_count)
-    fp32 = export_onnx(weights, models_dir / f"{name}.onnx", padding=recorded_padding)
+    fp32 = export_onnx(
+        weights, models_dir / f"{name}.onnx", padding=recorded_padding, invalid=recorded_invalid
+    )
     int8 = quantize_int8(
         fp32,
         models_dir / f"{name}-int8.onnx",

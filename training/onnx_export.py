@@ -59,6 +59,22 @@ def dataset_invalid_rule(dataset_dir: Path | None) -> str:
     return "sentinel"
 
 
+def resolve_invalid_rule(requested: str | None, dataset_dir: Path | None) -> str:
+    """Invalid-return rule to record in the model: the data set's when its ``summary.json`` is on disk,
+    checked against the caller's (as for the padding, a mismatch would pass unnoticed downstream);
+    otherwise the caller's, else the paper's sentinel row."""
+    if requested is not None and requested not in INVALID_RULES:
+        raise ExportError(f"invalid must be one of {INVALID_RULES}, got {requested!r}")
+    if dataset_dir is None or not (dataset_dir / "summary.json").is_file():
+        return requested or "sentinel"
+    derived = dataset_invalid_rule(dataset_dir)
+    if requested is not None and requested != derived:
+        raise ExportError(
+            f"invalid rule {requested!r} requested but the data set {dataset_dir} uses {derived!r}"
+        )
+    return derived
+
+
 def resolve_padding(requested: str | None, dataset_dir: Path | None) -> str:
     """Padding to record in the model: the data set's when known, checked against the caller's.
 
@@ -84,13 +100,15 @@ def export_onnx(
     *,
     opset: int | None = None,
     padding: str | None = None,
+    invalid: str | None = None,
     rewrite_dfl: bool = True,
 ) -> Path:
     """Export an Ultralytics checkpoint to a fixed-shape fp32 ONNX file at ``out``.
 
     ``padding`` is read from the data set the checkpoint was trained on (its ``train_args.data``)
     when that set is still on disk; ``padding`` must then agree with it. If neither says, ``zero``
-    (the paper's default) is recorded with a warning.
+    (the paper's default) is recorded with a warning. ``invalid``, the invalid-return rule, likewise
+    (:func:`resolve_invalid_rule`; the sentinel row when neither says).
 
     ``rewrite_dfl`` applies :func:`training.onnx_rewrites.dfl_softmax_on_last_axis` (exact, faster);
     off only to measure what it buys (``python -m bench.dfl_rewrite``).
@@ -121,7 +139,7 @@ def export_onnx(
         if dataset_dir is not None and not dataset_dir.is_dir():
             dataset_dir = None
         recorded_padding = resolve_padding(padding, dataset_dir)
-        recorded_invalid = dataset_invalid_rule(dataset_dir)
+        recorded_invalid = resolve_invalid_rule(invalid, dataset_dir)
         exported = yolo.export(
             format="onnx",
             imgsz=(RANGE_ROWS, IMAGE_WIDTH),
