@@ -26,7 +26,9 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Final
 
-from bench.dfl_rewrite import simulated_tensor
+import numpy as np
+
+from bench.harness import simulated_tensor
 from bench.machine import machine_info
 from bench.report import write_report
 
@@ -54,25 +56,23 @@ def untrained_checkpoint(arch: str, activation: str, directory: Path) -> Path:
     return path
 
 
-def calibration_frames(directory: Path, count: int) -> list[Path]:
-    """``count`` simulated three-scan frames as PNGs, as ``triscan dataset`` writes them."""
+def calibration_frames(directory: Path, tensors: list[np.ndarray]) -> list[Path]:
+    """The stacked tensors as PNGs, as ``triscan dataset`` writes them (what calibration reads)."""
     from training.png import write_rgb_png
 
     directory.mkdir(parents=True, exist_ok=True)
     frames = []
-    for seed in range(1, count + 1):
-        path = directory / f"frame{seed:03d}.png"
-        write_rgb_png(path, simulated_tensor(seed))
+    for index, tensor in enumerate(tensors, start=1):
+        path = directory / f"frame{index:03d}.png"
+        write_rgb_png(path, tensor)
         frames.append(path)
     return frames
 
 
-def node_time_by_op(model: Path, runs: int) -> dict[str, float]:
+def node_time_by_op(model: Path, model_input: np.ndarray, runs: int) -> dict[str, float]:
     """Share (%) of the node time each operator type takes over ``runs`` profiled runs, largest first."""
-    import numpy as np
     import onnxruntime as ort
 
-    from common.encoding import to_model_input
     from common.inference import session_options
 
     options = session_options(1)
@@ -80,7 +80,7 @@ def node_time_by_op(model: Path, runs: int) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="triscan-profile-") as scratch:
         options.profile_file_prefix = str(Path(scratch) / "profile")
         session = ort.InferenceSession(str(model), sess_options=options, providers=["CPUExecutionProvider"])
-        feed = {session.get_inputs()[0].name: to_model_input(simulated_tensor())}
+        feed = {session.get_inputs()[0].name: model_input}
         for _ in range(runs):
             session.run(None, feed)
         events = json.loads(Path(session.end_profiling()).read_text())
@@ -94,6 +94,7 @@ def node_time_by_op(model: Path, runs: int) -> dict[str, float]:
 
 def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
     """Build, export, quantise and time the network with each activation; see the module docstring."""
+    from common.encoding import to_model_input
     from training.architectures import ACTIVATIONS, model_name
     from training.export_checks import median_latency_ms
     from training.offline import configure_offline
@@ -103,7 +104,9 @@ def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="triscan-activation-") as tmp:
         scratch = Path(tmp)
         configure_offline()
-        frames = calibration_frames(scratch / "frames", CALIBRATION_FRAMES)
+        # One simulated world per frame, each simulated once: frame 1 is also the timed and profiled input.
+        tensors = [simulated_tensor(seed) for seed in range(1, CALIBRATION_FRAMES + 1)]
+        frames = calibration_frames(scratch / "frames", tensors)
         files: dict[str, Path] = {}
         for activation in ACTIVATIONS:
             weights = untrained_checkpoint(arch, activation, scratch)
@@ -111,7 +114,8 @@ def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
             files[f"{activation} fp32"] = fp32
             files[f"{activation} int8"] = quantize_int8(fp32, scratch / f"{activation}-int8.onnx", frames)
         medians = median_latency_ms(list(files.values()), frames[0], runs=runs)
-        profiles = {name: node_time_by_op(path, profile_runs) for name, path in files.items()}
+        model_input = to_model_input(tensors[0])
+        profiles = {name: node_time_by_op(path, model_input, profile_runs) for name, path in files.items()}
     median_ms = {name: round(ms, 4) for name, ms in zip(files, medians, strict=True)}
     for precision in ("fp32", "int8"):
         silu, relu = median_ms[f"silu {precision}"], median_ms[f"relu {precision}"]

@@ -21,10 +21,10 @@ from typing import Final
 
 import numpy as np
 
-from bench.harness import recorded_scans
+from bench.harness import simulated_tensor
 from bench.machine import machine_info
 from bench.report import write_report
-from common.encoding import ScanStacker, to_model_input
+from common.encoding import to_model_input
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -32,18 +32,6 @@ DEFAULT_WEIGHTS: Final[Path] = (
     Path(__file__).resolve().parents[1] / "models" / "yolov8p" / "triscan-yolov8p-zero.pt"
 )
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "dfl_rewrite.json"
-
-
-def simulated_tensor(seed: int = 1) -> np.ndarray:
-    """The stacked tensor of three consecutive simulated scans."""
-    stacker = ScanStacker()
-    tensor = None
-    for scan in recorded_scans(3, seed=seed):
-        tensor = stacker.push_scan(
-            scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max
-        )
-    assert tensor is not None
-    return tensor
 
 
 def main(argv: list[str] | None = None) -> int:

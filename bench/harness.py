@@ -10,6 +10,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from common.encoding import ScanStacker
 from common.messages import Scan
 from common.transport import ZenohSettings
 from services.launcher import child_environment
@@ -76,3 +79,15 @@ def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_
     period_ns = round(1e9 / rate_hz)
     with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
         return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
+
+
+def simulated_tensor(seed: int = 1) -> np.ndarray:
+    """The stacked tensor of three consecutive simulated scans (one robot, world ``seed``)."""
+    stacker = ScanStacker()
+    tensor = None
+    for scan in recorded_scans(3, seed=seed):
+        tensor = stacker.push_scan(
+            scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max
+        )
+    assert tensor is not None
+    return tensor
