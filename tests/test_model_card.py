@@ -147,6 +147,9 @@ def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path
     assert "## Networks compared" in text and "| clean | 0.980 / 0.780 | 0.985 / 0.785 |" in text
     saved = json.loads((tmp_path / "card" / "MODEL_CARD.json").read_text())
     assert set(saved["unseen_worlds"]["int8"]) == {"clean", "sigma3"}
+    compared = saved["grids"]["Networks compared"]
+    assert compared["models"]["triscan-yolov8n-zero"] == "n@2"
+    assert compared["results"]["clean"]["triscan-yolov8n-zero"]["mAP50"] == 0.985
 
 
 def test_network_of_a_model_file() -> None:

@@ -179,6 +179,8 @@ def write_card(
         "",
         *_gate_section(card, gate, gate_metrics),
     ]
+    if grids:
+        card["grids"] = {section.title: section.figures() for section in grids}
     if ablation:
         ablation_lines, card["ablation"] = _ablation_lines(ablation, ablation_command)
         lines += ["", *ablation_lines]
@@ -481,6 +483,21 @@ class GridSection:
     title: str
     summary: Path
     intro: str = ""
+
+    def figures(self) -> dict[str, Any]:
+        """The card JSON's copy: the worlds, each model's id, and mAP@0.5 / mAP@0.5:0.95 per condition."""
+        grid = _read_json(self.summary)
+        return {
+            "worlds": grid["worlds"],
+            "models": grid["models"],
+            "results": {
+                condition: {
+                    stem: {metric: cell[metric] for metric in ("mAP50", "mAP50-95", "per_class_mAP50")}
+                    for stem, cell in row.items()
+                }
+                for condition, row in grid["results"].items()
+            },
+        }
 
     def lines(self) -> list[str]:
         grid = _read_json(self.summary)
