@@ -128,6 +128,11 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="", help="'cpu', '0', ... (default: GPU if present, else CPU)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fraction", type=float, default=1.0, help="share of the training images to use")
+    p.add_argument(
+        "--init", type=Path, default=None, metavar="WEIGHTS",
+        help="start from these weights instead of random ones, e.g. a shipped .pt to fine-tune on your "
+        "own rooms (--arch/--activation must name its network)",
+    )  # fmt: skip
     p.add_argument("--resume", action="store_true", help="continue from OUT/weights/last.pt if it exists")
     p.add_argument(
         "--resume-from",
@@ -160,6 +165,7 @@ def _run_train(args: argparse.Namespace) -> int:
         fraction=args.fraction,
         arch=args.arch,
         activation=args.activation,
+        init=args.init,
     )
     summary = train(config, resume=args.resume, resume_from=args.resume_from, stop_after=args.stop_after)
     print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")

@@ -35,6 +35,14 @@ def model_name(arch: str) -> str:
     return f"yolov8{arch}"
 
 
+def network_name(arch: str, activation: str = DEFAULT_ACTIVATION) -> str:
+    """``yolov8p``, ``yolov8p-relu``: the architecture with a non-default activation, as checkpoints,
+    model YAMLs and exported files are named (:func:`network_of_checkpoint` reads it back)."""
+    check_activation(activation)
+    name = model_name(arch)
+    return name if activation == DEFAULT_ACTIVATION else f"{name}-{activation}"
+
+
 def check_arch(arch: str) -> Arch:
     if arch not in ARCHS:
         raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
@@ -67,12 +75,10 @@ def model_yaml(arch: str, directory: Path, activation: str = DEFAULT_ACTIVATION)
     base = Path(ultralytics.__file__).parent / "cfg" / "models" / "v8" / "yolov8.yaml"
     spec = YAML.load(base)
     spec["scales"] = {arch: list(EXTRA_SCALES.get(arch) or spec["scales"][arch])}
-    name = model_name(arch)
     if activation != DEFAULT_ACTIVATION:
         spec["activation"] = _ACTIVATION_EXPRESSIONS[activation]
-        name += f"-{activation}"
     directory.mkdir(parents=True, exist_ok=True)
-    target = directory / f"{name}.yaml"
+    target = directory / f"{network_name(arch, activation)}.yaml"
     YAML.save(target, spec)
     return str(target)
 

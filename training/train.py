@@ -22,7 +22,15 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from training.architectures import DEFAULT_ACTIVATION, DEFAULT_ARCH, check_activation, check_arch, model_yaml
+from training.architectures import (
+    DEFAULT_ACTIVATION,
+    DEFAULT_ARCH,
+    check_activation,
+    check_arch,
+    model_yaml,
+    network_name,
+    network_of_checkpoint,
+)
 from training.offline import configure_offline
 
 log = logging.getLogger(__name__)
@@ -48,6 +56,7 @@ class TrainConfig:
     fraction: float = 1.0  # share of the training images used per epoch (Ultralytics' `fraction`)
     arch: str = DEFAULT_ARCH  # training.architectures: n (the paper's YOLOv8n) or p (pico)
     activation: str = DEFAULT_ACTIVATION  # silu (YOLOv8's) or relu (cheaper in INT8)
+    init: Path | None = None  # weights to start from (fine-tuning a shipped .pt), else random
 
     def __post_init__(self) -> None:
         check_arch(self.arch)
@@ -60,6 +69,33 @@ def pick_device(requested: str) -> str:
     import torch
 
     return "0" if torch.cuda.is_available() else "cpu"
+
+
+def initial_model(config: TrainConfig) -> Any:
+    """The Ultralytics model a new run starts from: ``config``'s network with random weights, or the
+    weights of ``config.init`` to fine-tune them on new rooms (same classes, same recipe).
+
+    A checkpoint of another network than ``arch``/``activation`` name is refused rather than
+    silently trained as what it is: the run directory, the card and the exported files would be
+    named after a network the weights are not.
+    """
+    from ultralytics import YOLO
+
+    if config.init is None:
+        # Architecture only: no pretrained weights exist offline.
+        return YOLO(model_yaml(config.arch, config.out.resolve(), config.activation))
+    if not config.init.is_file():
+        raise FileNotFoundError(
+            f"{config.init} not found: pass an Ultralytics checkpoint (.pt) to start from"
+        )
+    expected = network_name(config.arch, config.activation)
+    found = network_of_checkpoint(config.init)
+    if found != expected:
+        raise ValueError(
+            f"{config.init} holds a {found} network, not {expected}: pass the --arch/--activation it was "
+            "trained with"
+        )
+    return YOLO(str(config.init))
 
 
 def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
@@ -274,8 +310,7 @@ def train(
     else:
         if resume:
             log.info("no %s yet: starting a new run", last)
-        # Architecture only: no pretrained weights exist offline.
-        model = YOLO(model_yaml(config.arch, config.out.resolve(), config.activation))
+        model = initial_model(config)
         _add_callbacks(model, watch, stopper)
         model.train(trainer=triscan_trainer(), **recipe(config, device))
     if stopper is not None:
