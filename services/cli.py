@@ -275,6 +275,11 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
         "drop10+sigma3+spur1, or sigma=S,dropout=D,spurious=P; several: each on the same worlds",
     )
     p.add_argument(
+        "--clutter", type=int, default=0, metavar="N",
+        help="up to N unlabelled poles, wall stubs and walking leg pairs per --fresh motion: does the "
+        "model detect things that are not furniture?",
+    )  # fmt: skip
+    p.add_argument(
         "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
     )
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
@@ -297,10 +302,12 @@ def _run_eval(args: argparse.Namespace) -> int:
         fresh_samples,
     )
 
-    worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride)
+    worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride, args.clutter)
     matrix = len(args.model) > 1 or len(args.noise) > 1
     if matrix and args.data is not None:
         raise ValueError("several --model or --noise values need --fresh worlds, not --data")
+    if args.clutter and args.data is not None:
+        raise ValueError("--clutter places clutter in --fresh worlds; a --data set has its own")
     detectors = [
         OnnxDetector(
             model,
@@ -333,7 +340,7 @@ def _run_eval(args: argparse.Namespace) -> int:
         spec = with_imperfections(noise)  # a bad condition is a ValueError: one line, exit 2
         samples = fresh_samples(
             args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec,
-            invalid=detector.invalid,
+            invalid=detector.invalid, clutter=args.clutter,
         )  # fmt: skip
         source = worlds.source(noise)
     report = evaluate(detector, samples, args.out, source=source)

@@ -233,6 +233,24 @@ def test_fresh_worlds_under_a_condition_keep_their_labels_and_change_their_scans
     )
 
 
+def test_fresh_worlds_with_clutter_are_the_same_worlds_with_unlabelled_things_in_them() -> None:
+    from training.evaluate import FreshWorlds, fresh_samples
+
+    plain = list(fresh_samples(2024, 1, 3, "zero", 6))
+    cluttered = list(fresh_samples(2024, 1, 3, "zero", 6, clutter=3))
+    assert [s.name for s in plain] == [s.name for s in cluttered] and len(plain) > 2
+    changed = [not np.array_equal(a.tensor, b.tensor) for a, b in zip(plain, cluttered, strict=True)]
+    assert any(changed)  # clutter returns where there were none
+    # clutter is never labelled: it can hide furniture, never add a box
+    assert all(len(b.boxes) <= len(a.boxes) for a, b in zip(plain, cluttered, strict=True))
+    assert FreshWorlds(7, 2, 3, 15, clutter=3).source("clean") == (
+        "fresh:seed=7,scenarios=2,positions=3,clutter=3,noise=clean"
+    )
+    assert "clutter" not in FreshWorlds(7, 2, 3, 15).source("clean")  # earlier grids keep their names
+    with pytest.raises(ValueError, match="clutter must be >= 0"):
+        FreshWorlds(7, 2, 3, 15, clutter=-1)
+
+
 @pytest.mark.slow
 def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_path: Path) -> None:
     """`triscan eval --model A --model B --noise clean drop5`: one grid, identical worlds per cell."""
@@ -256,6 +274,7 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
     argv += ["--model", str(empty_rule)]
     assert cli_main([*argv, "--seed", "4242", "--noise", "clean", "dropout=0.1", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["worlds"]["clutter"] == 0
     assert list(summary["results"]) == ["clean", "dropout=0.1"]
     cells = [cell for row in summary["results"].values() for cell in row.values()]
     assert len(cells) == 6 and len({cell["images"] for cell in cells}) == 1 and cells[0]["images"] > 0
@@ -272,6 +291,7 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
         == 2
     )
     assert cli_main([*argv, "--noise", "clean", "bogus", "--out", str(tmp_path / "bad")]) == 2
+    assert cli_main(["eval", "--model", str(SHIPPED_MODEL), "--data", str(tmp_path), "--clutter", "2"]) == 2
     # a data set of the other rule is refused, not silently misread
     (tmp_path / "summary.json").write_text(json.dumps({"config": {"invalid": "sentinel"}}))
     assert cli_main(["eval", "--model", str(empty_rule), "--data", str(tmp_path)]) == 2

@@ -142,12 +142,16 @@ def fresh_samples(
     frame_stride: int,
     spec: LidarSpec | None = None,
     invalid: InvalidRule = "sentinel",
+    clutter: int = 0,
 ) -> Iterator[EvalSample]:
     """Newly simulated scenarios, straight through ScanStacker: data no model has seen.
 
     ``spec`` is the sensor (default: the clean LDS-01); the same seed gives the same worlds, motions and
     Gaussian noise draws under every imperfection setting, with labels of the true geometry. ``padding``
-    and ``invalid`` must be the model's own (:attr:`OnnxDetector.padding`, ``.invalid``).
+    and ``invalid`` must be the model's own (:attr:`OnnxDetector.padding`, ``.invalid``). ``clutter``
+    puts up to that many unlabelled poles, wall stubs and walking leg pairs into each motion, drawn
+    from their own stream: the same worlds and motions with things in them that must not be detected
+    (a person's legs are not a chair), and which occlude what must.
     """
     from services.simulator.labels import arc_crosses_seam
     from services.simulator.lidar import DEFAULT_SPEC
@@ -167,6 +171,7 @@ def fresh_samples(
                 padding,
                 frame_stride,
                 spec=spec or DEFAULT_SPEC,
+                clutter=clutter,
                 invalid=invalid,
             )
             for sample in samples:
@@ -420,11 +425,18 @@ class FreshWorlds:
     scenarios: int
     positions: int
     frame_stride: int
+    clutter: int = 0  # the most unlabelled clutter items per motion (fresh_samples)
+
+    def __post_init__(self) -> None:
+        if self.clutter < 0:
+            raise ValueError(f"clutter must be >= 0 items per motion, got {self.clutter}")
 
     def source(self, condition: str) -> str:
         """What metrics.json names as the source of these worlds under ``condition``."""
+        clutter = f",clutter={self.clutter}" if self.clutter else ""
         return (
-            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions},noise={condition}"
+            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions}{clutter},"
+            f"noise={condition}"
         )
 
 
@@ -458,7 +470,7 @@ def condition_matrix(
             samples = list(
                 fresh_samples(
                     worlds.seed, worlds.scenarios, worlds.positions, padding, worlds.frame_stride,
-                    spec=spec, invalid=invalid,
+                    spec=spec, invalid=invalid, clutter=worlds.clutter,
                 )
             )  # fmt: skip
             for stem, detector in zip(stems, detectors, strict=True):
