@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -155,3 +157,24 @@ def test_evaluate_scores_a_missed_seam_object_when_the_model_finds_nothing(
     assert (report.images, report.instances) == (1, 1)
     assert report.overall["recall"] == 0.0
     assert report.seam_crossing is not None and report.seam_crossing["instances"] == 1
+
+
+def test_map_by_iou_threshold_splits_the_average(tmp_path: Path, ultralytics_offline: None) -> None:
+    """mAP@0.5:0.95 is the mean of the ten thresholds' mAP; each is at most the one below it."""
+    from common.inference import OnnxDetector
+    from common.model_spec import CLASS_NAMES, default_model_path
+    from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, evaluate, fresh_samples
+
+    detector = OnnxDetector(
+        default_model_path(), conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, max_detections=VAL_MAX_DET
+    )
+    report = evaluate(detector, fresh_samples(2024, 1, 3, "zero", 6), tmp_path, source="fresh", plots=False)
+    by_iou = report.map_by_iou
+    assert list(by_iou) == ["0.50", "0.55", "0.60", "0.65", "0.70", "0.75", "0.80", "0.85", "0.90", "0.95"]
+    assert by_iou["0.50"] == pytest.approx(report.overall["mAP50"])
+    assert np.mean(list(by_iou.values())) == pytest.approx(report.overall["mAP50-95"])
+    values = list(by_iou.values())
+    assert all(high <= low + 1e-12 for low, high in itertools.pairwise(values))
+    assert set(report.ap_by_iou_per_class) <= set(CLASS_NAMES) and report.ap_by_iou_per_class
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["map_by_iou"] == by_iou

@@ -70,6 +70,10 @@ class EvalReport:
     overall: dict[str, float] = field(default_factory=dict)
     per_class: dict[str, dict[str, float]] = field(default_factory=dict)
     seam_crossing: dict[str, float] = field(default_factory=dict)  # the same figures, seam objects only
+    # mAP at each IoU threshold of mAP@0.5:0.95 ("0.50" … "0.95"), overall and per class: where the
+    # average loses, loose boxes (a steep fall towards 0.95) or missed objects (low from 0.50 on)
+    map_by_iou: dict[str, float] = field(default_factory=dict)
+    ap_by_iou_per_class: dict[str, dict[str, float]] = field(default_factory=dict)
     mean_timings_ms: dict[str, float] = field(default_factory=dict)
     files: dict[str, str] = field(default_factory=dict)
 
@@ -337,6 +341,7 @@ def evaluate(
             "instances": int(metrics.nt_per_class[int(class_index)]),
             **_figures(metrics.class_result(list(metrics.ap_class_index).index(class_index))),
         }
+    report.map_by_iou, report.ap_by_iou_per_class = _ap_by_iou(metrics)
     if seam_instances:
         seam_metrics.process(save_dir=out_dir, plot=False)
         report.seam_crossing = {"instances": seam_instances, **_figures(seam_metrics.mean_results())}
@@ -351,6 +356,18 @@ def evaluate(
     (out_dir / "metrics.json").write_text(json.dumps(report.to_json(), indent=2) + "\n")
     log.info("%s on %s: %s", report.model_id, source, report.overall)
     return report
+
+
+def _ap_by_iou(metrics: Any) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+    """Ultralytics' AP table (class × the ten IoU thresholds) as the mean per threshold, and per class."""
+    table = np.asarray(metrics.box.all_ap, dtype=np.float64).reshape(len(metrics.ap_class_index), -1)
+    labels = [f"{iou:.2f}" for iou in np.linspace(0.5, 0.95, table.shape[1])]
+    overall = dict(zip(labels, (float(v) for v in table.mean(axis=0)), strict=True)) if len(table) else {}
+    per_class = {
+        CLASS_NAMES[int(class_index)]: dict(zip(labels, (float(v) for v in row), strict=True))
+        for class_index, row in zip(metrics.ap_class_index, table, strict=True)
+    }
+    return overall, per_class
 
 
 def _update_seam_stats(
