@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
-from typing import Final
+from typing import Final, Literal, get_args
 
 from common.encoding import IMAGE_WIDTH, PADDINGS, RANGE_ROWS, STACK_DEPTH
 
@@ -43,6 +43,14 @@ META_PREFIX: Final[str] = "triscan."
 META_PADDING: Final[str] = f"{META_PREFIX}padding"
 META_INVALID: Final[str] = f"{META_PREFIX}invalid"
 META_CLASSES: Final[str] = f"{META_PREFIX}classes"
+META_BOX_GRID: Final[str] = f"{META_PREFIX}box_grid"
+
+# Labels are whole pixels (a range row, a beam column): "pixel" rounds a model's box edges to them
+# after NMS, which tightens small boxes at high IoU; "none" keeps the regressed edges, as every model
+# exported before the key existed does.
+BoxGrid = Literal["none", "pixel"]
+BOX_GRIDS: Final[tuple[str, ...]] = get_args(BoxGrid)
+DEFAULT_BOX_GRID: Final[BoxGrid] = "none"
 
 # Files: <stem>.onnx (fp32), <stem>-int8.onnx, and each with a free batch axis as <...>-batch.onnx.
 MODEL_PREFIX: Final[str] = "triscan-"

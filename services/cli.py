@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 from common.encoding import INVALID_RULES, PADDINGS
+from common.model_spec import BOX_GRIDS, DEFAULT_BOX_GRID
 from services.runtime import LOG_FORMAT
 from training.architectures import ACTIVATIONS, ARCHS, DEFAULT_ACTIVATION, DEFAULT_ARCH
 from training.quantization import ACTIVATION_TYPES, CALIB_METHODS, DEFAULT_CALIB_COUNT, DEFAULT_CALIB_METHOD
@@ -186,6 +187,10 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--padding", choices=PADDINGS, default=None, help="default: read from the data set")
     p.add_argument(
+        "--box-grid", choices=BOX_GRIDS, default=DEFAULT_BOX_GRID,
+        help="recorded for the detector: 'pixel' rounds box edges to whole pixels, as labels are",
+    )  # fmt: skip
+    p.add_argument(
         "--calib-count", type=int, default=DEFAULT_CALIB_COUNT, help="val images used to calibrate INT8"
     )
     p.add_argument("--calib-method", choices=CALIB_METHODS, default=DEFAULT_CALIB_METHOD)
@@ -242,6 +247,7 @@ def _run_export(args: argparse.Namespace) -> int:
         keep_stem_float=not args.quantize_stem,
         compare_count=args.compare_count,
         timing_runs=args.timing_runs,
+        box_grid=args.box_grid,
     )
     text = json.dumps(result, indent=2, default=str)
     if args.report is not None:
@@ -282,6 +288,10 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
     )
+    p.add_argument(
+        "--box-grid", choices=BOX_GRIDS, default=None,
+        help="'pixel': round box edges to whole pixels after NMS (default: the model's own)",
+    )  # fmt: skip
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
     p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
     p.set_defaults(run=_run_eval)
@@ -316,6 +326,7 @@ def _run_eval(args: argparse.Namespace) -> int:
             max_detections=VAL_MAX_DET,
             padding=args.padding,
             intra_op_threads=args.threads,
+            box_grid=args.box_grid,
         )
         for model in args.model
     ]

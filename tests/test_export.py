@@ -147,6 +147,7 @@ def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: P
     assert meta["triscan.source_weights"] == f"last.pt sha256:{file_sha256(weights)[:12]}"
     assert meta["triscan.precision"] == "fp32"
     assert meta["triscan.rewrites"] == DFL_SOFTMAX_LAST_AXIS
+    assert meta["triscan.box_grid"] == "none" and OnnxDetector(fp32).box_grid == "none"
 
 
 def test_the_dfl_softmax_runs_on_the_innermost_axis_and_a_second_rewrite_is_refused(fp32: Path) -> None:
@@ -434,7 +435,11 @@ def test_export_models_writes_and_describes_both_files(weights: Path, dataset: P
         calib_count=4,
         compare_count=3,
         timing_runs=2,
+        box_grid="pixel",
     )
+    assert result["box_grid"] == "pixel"
+    for key in ("fp32", "int8", "fp32_batch", "int8_batch"):  # every file tells the detector
+        assert OnnxDetector(result[key]["path"]).box_grid == "pixel"
     assert Path(result["fp32"]["path"]) == tmp_path / "models" / "triscan-test.onnx"
     assert Path(result["int8"]["path"]) == tmp_path / "models" / "triscan-test-int8.onnx"
     assert Path(result["fp32_batch"]["path"]) == tmp_path / "models" / "triscan-test-batch.onnx"

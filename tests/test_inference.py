@@ -29,6 +29,7 @@ from common.inference import (
     detections_from_boxes,
     nms,
     postprocess,
+    snap_boxes_to_pixels,
     unwrap_seam_duplicates,
 )
 from common.messages import Detection, StageTimings
@@ -310,6 +311,53 @@ def test_postprocess_clips_and_merges() -> None:
     boxes, scores, classes = postprocess(out, padding="wrap")
     np.testing.assert_array_equal(boxes, [[346, 10, 365, 14], [95, 58, 105, 64]])
     np.testing.assert_allclose(scores, [0.8, 0.7])
+
+
+def test_snapping_rounds_box_edges_to_whole_pixels_and_keeps_boxes_it_would_empty() -> None:
+    boxes = np.array([[10.4, 3.6, 20.5, 9.49], [7.2, 5.1, 7.4, 5.3], [0.0, 0.0, 383.7, 63.8]], np.float32)
+    snapped = snap_boxes_to_pixels(boxes)
+    np.testing.assert_array_equal(snapped[0], [10, 4, 20, 9])  # half to even, as numpy rounds
+    np.testing.assert_array_equal(snapped[1], boxes[1])  # 7–7 would be no box at all
+    np.testing.assert_array_equal(snapped[2], [0, 0, 384, 64])
+    assert snapped.dtype == np.float32 and boxes[0, 0] == np.float32(10.4)  # a new array
+
+
+def test_postprocess_snaps_to_the_pixel_grid_only_when_asked() -> None:
+    out = raw_output([(100.3, 30.2, 10.6, 8.8, [0.0, 0.0, 0.0, 0.7])], total=504)
+    loose, _, _ = postprocess(out)
+    snapped, _, classes = postprocess(out, box_grid="pixel")
+    assert not np.array_equal(loose, np.round(loose))
+    np.testing.assert_array_equal(snapped, np.round(loose))
+    np.testing.assert_array_equal(classes, [3])
+
+
+def test_detector_takes_the_box_grid_from_the_model_or_the_caller(tmp_path: Path) -> None:
+    import onnx
+
+    from training.onnx_model import set_metadata
+
+    loose = raw_output([(100.3, 30.2, 10.6, 8.8, [0.0, 0.0, 0.0, 0.7])], total=504)
+    plain = constant_model(tmp_path / "plain.onnx", loose)
+    model = onnx.load(plain)
+    set_metadata(model, {"triscan.box_grid": "pixel"})
+    pixel = tmp_path / "pixel.onnx"
+    onnx.save(model, pixel)
+    assert OnnxDetector(plain).box_grid == "none"  # every model exported before the key
+    assert OnnxDetector(pixel).box_grid == "pixel"
+    assert OnnxDetector(pixel, box_grid="none").box_grid == "none"
+    assert OnnxDetector(plain, box_grid="pixel").box_grid == "pixel"
+    boxes, _, _, _ = OnnxDetector(pixel).detect_boxes(tensor())
+    np.testing.assert_array_equal(boxes, [[95, 26, 106, 35]])
+    detections, _ = OnnxDetector(pixel).detect(tensor())
+    assert detections[0].box_px == (95.0, 26.0, 106.0, 35.0)  # the wire message carries the same edges
+    boxes, _, _, _ = OnnxDetector(plain).detect_boxes(tensor())
+    assert not np.array_equal(boxes, np.round(boxes))
+    with pytest.raises(ValueError, match="box_grid must be one of"):
+        OnnxDetector(plain, box_grid="subpixel")  # type: ignore[arg-type]
+    set_metadata(model, {"triscan.box_grid": "hex"})
+    onnx.save(model, tmp_path / "hex.onnx")
+    with pytest.raises(ValueError, match=r"declares an unknown triscan\.box_grid 'hex'"):
+        OnnxDetector(tmp_path / "hex.onnx")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from common.model_spec import CLASS_NAMES, batch_variant_path, file_sha256, model_stem
+from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, batch_variant_path, file_sha256, model_stem
 from training.architectures import network_of_checkpoint
 from training.batch_variant import add_batch_axis
 from training.export_checks import compare_outputs, median_latency_ms
@@ -51,6 +51,7 @@ def export_models(
     keep_stem_float: bool = True,
     compare_count: int = 20,
     timing_runs: int = 200,
+    box_grid: str = DEFAULT_BOX_GRID,
 ) -> dict[str, Any]:
     """Write ``<name>.onnx`` (fp32) and ``<name>-int8.onnx`` into ``models_dir``, each with its batch
     variant (``-batch``, :func:`add_batch_axis`) for a detector serving many robots; describe them.
@@ -63,7 +64,8 @@ def export_models(
     The returned dict holds each file's path, size and sha256, plus the raw-output differences INT8
     vs fp32 on ``compare_count`` val images the calibrator did not see (a sanity check; the accuracy
     verdict belongs to the evaluation on the test split) and, unless ``timing_runs`` is 0, the median
-    single-thread ``session.run`` time of each on this machine.
+    single-thread ``session.run`` time of each on this machine. ``box_grid`` goes into every file's
+    metadata (:func:`export_onnx`).
     """
     weights, dataset_dir, models_dir = Path(weights), Path(dataset_dir), Path(models_dir)
     if dataset_dir.is_file():  # a data.yaml, as `triscan train --data` takes
@@ -78,7 +80,11 @@ def export_models(
         raise ValueError(f"name must be a plain file stem ([A-Za-z0-9._-]), got {name!r}")
     calibration = calibration_images(dataset_dir, calib_count)
     fp32 = export_onnx(
-        weights, models_dir / f"{name}.onnx", padding=recorded_padding, invalid=recorded_invalid
+        weights,
+        models_dir / f"{name}.onnx",
+        padding=recorded_padding,
+        invalid=recorded_invalid,
+        box_grid=box_grid,
     )
     int8 = quantize_int8(
         fp32,
@@ -99,6 +105,7 @@ def export_models(
         "fp32_batch": _describe(fp32_batch),
         "int8_batch": _describe(int8_batch),
         "padding": recorded_padding,
+        "box_grid": box_grid,
         "classes": list(CLASS_NAMES),
         "calibration_images": len(calibration),
         "calibration_method": method,

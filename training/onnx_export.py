@@ -21,7 +21,16 @@ import time
 from pathlib import Path
 
 from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS
-from common.model_spec import CLASS_NAMES, META_CLASSES, META_INVALID, META_PADDING, META_PREFIX
+from common.model_spec import (
+    BOX_GRIDS,
+    CLASS_NAMES,
+    DEFAULT_BOX_GRID,
+    META_BOX_GRID,
+    META_CLASSES,
+    META_INVALID,
+    META_PADDING,
+    META_PREFIX,
+)
 from training.onnx_model import ExportError, provenance, save_checked, set_metadata
 from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
 
@@ -102,6 +111,7 @@ def export_onnx(
     padding: str | None = None,
     invalid: str | None = None,
     rewrite_dfl: bool = True,
+    box_grid: str = DEFAULT_BOX_GRID,
 ) -> Path:
     """Export an Ultralytics checkpoint to a fixed-shape fp32 ONNX file at ``out``.
 
@@ -109,6 +119,9 @@ def export_onnx(
     when that set is still on disk; ``padding`` must then agree with it. If neither says, ``zero``
     (the paper's default) is recorded with a warning. ``invalid``, the invalid-return rule, likewise
     (:func:`resolve_invalid_rule`; the sentinel row when neither says).
+
+    ``box_grid`` (``none``, ``pixel``) is recorded for the detector: whether it rounds the boxes to
+    whole pixels after NMS (:func:`common.inference.snap_boxes_to_pixels`).
 
     ``rewrite_dfl`` applies :func:`training.onnx_rewrites.dfl_softmax_on_last_axis` (exact, faster);
     off only to measure what it buys (``python -m bench.dfl_rewrite``).
@@ -118,6 +131,8 @@ def export_onnx(
     """
     weights = Path(weights)
     out = Path(out)
+    if box_grid not in BOX_GRIDS:
+        raise ExportError(f"box_grid must be one of {BOX_GRIDS}, got {box_grid!r}")
     if not weights.is_file():
         raise FileNotFoundError(f"weights {weights} not found")
     from training.offline import configure_offline
@@ -159,6 +174,7 @@ def export_onnx(
         {
             META_PADDING: recorded_padding,
             META_INVALID: recorded_invalid,
+            META_BOX_GRID: box_grid,
             META_CLASSES: json.dumps(list(CLASS_NAMES)),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",

@@ -25,7 +25,7 @@ from common.inference import (
 )
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
-from common.model_spec import MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
+from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, settings_from_args
 from services.detector.core import (
     DetectorCore,
@@ -108,6 +108,12 @@ def main(argv: list[str] | None = None) -> int:
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
     )
     parser.add_argument(
+        "--box-grid",
+        choices=BOX_GRIDS,
+        default=None,
+        help="'pixel': round box edges to whole pixels after NMS (default: the model's triscan.box_grid)",
+    )
+    parser.add_argument(
         "--no-spin",
         dest="spin_wait",
         action="store_false",
@@ -131,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
                 iou_threshold=args.iou,
                 intra_op_threads=threads,
                 spin_wait=args.spin_wait,
+                box_grid=args.box_grid,
             )
             for _ in range(workers)
         ]
