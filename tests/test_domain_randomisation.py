@@ -274,7 +274,7 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
     argv += ["--model", str(empty_rule)]
     assert cli_main([*argv, "--seed", "4242", "--noise", "clean", "dropout=0.1", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["worlds"]["clutter"] == 0
+    assert summary["worlds"]["clutter"] == 0 and set(summary["box_grid"].values()) == {"none"}
     assert list(summary["results"]) == ["clean", "dropout=0.1"]
     cells = [cell for row in summary["results"].values() for cell in row.values()]
     assert len(cells) == 6 and len({cell["images"] for cell in cells}) == 1 and cells[0]["images"] > 0
@@ -294,9 +294,10 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
     assert cli_main([*argv, "--noise", "clean", "bogus", "--out", str(tmp_path / "bad")]) == 2
     assert cli_main(["eval", "--model", str(SHIPPED_MODEL), "--data", str(tmp_path), "--clutter", "2"]) == 2
     one = ["eval", "--model", str(SHIPPED_MODEL), "--fresh", "1", "--positions", "3", "--seed", "4242"]
-    assert cli_main([*one, "--clutter", "2", "--out", str(tmp_path / "clutter")]) == 0
+    assert cli_main([*one, "--clutter", "2", "--box-grid", "pixel", "--out", str(tmp_path / "clutter")]) == 0
     metrics = json.loads((tmp_path / "clutter" / "metrics.json").read_text())
     assert ",clutter=2,noise=clean" in metrics["source"] and metrics["images"] == summary_images
+    assert metrics["box_grid"] == "pixel"
     # a data set of the other rule is refused, not silently misread
     (tmp_path / "summary.json").write_text(json.dumps({"config": {"invalid": "sentinel"}}))
     assert cli_main(["eval", "--model", str(empty_rule), "--data", str(tmp_path)]) == 2

@@ -33,7 +33,7 @@ import numpy as np
 
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, InvalidRule, Padding
 from common.inference import OnnxDetector, unwrap_seam_duplicates
-from common.model_spec import CLASS_NAMES, MAX_DETECTIONS
+from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, MAX_DETECTIONS
 from training.png import read_tensor_png
 
 if TYPE_CHECKING:
@@ -67,6 +67,7 @@ class EvalReport:
     images: int = 0
     instances: int = 0
     padding: str = "zero"
+    box_grid: str = DEFAULT_BOX_GRID  # the post-processing the boxes went through (OnnxDetector.box_grid)
     overall: dict[str, float] = field(default_factory=dict)
     per_class: dict[str, dict[str, float]] = field(default_factory=dict)
     seam_crossing: dict[str, float] = field(default_factory=dict)  # the same figures, seam objects only
@@ -310,7 +311,9 @@ def evaluate(
     seam_metrics = DetMetrics(names=names)
     confusion = ConfusionMatrix(names=names)
     wrap = detector.padding == "wrap"
-    report = EvalReport(model_id=detector.model_id, source=source, padding=detector.padding)
+    report = EvalReport(
+        model_id=detector.model_id, source=source, padding=detector.padding, box_grid=detector.box_grid
+    )
     timing_sums = {"encode_ms": 0.0, "inference_ms": 0.0, "nms_ms": 0.0}
     seam_instances = 0
     for raw_sample in samples:
@@ -500,6 +503,7 @@ def condition_matrix(
     summary = {
         "worlds": worlds.__dict__,
         "models": {stem: d.model_id for stem, d in zip(stems, detectors, strict=True)},
+        "box_grid": {stem: d.box_grid for stem, d in zip(stems, detectors, strict=True)},
         "results": {
             condition: {stem: _summary_cell(report) for stem, report in row.items()}
             for condition, row in reports.items()
