@@ -29,7 +29,7 @@ import logging
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Final, NamedTuple
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 import onnxruntime as ort
@@ -417,12 +417,20 @@ class FrameTimings(NamedTuple):
         return StageTimings(encode_ms=self.encode_ms, inference_ms=self.inference_ms, nms_ms=self.nms_ms)
 
 
+def _declared(
+    session: ort.InferenceSession, path: Path | str, key: str, allowed: tuple[str, ...], absent: str | None
+) -> Any:
+    """One ``triscan.*`` metadata value of the model, checked against ``allowed``; ``absent`` when the
+    model does not have the key (it was exported before the key existed)."""
+    value = session.get_modelmeta().custom_metadata_map.get(key, absent)
+    if value is not None and value not in allowed:
+        raise ValueError(f"{path} declares an unknown {key} {value!r}")
+    return value
+
+
 def _declared_padding(session: ort.InferenceSession, path: Path | str) -> Padding | None:
     """The model's ``triscan.padding`` metadata, checked; None for a model without it."""
-    padding = session.get_modelmeta().custom_metadata_map.get(META_PADDING)
-    if padding is not None and padding not in PADDINGS:
-        raise ValueError(f"{path} declares an unknown {META_PADDING} {padding!r}")
-    return padding
+    return _declared(session, path, META_PADDING, PADDINGS, None)
 
 
 def session_options(
@@ -451,18 +459,12 @@ def session_options(
 
 def _declared_box_grid(session: ort.InferenceSession, path: Path | str) -> BoxGrid:
     """The model's ``triscan.box_grid`` (``none`` when absent: models exported before the key)."""
-    grid = session.get_modelmeta().custom_metadata_map.get(META_BOX_GRID, DEFAULT_BOX_GRID)
-    if grid not in BOX_GRIDS:
-        raise ValueError(f"{path} declares an unknown {META_BOX_GRID} {grid!r}")
-    return grid
+    return _declared(session, path, META_BOX_GRID, BOX_GRIDS, DEFAULT_BOX_GRID)
 
 
 def _declared_invalid_rule(session: ort.InferenceSession, path: Path | str) -> InvalidRule:
     """The model's ``triscan.invalid`` metadata (``sentinel``, the paper's rule, when it does not say)."""
-    rule = session.get_modelmeta().custom_metadata_map.get(META_INVALID, "sentinel")
-    if rule not in INVALID_RULES:
-        raise ValueError(f"{path} declares an unknown {META_INVALID} {rule!r}")
-    return rule
+    return _declared(session, path, META_INVALID, INVALID_RULES, "sentinel")
 
 
 def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
