@@ -15,7 +15,13 @@ from common.encoding import INVALID_RULES, PADDINGS
 from common.model_spec import BOX_GRIDS, DEFAULT_BOX_GRID
 from services.runtime import LOG_FORMAT
 from training.architectures import ACTIVATIONS, ARCHS, DEFAULT_ACTIVATION, DEFAULT_ARCH
-from training.quantization import ACTIVATION_TYPES, CALIB_METHODS, DEFAULT_CALIB_COUNT, DEFAULT_CALIB_METHOD
+from training.quantization import (
+    ACTIVATION_TYPES,
+    CALIB_METHODS,
+    DEFAULT_CALIB_COUNT,
+    DEFAULT_CALIB_METHOD,
+    DEFAULT_FLOAT_LEADING_MODULES,
+)
 
 
 def _add_dataset(sub: argparse._SubParsersAction) -> None:
@@ -195,10 +201,14 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--calib-method", choices=CALIB_METHODS, default=DEFAULT_CALIB_METHOD)
     p.add_argument(
-        "--quantize-stem",
-        action="store_true",
-        help="quantise the first conv block too (default: float; `python -m training.int8_recipes` says why)",
-    )
+        "--float-modules", type=int, default=DEFAULT_FLOAT_LEADING_MODULES,
+        help="leading network modules INT8 keeps float (1: the stem alone, 0: none; "
+        "`python -m training.int8_recipes` scores the choices)",
+    )  # fmt: skip
+    p.add_argument(
+        "--quantize-box-logits", action="store_true",
+        help="quantise the box branches' last convs too (default: float, for box tightness)",
+    )  # fmt: skip
     p.add_argument(
         "--activations",
         choices=ACTIVATION_TYPES,
@@ -244,7 +254,8 @@ def _run_export(args: argparse.Namespace) -> int:
         calib_count=args.calib_count,
         method=args.calib_method,
         activation_type=args.activations,
-        keep_stem_float=not args.quantize_stem,
+        float_leading_modules=args.float_modules,
+        keep_box_logits_float=not args.quantize_box_logits,
         compare_count=args.compare_count,
         timing_runs=args.timing_runs,
         box_grid=args.box_grid,

@@ -29,11 +29,13 @@ from training.onnx_model import BOX_CHANNELS, ExportError, check_io
 from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
 from training.png import read_tensor_png, write_rgb_png
 from training.quantization import (
+    DEFAULT_FLOAT_LEADING_MODULES,
+    box_logit_nodes,
     calibration_images,
     calibration_reader,
     head_decode_nodes,
+    leading_module_nodes,
     quantize_int8,
-    stem_nodes,
 )
 
 pytest.importorskip("ultralytics")
@@ -210,17 +212,19 @@ def test_int8_is_qdq_with_per_channel_conv_weights(int8: Path) -> None:
     assert ops.count("QuantizeLinear") > 50 and ops.count("DequantizeLinear") > 50
     initializers = {t.name: t for t in model.graph.initializer}
     conv_weights = {n.input[1] for n in model.graph.node if n.op_type == "Conv"}
-    per_channel = 0
+    per_channel = quantised = 0
     for node in model.graph.node:
         if node.op_type != "DequantizeLinear" or node.output[0] not in conv_weights:
             continue
+        quantised += 1
         weight = initializers[node.input[0]]
         scale = initializers[node.input[1]]
         assert weight.data_type == onnx.TensorProto.INT8
         axis = [a.i for a in node.attribute if a.name == "axis"]
         if axis == [0] and len(scale.dims) == 1 and scale.dims[0] == weight.dims[0] > 1:
             per_channel += 1
-    assert per_channel >= 60, f"only {per_channel} conv weights have per-channel scales"
+    assert quantised >= 45, f"only {quantised} of {len(conv_weights)} conv weights quantised"
+    assert per_channel == quantised, f"only {per_channel} of {quantised} int8 conv weights are per-channel"
     assert _dims(model.graph.input[0]) == list(INPUT_SHAPE)
 
 
@@ -236,26 +240,43 @@ def test_int8_keeps_the_head_decode_in_float(int8: Path) -> None:
     assert produced_by[model.graph.output[0].name].op_type == "Concat"
 
 
-def test_int8_keeps_the_stem_float_unless_asked(
+def _conv_weights_are_int8(model: onnx.ModelProto, nodes: list[str]) -> list[bool]:
+    """For each conv among ``nodes``: does it read DequantizeLinear'd int8 weights (i.e. was it quantised)?"""
+    produced_by = {o: n for n in model.graph.node for o in n.output}
+    wanted = set(nodes)
+    convs = [n for n in model.graph.node if n.name in wanted and n.op_type == "Conv"]
+    assert convs, "no conv among the nodes"
+    return [(w := produced_by.get(c.input[1])) is not None and w.op_type == "DequantizeLinear" for c in convs]
+
+
+def test_int8_keeps_the_leading_modules_and_box_logits_float_unless_asked(
     int8: Path, fp32: Path, dataset: Path, tmp_path: Path
 ) -> None:
-    def stem_conv_weight_is_int8(path: Path) -> bool:
-        model = onnx.load(str(path))
-        stem = set(stem_nodes(model))
-        (conv,) = [n for n in model.graph.node if n.name in stem and n.op_type == "Conv"]
-        produced_by = {o: n for n in model.graph.node for o in n.output}
-        weight = produced_by.get(conv.input[1])  # a DequantizeLinear of int8 weights when quantised
-        return weight is not None and weight.op_type == "DequantizeLinear"
-
-    assert not stem_conv_weight_is_int8(int8)
     model = onnx.load(str(int8))
+    leading = leading_module_nodes(model, DEFAULT_FLOAT_LEADING_MODULES)
+    assert {n.split("/")[1] for n in leading} == {f"model.{i}" for i in range(DEFAULT_FLOAT_LEADING_MODULES)}
+    assert not any(_conv_weights_are_int8(model, leading))
+    assert not any(_conv_weights_are_int8(model, box_logit_nodes(model)))
+    assert len(box_logit_nodes(model)) == 3  # one per stride
+    after = leading_module_nodes(model, DEFAULT_FLOAT_LEADING_MODULES + 1)[len(leading) :]
+    assert all(_conv_weights_are_int8(model, after)), "the module after the float ones is quantised"
     feed = model.graph.input[0].name
     assert not any(n.op_type == "QuantizeLinear" and n.input[0] == feed for n in model.graph.node)
+
     quantised = quantize_int8(
-        fp32, tmp_path / "all.onnx", calibration_images(dataset, CALIB_COUNT), keep_stem_float=False
-    )
-    assert stem_conv_weight_is_int8(quantised)
-    assert json.loads(onnx_metadata(quantised)["triscan.quantization"])["float_stem_nodes"] == 0
+        fp32, tmp_path / "all.onnx", calibration_images(dataset, CALIB_COUNT),
+        float_leading_modules=0, keep_box_logits_float=False,
+    )  # fmt: skip
+    everything = onnx.load(str(quantised))
+    assert all(_conv_weights_are_int8(everything, leading_module_nodes(everything, 1)))
+    assert all(_conv_weights_are_int8(everything, box_logit_nodes(everything)))
+    record = json.loads(onnx_metadata(quantised)["triscan.quantization"])
+    assert record["float_leading_modules"] == record["float_leading_nodes"] == 0
+    assert record["float_box_logit_nodes"] == 0
+    with pytest.raises(ValueError, match="float leading modules must be 0 to 22"):
+        quantize_int8(
+            fp32, tmp_path / "bad.onnx", calibration_images(dataset, CALIB_COUNT), float_leading_modules=23
+        )
 
 
 def test_int8_metadata_is_carried_over(int8: Path, fp32: Path) -> None:
@@ -266,7 +287,10 @@ def test_int8_metadata_is_carried_over(int8: Path, fp32: Path) -> None:
     quant = json.loads(meta["triscan.quantization"])
     assert quant["format"] == "QDQ" and "per-channel" in quant["weights"]
     assert quant["calibration"] == "minmax" and quant["activations"] == "uint8"
-    assert quant["float_stem_nodes"] >= 2 and quant["float_head_nodes"] > 10
+    assert (
+        quant["float_leading_modules"] == DEFAULT_FLOAT_LEADING_MODULES and quant["float_leading_nodes"] > 10
+    )
+    assert quant["float_box_logit_nodes"] == 3 and quant["float_head_nodes"] > 10
     assert quant["calibration_images"] == CALIB_COUNT
 
 
@@ -294,13 +318,14 @@ def _activation_scales(path: Path) -> dict[str, float]:
     }
 
 
-def test_calibration_method_changes_the_activation_ranges(
-    int8: Path, fp32: Path, dataset: Path, tmp_path: Path
-) -> None:
-    percentile = quantize_int8(
-        fp32, tmp_path / "pc.onnx", calibration_images(dataset, CALIB_COUNT), method="percentile"
+def test_calibration_method_changes_the_activation_ranges(fp32: Path, dataset: Path, tmp_path: Path) -> None:
+    # Only the stem float, so that most tensors are quantised and their ranges can be compared.
+    images = calibration_images(dataset, CALIB_COUNT)
+    percentile, minmax = (
+        quantize_int8(fp32, tmp_path / f"{method}.onnx", images, method=method, float_leading_modules=1)
+        for method in ("percentile", "minmax")
     )
-    a, b = _activation_scales(percentile), _activation_scales(int8)  # the default is MinMax
+    a, b = _activation_scales(percentile), _activation_scales(minmax)
     assert a.keys() == b.keys() and len(a) > 50
     # Percentile clips outliers, so its ranges are never wider than MinMax's and, where a tensor has
     # tails (17 of 218 with this random-weight net and 8 images), narrower. Equal ranges everywhere
@@ -484,14 +509,21 @@ def test_checkpoints_name_their_network(tmp_path: Path) -> None:
 
 def test_int8_recipes_score_every_recipe_beside_fp32_on_the_same_samples(fp32: Path, dataset: Path) -> None:
     scores = compare_recipes(
-        fp32, dataset, methods=["minmax"], split="test", every=1, calib_count=CALIB_COUNT
-    )
-    assert [s.recipe for s in scores] == ["fp32", "minmax, stem int8", "minmax, stem float"]
+        fp32, dataset, methods=["minmax"], float_modules=[1, 3], box_logits=(False, True), split="test",
+        every=1, calib_count=CALIB_COUNT,
+    )  # fmt: skip
+    assert [s.recipe for s in scores] == [
+        "fp32",
+        "minmax, stem float, box logits int8",
+        "minmax, stem float, box logits float",
+        "minmax, modules 0–2 float, box logits int8",
+        "minmax, modules 0–2 float, box logits float",
+    ]
     assert scores[0].delta_map50 == 0.0
     for s in scores[1:]:  # each Δ is its own mAP minus the reference's, not a copied figure
         assert s.delta_map50 == pytest.approx(s.map50 - scores[0].map50, abs=2e-4)
         assert s.worst_class in CLASS_NAMES and 0.0 <= s.worst_class_map50 <= s.map50 + 1e-9 <= 1.0 + 1e-9
     table = format_recipe_table(scores)
-    assert table.count("\n") == 4 and "| minmax, stem float |" in table
+    assert table.count("\n") == 6 and "| minmax, modules 0–2 float, box logits float |" in table
     with pytest.raises(ValueError, match="every"):
         compare_recipes(fp32, dataset, methods=["minmax"], every=0)

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from common.model_spec import SHIPPED_MODEL, model_stem, network_of_stem
-from training.model_card import GridSection, checkpoint_epoch, write_card
+from training.model_card import GridSection, _float_parts_of_int8, checkpoint_epoch, write_card
 
 INT8_MODEL = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
 CLASSES = ("chair", "box", "desk", "doorframe")
@@ -70,7 +70,8 @@ def artefacts(tmp_path: Path, grid_int8: dict[str, float]) -> dict[str, Any]:
         "latency_ms_1_thread": {"fp32": 1.2, "int8": 0.8},
         "calibration_method": "minmax",
         "calibration_images": 200,
-        "float_stem": True,
+        "float_leading_modules": 5,
+        "float_box_logits": True,
     }
     paths = {}
     for name, value in {
@@ -138,7 +139,7 @@ def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path
     text = (tmp_path / "card" / "MODEL_CARD.md").read_text()
     assert card["network"] == "yolov8p" and text.startswith("# Model card: triscan YOLOv8p")
     assert "--noise-sigma 0.01 0.03 --dropout 0 0.1 --spurious 0 0.01 --clutter 3`" in text
-    assert "uint8 activations, minmax ranges from 200 val images, stem and head decode in float |" in text
+    assert "minmax ranges from 200 val images, modules 0–4, box logits, head decode in float |" in text
     assert (
         "`triscan eval --model models/triscan-yolov8p-zero.onnx --model models/triscan-yolov8p-zero-int8.onnx"
         in text
@@ -183,3 +184,22 @@ def test_a_stripped_checkpoint_is_dated_by_the_validation_figures_it_keeps(tmp_p
     torch.save({"epoch": -1}, stripped)
     with pytest.raises(ValueError, match="stripped"):
         checkpoint_epoch(stripped, history)
+
+
+@pytest.mark.parametrize(
+    ("report", "said"),
+    [
+        (
+            {"float_leading_modules": 5, "float_box_logits": True},
+            "modules 0–4, box logits, head decode in float",
+        ),
+        ({"float_leading_modules": 1, "float_box_logits": False}, "stem, head decode in float"),
+        ({"float_leading_modules": 0, "float_box_logits": False}, "head decode in float"),
+        ({"float_stem": True}, "stem and head decode in float"),  # a report from before the leading rule
+        ({}, "head decode in float"),  # and from before the stem rule
+    ],
+)
+def test_the_card_says_what_int8_kept_float_for_old_and_new_reports(
+    report: dict[str, Any], said: str
+) -> None:
+    assert _float_parts_of_int8(report) == said

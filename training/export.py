@@ -24,6 +24,7 @@ from training.onnx_export import dataset_invalid_rule, export_onnx, resolve_padd
 from training.quantization import (
     DEFAULT_CALIB_COUNT,
     DEFAULT_CALIB_METHOD,
+    DEFAULT_FLOAT_LEADING_MODULES,
     ActivationType,
     CalibMethod,
     calibration_images,
@@ -48,7 +49,8 @@ def export_models(
     calib_count: int = DEFAULT_CALIB_COUNT,
     method: CalibMethod = DEFAULT_CALIB_METHOD,
     activation_type: ActivationType = "uint8",
-    keep_stem_float: bool = True,
+    float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
+    keep_box_logits_float: bool = True,
     compare_count: int = 20,
     timing_runs: int = 200,
     box_grid: str = DEFAULT_BOX_GRID,
@@ -92,7 +94,8 @@ def export_models(
         calibration,
         method=method,
         activation_type=activation_type,
-        keep_stem_float=keep_stem_float,
+        float_leading_modules=float_leading_modules,
+        keep_box_logits_float=keep_box_logits_float,
     )
     fp32_batch = add_batch_axis(fp32, batch_variant_path(fp32))
     int8_batch = add_batch_axis(int8, batch_variant_path(int8))
@@ -109,7 +112,8 @@ def export_models(
         "classes": list(CLASS_NAMES),
         "calibration_images": len(calibration),
         "calibration_method": method,
-        "float_stem": keep_stem_float,
+        "float_leading_modules": float_leading_modules,
+        "float_box_logits": keep_box_logits_float,
         "int8_vs_fp32": compare_outputs(fp32, int8, compare),
     }
     log.info("INT8 vs fp32 on %d unseen val images: %s", len(compare), result["int8_vs_fp32"])

@@ -23,6 +23,7 @@ from typing import Any
 from training.quantization import (
     CALIB_METHODS,
     DEFAULT_CALIB_COUNT,
+    DEFAULT_FLOAT_LEADING_MODULES,
     CalibMethod,
     calibration_images,
     quantize_int8,
@@ -43,8 +44,11 @@ class RecipeScore:
     delta_map50: float  # against the fp32 model, in mAP (0.005 = half a point)
 
 
-def recipe_name(method: str, stem_float: bool) -> str:
-    return f"{method}, stem {'float' if stem_float else 'int8'}"
+def recipe_name(method: str, float_leading_modules: int, box_logits_float: bool) -> str:
+    leading = {0: "all modules int8", 1: "stem float"}.get(
+        float_leading_modules, f"modules 0–{float_leading_modules - 1} float"
+    )
+    return f"{method}, {leading}, box logits {'float' if box_logits_float else 'int8'}"
 
 
 def score(
@@ -74,11 +78,14 @@ def compare_recipes(
     dataset_dir: Path,
     *,
     methods: list[CalibMethod],
+    float_modules: list[int] | None = None,
+    box_logits: tuple[bool, ...] = (False, True),
     split: str = "test",
     every: int = 5,
     calib_count: int = DEFAULT_CALIB_COUNT,
 ) -> list[RecipeScore]:
-    """fp32 first, then each method with the stem quantised and float, on every ``every``-th sample."""
+    """fp32 first, then each method × leading float modules × box logits (float or not), on every
+    ``every``-th sample. ``float_modules`` None: none, the stem alone, and the default."""
     from training.evaluate import dataset_samples
 
     if every < 1:
@@ -90,15 +97,17 @@ def compare_recipes(
         reference = score(fp32, "fp32", samples, scratch, None)
         log.info("%s", reference)
         scores = [reference]
+        leading_counts = float_modules if float_modules is not None else [0, 1, DEFAULT_FLOAT_LEADING_MODULES]
         for method in methods:
-            for stem_float in (False, True):
-                name = recipe_name(method, stem_float)
-                model = quantize_int8(
-                    fp32, scratch / f"{method}-{stem_float}.onnx", calibration,
-                    method=method, keep_stem_float=stem_float,
-                )  # fmt: skip
-                scores.append(score(model, name, samples, scratch, reference.map50))
-                log.info("%s", scores[-1])
+            for leading in leading_counts:
+                for box_float in box_logits:
+                    name = recipe_name(method, leading, box_float)
+                    model = quantize_int8(
+                        fp32, scratch / f"{method}-{leading}-{box_float}.onnx", calibration,
+                        method=method, float_leading_modules=leading, keep_box_logits_float=box_float,
+                    )  # fmt: skip
+                    scores.append(score(model, name, samples, scratch, reference.map50))
+                    log.info("%s", scores[-1])
     return scores
 
 
@@ -125,13 +134,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--every", type=int, default=5, help="score every N-th sample of the split")
     parser.add_argument("--calib-count", type=int, default=DEFAULT_CALIB_COUNT)
     parser.add_argument("--methods", nargs="+", choices=CALIB_METHODS, default=["percentile", "minmax"])
+    parser.add_argument(
+        "--float-modules", nargs="+", type=int, default=None,
+        help=f"leading modules kept float, one recipe each (default: 0 1 {DEFAULT_FLOAT_LEADING_MODULES})",
+    )  # fmt: skip
+    parser.add_argument(
+        "--box-logits", nargs="+", choices=("int8", "float"), default=["int8", "float"],
+        help="the box branches' last convs quantised, float, or one recipe each",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="also write the scores as JSON")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("training.quantization").setLevel(logging.WARNING)
     scores = compare_recipes(
-        args.fp32, args.data, methods=args.methods, split=args.split, every=args.every,
-        calib_count=args.calib_count,
+        args.fp32, args.data, methods=args.methods, float_modules=args.float_modules,
+        box_logits=tuple(choice == "float" for choice in args.box_logits), split=args.split,
+        every=args.every, calib_count=args.calib_count,
     )  # fmt: skip
     print(format_recipe_table(scores))
     if args.out is not None:

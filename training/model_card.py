@@ -285,14 +285,25 @@ def _card_json(
     return card
 
 
+def _float_parts_of_int8(export: dict[str, Any]) -> str:
+    """What the INT8 file kept in float, from ``triscan export``'s report (older reports, older rules)."""
+    if "float_leading_modules" in export:
+        leading = int(export["float_leading_modules"])
+        parts = {0: [], 1: ["stem"]}.get(leading, [f"modules 0–{leading - 1}"])
+        parts += ["box logits"] if export.get("float_box_logits") else []
+        return ", ".join([*parts, "head decode"]) + " in float"
+    # Reports from before the leading-modules rule: the stem alone or nothing but the head's decode.
+    return "stem and head decode in float" if export.get("float_stem") else "head decode in float"
+
+
 def _files_section(
     card: dict[str, Any], export: dict[str, Any], test32: dict[str, Any], test8: dict[str, Any]
 ) -> list[str]:
     """The shipped files with their sizes and hashes, and which one the detector should run."""
     fp32, int8 = export["fp32"], export["int8"]
     recipe = f"{export['calibration_method']} ranges from {export['calibration_images']} val images, " + (
-        "stem and head decode in float" if export.get("float_stem") else "head decode in float"
-    )  # reports from before the stem rule lack float_stem: only their head stayed float
+        _float_parts_of_int8(export)
+    )
     return [
         "## Files",
         "",

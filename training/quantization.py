@@ -2,12 +2,19 @@
 
 The INT8 model is ONNX Runtime static quantisation in QDQ format with per-channel weight scales and
 MinMax activation ranges, calibrated on validation PNGs fed through exactly the run-time conversion
-(:func:`common.encoding.to_model_input`). Two ends of the network stay float. The detection head's
+(:func:`common.encoding.to_model_input`). Three parts of the network stay float. The detection head's
 decode tail (DFL softmax, box arithmetic, class sigmoid, the final concat of pixel boxes with 0–1
 scores): one 8-bit scale spanning boxes up to 384 px and scores below 1 rounds scores to a few levels
-(measured: 28 % of candidate detections changed class). And the stem, the first conv block, which
-reads the sparse 0/1 raster at full resolution: quantising it is where a trained pico model lost the
-most (``python -m training.int8_recipes`` compares the recipes by mAP; the card quotes its table).
+(measured: 28 % of candidate detections changed class). The box logits feeding it (the last conv of
+each box branch): the DFL reads a box edge as the softmax-weighted mean of 16 bins, and 8-bit logits
+move that mean, which costs box tightness (mAP@0.5:0.95), not detections. And the leading modules of
+the backbone, which read the sparse 0/1 raster at full resolution: quantising the stem is where a
+trained pico model lost the most mAP@0.5 (24 points with percentile ranges), and the modules after
+it hold most of what INT8 still lost in mAP@0.5:0.95. On the pico's val split
+(``models/yolov8p/int8_recipes_val.json``), with the box logits float: stem alone 0.720, modules
+0–1 0.729, 0–4 0.733, 0–5 0.736, 0–9 0.733, fp32 0.741; so the stem and the stride-8 stage, modules
+0–4, stay float. They are the layers with the fewest channels: no measurable speed cost.
+``python -m training.int8_recipes`` compares the recipes by mAP for any model.
 Whether INT8 ships is decided by evaluation, not here.
 
 Choosing the calibration images lives here as well (:func:`calibration_images`): which frames the
@@ -44,6 +51,8 @@ CALIB_METHODS: tuple[str, ...] = get_args(CalibMethod)
 DEFAULT_CALIB_METHOD: CalibMethod = "minmax"
 ActivationType = Literal["uint8", "int8"]
 ACTIVATION_TYPES: tuple[str, ...] = get_args(ActivationType)
+# Modules 0-4 of Ultralytics' YOLOv8 backbone: the stem and everything down to the stride-8 C2f.
+DEFAULT_FLOAT_LEADING_MODULES = 5
 
 
 # --- calibration data ----------------------------------------------------------------------------------
@@ -127,16 +136,37 @@ def head_decode_nodes(model: Any) -> list[str]:
     return tail
 
 
-def stem_nodes(model: Any) -> list[str]:
-    """Names of the stem's nodes: the first module (``/model.0/``, a conv, its batch norm folded, SiLU).
+def leading_module_nodes(model: Any, count: int) -> list[str]:
+    """Names of the nodes of the network's first ``count`` modules (``/model.0/`` … ``/model.<count-1>/``).
 
-    It is the only layer that sees the raster itself: a few lit pixels per column in a field of zeros,
-    at full resolution. It is a single 3→c conv; with percentile ranges on the trained pico network,
-    keeping it float was the difference between test recall 0.96 and 0.63 (``python -m
-    training.int8_recipes``).
+    Module 0 is the stem, a single 3→c conv, the only layer that sees the raster itself: a few lit
+    pixels per column in a field of zeros. With percentile ranges on the trained pico network, keeping
+    it float was the difference between test recall 0.96 and 0.63; the modules after it, still at
+    high resolution on sparse activations, are the next most sensitive (module docstring). ``count``
+    may reach up to the head, never into it.
     """
-    prefix = f"/model.{min(_module_ids(model))}/"
-    return [n.name for n in model.graph.node if n.name.startswith(prefix)]
+    head = max(_module_ids(model))
+    if not 0 <= count <= head:
+        raise ValueError(
+            f"float leading modules must be 0 to {head} (the head is /model.{head}/), got {count}"
+        )
+    return [
+        n.name for n in model.graph.node if (m := re.match(r"/model\.(\d+)/", n.name)) and int(m[1]) < count
+    ]
+
+
+def box_logit_nodes(model: Any) -> list[str]:
+    """Names of the box branches' last convs in the Detect head (``/model.<head>/cv2.<i>.2/…``).
+
+    Their outputs are the 16-bin distance distributions the DFL decodes into box edges.
+    """
+    prefix = f"/model.{max(_module_ids(model))}/cv2."
+    nodes = [
+        n.name for n in model.graph.node if n.name.startswith(prefix) and re.search(r"cv2\.\d+\.2/", n.name)
+    ]
+    if not nodes:
+        raise ExportError(f"no box-logit convs under {prefix}: not an Ultralytics Detect head")
+    return nodes
 
 
 def _entropy_ranges(model_path: Path, reader: Any, cache: Path, scratch: Path) -> None:
@@ -233,7 +263,9 @@ def _quantization_record(
     activation_type: ActivationType,
     calibration_count: int,
     float_head_nodes: int,
-    float_stem_nodes: int,
+    float_leading_modules: int,
+    float_leading_nodes: int,
+    float_box_logit_nodes: int,
 ) -> str:
     """The ``triscan.quantization`` metadata value: how this INT8 file was made, as sorted JSON."""
     return json.dumps(
@@ -243,8 +275,10 @@ def _quantization_record(
             "activations": activation_type,
             "calibration": f"percentile {PERCENTILE} asymmetric" if method == "percentile" else method,
             "calibration_images": calibration_count,
+            "float_box_logit_nodes": float_box_logit_nodes,
             "float_head_nodes": float_head_nodes,
-            "float_stem_nodes": float_stem_nodes,
+            "float_leading_modules": float_leading_modules,
+            "float_leading_nodes": float_leading_nodes,
             "source_fp32": provenance(fp32_onnx),
         },
         sort_keys=True,
@@ -260,7 +294,8 @@ def quantize_int8(
     method: CalibMethod = DEFAULT_CALIB_METHOD,
     activation_type: ActivationType = "uint8",
     keep_head_float: bool = True,
-    keep_stem_float: bool = True,
+    float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
+    keep_box_logits_float: bool = True,
     preprocess: bool = True,
 ) -> Path:
     """Statically quantise an fp32 ONNX model to INT8 (QDQ) at ``out``.
@@ -281,8 +316,9 @@ def quantize_int8(
     ``python -m training.int8_recipes`` reruns that comparison for any model. ``entropy`` is
     TensorRT's KL search; it clipped too hard on these sparse scans (6 px).
 
-    ``keep_stem_float`` leaves the first conv block float (:func:`stem_nodes`), ``keep_head_float``
-    the head's decode tail (:func:`head_decode_nodes`).
+    ``float_leading_modules`` leaves the first N modules float (:func:`leading_module_nodes`; 1 is the
+    stem alone, 0 quantises it too), ``keep_box_logits_float`` the box branches' last convs
+    (:func:`box_logit_nodes`), ``keep_head_float`` the head's decode tail (:func:`head_decode_nodes`).
 
     ``preprocess`` runs ONNX Runtime's ``quant_pre_process`` (shape inference and graph
     optimisation) first, which its quantiser recommends so that every tensor has a known shape.
@@ -302,12 +338,13 @@ def quantize_int8(
         # Found on the graph actually quantised: pre-processing may fuse or rename nodes.
         graph_in = onnx.load(str(model_in))
         head = head_decode_nodes(graph_in) if keep_head_float else []
-        stem = stem_nodes(graph_in) if keep_stem_float else []
+        leading = leading_module_nodes(graph_in, float_leading_modules)
+        box_logits = box_logit_nodes(graph_in) if keep_box_logits_float else []
         reader = calibration_reader(input_name(graph_in), images)
         model = _quantize_static(
             model_in,
             reader,
-            head + stem,
+            head + leading + box_logits,
             Path(scratch),
             method=method,
             per_channel=per_channel,
@@ -322,18 +359,23 @@ def quantize_int8(
         activation_type=activation_type,
         calibration_count=len(images),
         float_head_nodes=len(head),
-        float_stem_nodes=len(stem),
+        float_leading_modules=float_leading_modules,
+        float_leading_nodes=len(leading),
+        float_box_logit_nodes=len(box_logits),
     )
     set_metadata(model, {f"{META_PREFIX}precision": "int8", f"{META_PREFIX}quantization": quantization})
     save_checked(model, out)
     log.info(
-        "quantised %s → %s (%s, %d calibration images, %d head and %d stem nodes float, %.1f MB, %.1f s)",
+        "quantised %s → %s (%s, %d calibration images, float: %d head, %d box-logit, %d nodes of %d leading"
+        " modules; %.1f MB, %.1f s)",
         fp32_onnx,
         out,
         method,
         len(images),
         len(head),
-        len(stem),
+        len(box_logits),
+        len(leading),
+        float_leading_modules,
         out.stat().st_size / 1e6,
         time.perf_counter() - started,
     )
