@@ -26,6 +26,7 @@ from training.quantization import (
     DEFAULT_FLOAT_LEADING_MODULES,
     CalibMethod,
     calibration_images,
+    float_modules_label,
     quantize_int8,
 )
 
@@ -45,8 +46,8 @@ class RecipeScore:
 
 
 def recipe_name(method: str, float_leading_modules: int, box_logits_float: bool) -> str:
-    leading = {0: "all modules int8", 1: "stem float"}.get(
-        float_leading_modules, f"modules 0–{float_leading_modules - 1} float"
+    leading = (
+        f"{label} float" if (label := float_modules_label(float_leading_modules)) else "all modules int8"
     )
     return f"{method}, {leading}, box logits {'float' if box_logits_float else 'int8'}"
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from common.model_spec import network_of_stem, network_title
+from training.quantization import float_modules_label
 
 log = logging.getLogger(__name__)
 
@@ -288,8 +289,8 @@ def _card_json(
 def _float_parts_of_int8(export: dict[str, Any]) -> str:
     """What the INT8 file kept in float, from ``triscan export``'s report (older reports, older rules)."""
     if "float_leading_modules" in export:
-        leading = int(export["float_leading_modules"])
-        parts = {0: [], 1: ["stem"]}.get(leading, [f"modules 0–{leading - 1}"])
+        leading = float_modules_label(int(export["float_leading_modules"]))
+        parts = [leading] if leading else []
         parts += ["box logits"] if export.get("float_box_logits") else []
         return ", ".join([*parts, "head decode"]) + " in float"
     # Reports from before the leading-modules rule: the stem alone or nothing but the head's decode.

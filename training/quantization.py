@@ -155,6 +155,11 @@ def leading_module_nodes(model: Any, count: int) -> list[str]:
     ]
 
 
+def float_modules_label(count: int) -> str:
+    """How reports name the first ``count`` modules kept float: "" (none), "stem", "modules 0–4"."""
+    return {0: "", 1: "stem"}.get(count, f"modules 0–{count - 1}")
+
+
 def box_logit_nodes(model: Any) -> list[str]:
     """Names of the box branches' last convs in the Detect head (``/model.<head>/cv2.<i>.2/…``).
 
