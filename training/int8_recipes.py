@@ -16,6 +16,7 @@ import argparse
 import json
 import logging
 import tempfile
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,12 @@ from training.quantization import (
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 
+# The recipes compared unless told otherwise: no module, the stem alone and the default kept float,
+# each with the box logits quantised and float.
+RECIPE_FLOAT_MODULES: tuple[int, ...] = (0, 1, DEFAULT_FLOAT_LEADING_MODULES)
+RECIPE_BOX_LOGITS_FLOAT: tuple[bool, ...] = (False, True)
+
+
 @dataclass(frozen=True)
 class RecipeScore:
     """One model's figures on the shared samples; ``recipe`` is ``fp32`` for the reference."""
@@ -46,9 +53,8 @@ class RecipeScore:
 
 
 def recipe_name(method: str, float_leading_modules: int, box_logits_float: bool) -> str:
-    leading = (
-        f"{label} float" if (label := float_modules_label(float_leading_modules)) else "all modules int8"
-    )
+    label = float_modules_label(float_leading_modules)
+    leading = f"{label} float" if label else "all modules int8"
     return f"{method}, {leading}, box logits {'float' if box_logits_float else 'int8'}"
 
 
@@ -79,14 +85,14 @@ def compare_recipes(
     dataset_dir: Path,
     *,
     methods: list[CalibMethod],
-    float_modules: list[int] | None = None,
-    box_logits: tuple[bool, ...] = (False, True),
+    float_modules: Sequence[int] = RECIPE_FLOAT_MODULES,
+    box_logits: Sequence[bool] = RECIPE_BOX_LOGITS_FLOAT,
     split: str = "test",
     every: int = 5,
     calib_count: int = DEFAULT_CALIB_COUNT,
 ) -> list[RecipeScore]:
     """fp32 first, then each method × leading float modules × box logits (float or not), on every
-    ``every``-th sample. ``float_modules`` None: none, the stem alone, and the default."""
+    ``every``-th sample."""
     from training.evaluate import dataset_samples
 
     if every < 1:
@@ -98,9 +104,8 @@ def compare_recipes(
         reference = score(fp32, "fp32", samples, scratch, None)
         log.info("%s", reference)
         scores = [reference]
-        leading_counts = float_modules if float_modules is not None else [0, 1, DEFAULT_FLOAT_LEADING_MODULES]
         for method in methods:
-            for leading in leading_counts:
+            for leading in float_modules:
                 for box_float in box_logits:
                     name = recipe_name(method, leading, box_float)
                     model = quantize_int8(
@@ -136,12 +141,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calib-count", type=int, default=DEFAULT_CALIB_COUNT)
     parser.add_argument("--methods", nargs="+", choices=CALIB_METHODS, default=["percentile", "minmax"])
     parser.add_argument(
-        "--float-modules", nargs="+", type=int, default=None,
-        help=f"leading modules kept float, one recipe each (default: 0 1 {DEFAULT_FLOAT_LEADING_MODULES})",
+        "--float-modules", nargs="+", type=int, default=list(RECIPE_FLOAT_MODULES),
+        help="leading modules kept float, one recipe each (default: %(default)s)",
     )  # fmt: skip
     parser.add_argument(
-        "--box-logits", nargs="+", choices=("int8", "float"), default=["int8", "float"],
-        help="the box branches' last convs quantised, float, or one recipe each",
+        "--box-logits", nargs="+", choices=("int8", "float"),
+        default=["float" if kept else "int8" for kept in RECIPE_BOX_LOGITS_FLOAT],
+        help="the box branches' last convs quantised, float, or one recipe each (default: %(default)s)",
     )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="also write the scores as JSON")
     args = parser.parse_args(argv)

@@ -110,9 +110,17 @@ def calibration_reader(feed_name: str, images: Sequence[Path]) -> Any:
 # --- INT8 quantisation ---------------------------------------------------------------------------------
 
 
+_MODULE_PATH = re.compile(r"/model\.(\d+)/")  # ONNX node names follow Ultralytics module paths
+
+
+def _module_index(node_name: str) -> int | None:
+    """The Ultralytics module index N of a ``/model.N/…`` node name; None for any other node."""
+    return int(m[1]) if (m := _MODULE_PATH.match(node_name)) else None
+
+
 def _module_ids(model: Any) -> list[int]:
-    """The Ultralytics module index N of every ``/model.N/…`` node name (ONNX names follow module paths)."""
-    ids = [int(m.group(1)) for n in model.graph.node if (m := re.match(r"/model\.(\d+)/", n.name))]
+    """The module index of every ``/model.N/…`` node."""
+    ids = [i for n in model.graph.node if (i := _module_index(n.name)) is not None]
     if not ids:
         raise ExportError("no /model.N/ node names: not an Ultralytics YOLO ONNX export")
     return ids
@@ -150,9 +158,7 @@ def leading_module_nodes(model: Any, count: int) -> list[str]:
         raise ValueError(
             f"float leading modules must be 0 to {head} (the head is /model.{head}/), got {count}"
         )
-    return [
-        n.name for n in model.graph.node if (m := re.match(r"/model\.(\d+)/", n.name)) and int(m[1]) < count
-    ]
+    return [n.name for n in model.graph.node if (i := _module_index(n.name)) is not None and i < count]
 
 
 def float_modules_label(count: int) -> str:
