@@ -1,12 +1,14 @@
 """What benchmarks (and the tests of real processes) need around the services: start one by hand,
-read a process's memory, and real scans recorded up front so a timed loop simulates nothing."""
+read a process's memory, real scans recorded up front so a timed loop simulates nothing, and spinning
+processes that keep every CPU awake (``--busy``)."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +33,28 @@ def start_loopback_service(
     return subprocess.Popen(
         command, cwd=Path(__file__).resolve().parents[1], env=child_environment(), **popen_kwargs
     )
+
+
+@contextmanager
+def cpu_spinners(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """``count`` lowest-priority processes spinning for the duration, one per CPU so none idles.
+
+    On a VM an idle vCPU halts, and the thread that must run on it next waits for the hypervisor to
+    wake it: every Zenoh hand-off to a sleeping thread pays that. With the CPUs kept spinning the same
+    work pays no such wake-up, which tells wake-up costs from work per message (``bench.zenoh_rtt
+    --busy``, ``bench.pipeline_latency --busy``). At nice 19 a spinner yields to any other runnable
+    task; it is a diagnostic, never a setting for a robot (it burns every core it covers).
+    """
+    spinners = [
+        subprocess.Popen([sys.executable, "-c", "import os\nos.nice(19)\nwhile True: pass"])
+        for _ in range(count)
+    ]
+    try:
+        yield spinners
+    finally:
+        for spinner in spinners:
+            spinner.kill()
+            spinner.wait()
 
 
 def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:

@@ -21,6 +21,12 @@ the pipeline added to the very frames it measured.
     python -m bench.pipeline_latency --duration 30 --trace trace.csv   # per-frame stage rows too
     python -m bench.pipeline_latency --cfg transport/unicast/lowlatency:true \
         --cfg transport/unicast/qos/enabled:false                    # any zenoh setting, every process
+    python -m bench.pipeline_latency --duration 30 --busy 2      # every CPU kept awake, both phases
+
+``--busy N`` runs N lowest-priority spinning processes through the bare phase and the pipeline phase
+alike (:func:`bench.harness.cpu_spinners`): no CPU ever idles, so no hand-off waits for one to wake.
+What the overhead is then, against the same command without it, is what waking idle CPUs costs the
+pipeline on this machine.
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import proc_status_mb, start_loopback_service
+from bench.harness import cpu_spinners, proc_status_mb, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
@@ -79,6 +85,7 @@ class LatencyReport:
     # frame, free of the drift between the bare phase and the pipeline phase (p50, p99).
     added_per_frame_ms: dict[str, float] = field(default_factory=dict)
     zenoh_cfg: list[str] = field(default_factory=list)  # --cfg entries every process ran with
+    busy_spinners: int = 0  # lowest-priority spinning processes through both phases (--busy)
     bare_threads: int | None = None  # ONNX Runtime threads of the baseline and the detector (None: all)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
     machine: MachineInfo = field(default_factory=machine_info)
@@ -294,7 +301,7 @@ def write_trace(path: Path, latencies: list[float], stages: dict[str, list[float
     path.write_text("\n".join(rows) + "\n")
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=60.0, help="measured seconds (after warm-up)")
     parser.add_argument("--robots", type=int, default=1)
@@ -309,6 +316,12 @@ def main() -> int:
         "--no-shm", action="store_true", help="zenoh shared memory off in every process (the comparison)"
     )
     parser.add_argument(
+        "--busy",
+        type=int,
+        default=0,
+        help="lowest-priority processes spinning through both phases (one per CPU: none idles)",
+    )
+    parser.add_argument(
         "--cfg",
         action="append",
         default=[],
@@ -316,19 +329,21 @@ def main() -> int:
         metavar="KEY:VALUE",
         help="a zenoh config entry for every process, this one included (as the services' --cfg)",
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    report = run(
-        args.robots,
-        args.rate,
-        args.duration,
-        args.from_scans,
-        args.threads,
-        args.model,
-        trace=args.trace,
-        bare_frames=args.bare_frames,
-        zenoh_cfg=(*(NO_SHM if args.no_shm else ()), *args.cfg),
-    )
+    with cpu_spinners(args.busy):
+        report = run(
+            args.robots,
+            args.rate,
+            args.duration,
+            args.from_scans,
+            args.threads,
+            args.model,
+            trace=args.trace,
+            bare_frames=args.bare_frames,
+            zenoh_cfg=(*(NO_SHM if args.no_shm else ()), *args.cfg),
+        )
+    report.busy_spinners = args.busy
     write_report(report, args.out)
     return 0 if report.scans_answered else 1
 

@@ -31,6 +31,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from bench.harness import cpu_spinners
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from services.launcher import free_tcp_ports
@@ -281,21 +282,13 @@ def main(argv: list[str] | None = None) -> int:
     cases = [("zenoh", variant, size) for variant in variants for size in PAYLOADS]
     cases += [("tcp", "-", size) for size in PAYLOADS]
     results = []
-    spinners = [  # --busy: keep the CPUs from idling, to tell wake-up costs from work per message
-        subprocess.Popen([sys.executable, "-c", "import os\nos.nice(19)\nwhile True: pass"])
-        for _ in range(args.busy)
-    ]
-    try:
+    with cpu_spinners(args.busy):  # --busy: tell wake-up costs from work per message
         for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all
             for kind, variant, size in cases:
                 result = run_case(kind, variant, size, args.count, args.rate) | {"round": round_index}
                 log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
                          result["sent"], result["rtt_ms"])  # fmt: skip
                 results.append(result)
-    finally:
-        for spinner in spinners:
-            spinner.kill()
-            spinner.wait()
     summary = median_p50s(results)
     for row in summary:
         log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms", args.rounds, row["kind"],

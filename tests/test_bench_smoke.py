@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -97,6 +98,33 @@ def test_zenoh_rtt_busy_spinners_run_only_while_it_measures(tmp_path: Path) -> N
     report = json.loads(out.read_text())
     assert report["busy_spinners"] == 1 and {r["variant"] for r in report["summary"]} == {"default", "-"}
     assert not [proc for proc in Path("/proc").glob("[0-9]*") if _spins_for_us(proc)]
+
+
+def test_cpu_spinners_spin_at_the_lowest_priority_and_are_gone_after() -> None:
+    from bench.harness import cpu_spinners
+
+    with cpu_spinners(2) as spinners:
+        assert len(spinners) == 2
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and not all(_niceness(s.pid) == 19 for s in spinners):
+            time.sleep(0.05)  # each child lowers its own priority first thing
+        assert [_niceness(s.pid) for s in spinners] == [19, 19]
+        assert all(s.poll() is None for s in spinners)  # still spinning
+    assert all(s.returncode is not None for s in spinners)
+    assert not [proc for proc in Path("/proc").glob("[0-9]*") if _spins_for_us(proc)]
+
+
+def test_pipeline_latency_busy_keeps_the_cpus_awake_through_both_phases(tmp_path: Path) -> None:
+    out = tmp_path / "busy.json"
+    argv = ["--duration", "2", "--bare-frames", "20", "--threads", "1", "--busy", "1", "--out", str(out)]
+    assert pipeline_latency.main(argv) == 0
+    report = json.loads(out.read_text())
+    assert report["busy_spinners"] == 1 and report["scans_answered"] > 0 and report["bare_ms"]["frames"] == 20
+    assert not [proc for proc in Path("/proc").glob("[0-9]*") if _spins_for_us(proc)]
+
+
+def _niceness(pid: int) -> int:
+    return os.getpriority(os.PRIO_PROCESS, pid)
 
 
 def _spins_for_us(proc: Path) -> bool:
