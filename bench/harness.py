@@ -93,6 +93,26 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return totals
 
 
+def thread_wakeups(pid: int) -> dict[str, int]:
+    """Voluntary context switches per thread name of a live process (threads of one name summed).
+
+    A thread switches voluntarily when it blocks (a socket read, a condition, a channel) and counts
+    one when it is woken again: the difference over a timed loop, per message, is how many times each
+    kind of thread was put to sleep and woken to move one message (``bench.zenoh_rtt``).
+    """
+    totals: dict[str, int] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            status = (task / "status").read_text()
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # the thread ended between the listing and the read
+        for line in status.splitlines():
+            if line.startswith("voluntary_ctxt_switches:"):
+                totals[name] = totals.get(name, 0) + int(line.split()[1])
+    return totals
+
+
 def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
     """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
 

@@ -7,7 +7,8 @@ link, so a peer that keeps it on still connects), with the low-latency transport
 callbacks (run on Zenoh's receiving thread instead of being handed to a Python thread), over a Unix
 stream socket instead of TCP, then a plain
 TCP ping-pong between the same two kinds of process. Round trip = two hops. Peers on loopback,
-multicast off.
+multicast off. Each case also counts, per round trip, how often each kind of thread in either process
+slept and was woken (``wakeups_per_round_trip``, from /proc): the hand-offs a message costs.
 
     python -m bench.zenoh_rtt --rounds 3          # → bench/results/zenoh_rtt.json
     python -m bench.zenoh_rtt --delivery          # → bench/results/zenoh_delivery.json
@@ -18,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import socket
 import subprocess
 import sys
@@ -31,7 +33,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from bench.harness import cpu_spinners
+from bench.harness import cpu_spinners, thread_wakeups
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from services.launcher import free_tcp_ports
@@ -54,6 +56,60 @@ DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_
 DELIVERY_SIZES: Final[tuple[int, ...]] = (1_000, 60_000, 73_728)
 DELIVERY_VARIANTS: Final[tuple[str, ...]] = ("default", "noshm", "lowlatency", "lowlatency+noshm")
 DELIVERY_OUT: Final[Path] = DEFAULT_OUT.with_name("zenoh_delivery.json")
+DEFAULT_IDLE_S: Final[float] = 3.0  # the idle window each case's wake-up count subtracts
+
+
+class WakeupCount:
+    """Thread wake-ups per round trip in the ping and the echo process, less their idle wake-ups.
+
+    Each process's voluntary context switches per thread name (:func:`bench.harness.thread_wakeups`)
+    are read over an idle window with both ends connected and no message (Zenoh's runtime threads wake
+    on timers of their own: keep-alives, the shared-memory watchdog) and over the timed loop; the
+    loop's count less the idle rate over the loop's duration, divided by the round trips, is how often
+    each kind of thread slept and was woken to move one message. The ping side includes its own
+    pacing sleep (one a round trip) and its wait for the answer; the echo side is one message in and
+    one out.
+    """
+
+    def __init__(self, echo_pid: int, idle_s: float = DEFAULT_IDLE_S) -> None:
+        self._pids = {"ping": os.getpid(), "echo": echo_pid}
+        self.idle_s = idle_s
+        self._idle_per_s: dict[str, dict[str, float]] = {}
+        self._before: dict[str, dict[str, int]] = {}
+        self._started = 0.0
+        self.per_round_trip: dict[str, dict[str, float]] = {}
+
+    def _snapshot(self) -> dict[str, dict[str, int]]:
+        return {side: thread_wakeups(pid) for side, pid in self._pids.items()}
+
+    @staticmethod
+    def _delta(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+        return {name: count - before.get(name, 0) for name, count in after.items()}
+
+    def start(self) -> None:
+        """Count the idle window (blocks ``idle_s``), then start counting the loop."""
+        self._idle_per_s = {side: {} for side in self._pids}
+        if self.idle_s > 0:  # 0: no idle window, timer wake-ups stay in the count
+            before, started = self._snapshot(), time.monotonic()
+            time.sleep(self.idle_s)
+            after, seconds = self._snapshot(), time.monotonic() - started
+            self._idle_per_s = {
+                side: {name: n / seconds for name, n in self._delta(after[side], before[side]).items()}
+                for side in self._pids
+            }
+        self._before, self._started = self._snapshot(), time.monotonic()
+
+    def stop(self, round_trips: int) -> None:
+        after, seconds = self._snapshot(), time.monotonic() - self._started
+        for side in self._pids:
+            idle = self._idle_per_s[side]
+            loop = self._delta(after[side], self._before[side])
+            per_trip = {
+                name: (n - idle.get(name, 0.0) * seconds) / max(round_trips, 1) for name, n in loop.items()
+            }
+            self.per_round_trip[side] = {
+                name: round(v, 2) for name, v in sorted(per_trip.items()) if round(v, 2) != 0.0
+            }
 
 
 def loopback_endpoint(port: int, unix: bool) -> str:
@@ -113,7 +169,9 @@ def echo(kind: str, variant: str, port: int, stop_after_s: float) -> None:
         sub.undeclare()
 
 
-def ping_zenoh(variant: str, port: int, size: int, count: int, rate_hz: float) -> list[float]:
+def ping_zenoh(
+    variant: str, port: int, size: int, count: int, rate_hz: float, wakeups: WakeupCount | None = None
+) -> list[float]:
     import zenoh
 
     got = threading.Event()
@@ -128,6 +186,8 @@ def ping_zenoh(variant: str, port: int, size: int, count: int, rate_hz: float) -
             pub.put(payload)
             if got.wait(0.2):
                 break
+        if wakeups:
+            wakeups.start()
         for _ in range(count):
             got.clear()
             started = time.perf_counter_ns()
@@ -135,11 +195,15 @@ def ping_zenoh(variant: str, port: int, size: int, count: int, rate_hz: float) -
             if got.wait(2.0):
                 rtts.append((time.perf_counter_ns() - started) / 1e6)
             time.sleep(1.0 / rate_hz)
+        if wakeups:
+            wakeups.stop(count)
         sub.undeclare()
     return rtts
 
 
-def ping_tcp(port: int, size: int, count: int, rate_hz: float) -> list[float]:
+def ping_tcp(
+    port: int, size: int, count: int, rate_hz: float, wakeups: WakeupCount | None = None
+) -> list[float]:
     deadline = time.monotonic() + 10.0
     while True:
         try:
@@ -151,6 +215,8 @@ def ping_tcp(port: int, size: int, count: int, rate_hz: float) -> list[float]:
             time.sleep(0.05)
     conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     payload, rtts = bytes(size), []
+    if wakeups:
+        wakeups.start()
     for _ in range(count):
         started = time.perf_counter_ns()
         conn.sendall(payload)
@@ -159,6 +225,8 @@ def ping_tcp(port: int, size: int, count: int, rate_hz: float) -> list[float]:
             received += len(conn.recv(1 << 17))
         rtts.append((time.perf_counter_ns() - started) / 1e6)
         time.sleep(1.0 / rate_hz)
+    if wakeups:
+        wakeups.stop(count)
     conn.close()
     return rtts
 
@@ -209,34 +277,45 @@ def run_delivery(variant: str, sizes: tuple[int, ...] = DELIVERY_SIZES) -> dict[
     return {"variant": variant, "sent": list(sizes), "delivered": delivered}
 
 
-def run_case(kind: str, variant: str, size: int, count: int, rate_hz: float) -> dict[str, Any]:
+def run_case(
+    kind: str, variant: str, size: int, count: int, rate_hz: float, idle_s: float = DEFAULT_IDLE_S
+) -> dict[str, Any]:
     (port,) = free_tcp_ports(1)
     far = start_echo(kind, variant, port, count / rate_hz + 15)
+    wakeups = WakeupCount(far.pid, idle_s)
     try:
         rtts = (
-            ping_tcp(port, size, count, rate_hz)
+            ping_tcp(port, size, count, rate_hz, wakeups)
             if kind == "tcp"
-            else ping_zenoh(variant, port, size, count, rate_hz)
+            else ping_zenoh(variant, port, size, count, rate_hz, wakeups)
         )
     finally:
         far.kill()
         far.wait()
     warm = np.array(rtts[10:])
     return {"kind": kind, "variant": variant, "bytes": size, "answered": len(rtts), "sent": count,
-            "rtt_ms": latency_quantiles_ms(warm)}  # fmt: skip
+            "rtt_ms": latency_quantiles_ms(warm),
+            "wakeups_per_round_trip": wakeups.per_round_trip}  # fmt: skip
 
 
 def median_p50s(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per case: the median over rounds of its p50 round trip."""
-    p50s: dict[tuple[str, str, int], list[float]] = {}
+    """One row per case: the median over rounds of its p50 round trip and of each side's thread
+    wake-ups per round trip (summed over the side's threads)."""
+    rounds: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
     for result in results:
-        p50s.setdefault((result["kind"], result["variant"], result["bytes"]), []).append(
-            result["rtt_ms"]["p50"]
-        )
-    return [
-        {"kind": kind, "variant": variant, "bytes": size, "median_p50_ms": round(float(np.median(values)), 3)}
-        for (kind, variant, size), values in p50s.items()
-    ]
+        rounds.setdefault((result["kind"], result["variant"], result["bytes"]), []).append(result)
+    rows = []
+    for (kind, variant, size), runs in rounds.items():
+        wakeups = {
+            side: round(float(np.median([sum(r["wakeups_per_round_trip"][side].values()) for r in runs])), 2)
+            for side in ("ping", "echo")
+        }
+        rows.append(
+            {"kind": kind, "variant": variant, "bytes": size,
+             "median_p50_ms": round(float(np.median([r["rtt_ms"]["p50"] for r in runs])), 3),
+             "median_wakeups_per_round_trip": wakeups}
+        )  # fmt: skip
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -244,6 +323,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=int, default=100, help="round trips per case")
     parser.add_argument("--rate", type=float, default=10.0, help="round trips per second (the scan rate)")
     parser.add_argument("--rounds", type=int, default=1, help="times every case runs, in turns")
+    parser.add_argument(
+        "--idle",
+        type=float,
+        default=DEFAULT_IDLE_S,
+        help="seconds of each case's idle window, whose thread wake-ups the per-message count subtracts",
+    )
     parser.add_argument(
         "--busy",
         type=int,
@@ -285,14 +370,17 @@ def main(argv: list[str] | None = None) -> int:
     with cpu_spinners(args.busy):  # --busy: tell wake-up costs from work per message
         for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all
             for kind, variant, size in cases:
-                result = run_case(kind, variant, size, args.count, args.rate) | {"round": round_index}
+                result = run_case(kind, variant, size, args.count, args.rate, args.idle) | {
+                    "round": round_index
+                }
                 log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
                          result["sent"], result["rtt_ms"])  # fmt: skip
                 results.append(result)
     summary = median_p50s(results)
     for row in summary:
-        log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms", args.rounds, row["kind"],
-                 row["variant"], row["bytes"], row["median_p50_ms"])  # fmt: skip
+        log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms, thread wake-ups a round trip %s",
+                 args.rounds, row["kind"], row["variant"], row["bytes"], row["median_p50_ms"],
+                 row["median_wakeups_per_round_trip"])  # fmt: skip
     report = {
         "rate_hz": args.rate,
         "rounds": args.rounds,

@@ -93,7 +93,8 @@ def test_zenoh_rtt_busy_spinners_run_only_while_it_measures(tmp_path: Path) -> N
     from bench import zenoh_rtt
 
     out = tmp_path / "busy.json"
-    argv = ["--count", "12", "--rate", "100", "--variants", "default", "--busy", "1", "--out", str(out)]
+    argv = ["--count", "12", "--rate", "100", "--variants", "default", "--busy", "1", "--idle", "0.5"]
+    argv += ["--out", str(out)]
     assert zenoh_rtt.main(argv) == 0
     report = json.loads(out.read_text())
     assert report["busy_spinners"] == 1 and {r["variant"] for r in report["summary"]} == {"default", "-"}
@@ -243,7 +244,7 @@ def test_zenoh_rtt_bounces_every_payload_through_every_transport(tmp_path: Path)
     from bench import zenoh_rtt
 
     out = tmp_path / "rtt.json"
-    assert zenoh_rtt.main(["--count", "12", "--rate", "100", "--out", str(out)]) == 0
+    assert zenoh_rtt.main(["--count", "12", "--rate", "100", "--idle", "0.5", "--out", str(out)]) == 0
     results = json.loads(out.read_text())["results"]
     cases = {(r["kind"], r["variant"], r["bytes"]) for r in results}
     assert cases == {("zenoh", v, b) for v in zenoh_rtt.VARIANTS for b in zenoh_rtt.PAYLOADS} | {
@@ -252,6 +253,11 @@ def test_zenoh_rtt_bounces_every_payload_through_every_transport(tmp_path: Path)
     assert all(r["answered"] == r["sent"] == 12 and r["rtt_ms"]["p50"] > 0 for r in results)
     summary = json.loads(out.read_text())["summary"]
     assert {(r["kind"], r["variant"], r["bytes"]) for r in summary} == cases and len(summary) == len(cases)
+    # Thread wake-ups per round trip: the TCP echo's one thread sleeps in recv once a message; Zenoh
+    # hands each message between more threads than that.
+    echo = {(r["kind"], r["variant"]): r["median_wakeups_per_round_trip"]["echo"] for r in summary}
+    assert 0.5 <= echo[("tcp", "-")] <= 2.0
+    assert echo[("zenoh", "default")] > echo[("tcp", "-")]
 
 
 def test_dfl_rewrite_times_both_exports_of_one_checkpoint(tmp_path: Path) -> None:
