@@ -7,10 +7,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -19,6 +19,8 @@ from common.messages import Scan
 from common.transport import ZenohSettings
 from services.launcher import child_environment
 from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
+
+T = TypeVar("T")
 
 
 def start_loopback_service(
@@ -39,11 +41,11 @@ def start_loopback_service(
 def cpu_spinners(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
     """``count`` lowest-priority processes spinning for the duration, one per CPU so none idles.
 
-    On a VM an idle vCPU halts, and the thread that must run on it next waits for the hypervisor to
-    wake it: every Zenoh hand-off to a sleeping thread pays that. With the CPUs kept spinning the same
-    work pays no such wake-up, which tells wake-up costs from work per message (``bench.zenoh_rtt
-    --busy``, ``bench.pipeline_latency --busy``). At nice 19 a spinner yields to any other runnable
-    task; it is a diagnostic, never a setting for a robot (it burns every core it covers).
+    On a VM an idle vCPU halts, and a thread woken on it may wait for the hypervisor to run it again.
+    With the CPUs kept spinning the same work pays no such wake-up, which tells wake-up costs from work
+    per message (``bench.zenoh_rtt --busy``, ``bench.pipeline_latency --busy``; bench/README.md has
+    what each showed). At nice 19 a spinner yields to any other runnable task; it is a diagnostic,
+    never a setting for a robot (it burns every core it covers).
     """
     spinners = [
         subprocess.Popen([sys.executable, "-c", "import os\nos.nice(19)\nwhile True: pass"])
@@ -76,6 +78,15 @@ def proc_cpu_s(pid: int) -> float:
     return _stat_cpu_s(Path(f"/proc/{pid}/stat"))
 
 
+def _per_thread(pid: int, read: Callable[[Path], T]) -> Iterator[tuple[str, T]]:
+    """``(comm, read(task dir))`` for each live thread of ``pid``; one that ends meanwhile is skipped."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            yield (task / "comm").read_text().strip(), read(task)
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # the thread ended between the listing and the read
+
+
 def thread_cpu_s(pid: int) -> dict[str, float]:
     """CPU seconds per thread name (``comm``) of a live process, threads of one name summed.
 
@@ -83,14 +94,16 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     Zenoh's runtime threads carry their own names (rx-0, tx-0, net-0, acc-0, app-0).
     """
     totals: dict[str, float] = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            name = (task / "comm").read_text().strip()
-            seconds = _stat_cpu_s(task / "stat")
-        except (FileNotFoundError, ProcessLookupError):
-            continue  # the thread ended between the listing and the read
+    for name, seconds in _per_thread(pid, lambda task: _stat_cpu_s(task / "stat")):
         totals[name] = totals.get(name, 0.0) + seconds
     return totals
+
+
+def _voluntary_switches(task: Path) -> int:
+    for line in (task / "status").read_text().splitlines():
+        if line.startswith("voluntary_ctxt_switches:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"{task}/status has no voluntary_ctxt_switches")
 
 
 def thread_wakeups(pid: int) -> dict[str, int]:
@@ -101,15 +114,8 @@ def thread_wakeups(pid: int) -> dict[str, int]:
     kind of thread was put to sleep and woken to move one message (``bench.zenoh_rtt``).
     """
     totals: dict[str, int] = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            name = (task / "comm").read_text().strip()
-            status = (task / "status").read_text()
-        except (FileNotFoundError, ProcessLookupError):
-            continue  # the thread ended between the listing and the read
-        for line in status.splitlines():
-            if line.startswith("voluntary_ctxt_switches:"):
-                totals[name] = totals.get(name, 0) + int(line.split()[1])
+    for name, switches in _per_thread(pid, _voluntary_switches):
+        totals[name] = totals.get(name, 0) + switches
     return totals
 
 
