@@ -28,32 +28,28 @@ class _Probe(threading.Thread):
         self.slept.set()
         self.release.wait()  # alive until the test has read /proc
 
+    def __enter__(self) -> _Probe:
+        self.start()
+        assert self.named.wait(10.0)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.go.set()
+        self.release.set()
+        self.join(10.0)
+
 
 def test_thread_wakeups_count_each_time_a_named_thread_blocks() -> None:
-    probe = _Probe()
-    probe.start()
-    try:
-        assert probe.named.wait(10.0)
+    with _Probe() as probe:
         before = thread_wakeups(os.getpid())
         probe.go.set()
         assert probe.slept.wait(10.0)
         after = thread_wakeups(os.getpid())
-    finally:
-        probe.go.set()
-        probe.release.set()
-        probe.join(10.0)
     assert "wake-probe" in before
     assert after["wake-probe"] - before["wake-probe"] >= SLEEPS
 
 
 def test_thread_cpu_s_names_the_threads_that_used_it() -> None:
-    probe = _Probe()
-    probe.start()
-    try:
-        assert probe.named.wait(10.0)
+    with _Probe():
         seconds = thread_cpu_s(os.getpid())
-    finally:
-        probe.go.set()
-        probe.release.set()
-        probe.join(10.0)
     assert "wake-probe" in seconds and all(value >= 0.0 for value in seconds.values())
