@@ -281,7 +281,7 @@ def run_case(
     kind: str, variant: str, size: int, count: int, rate_hz: float, idle_s: float = DEFAULT_IDLE_S
 ) -> dict[str, Any]:
     (port,) = free_tcp_ports(1)
-    far = start_echo(kind, variant, port, count / rate_hz + 15)
+    far = start_echo(kind, variant, port, idle_s + count / rate_hz + 15)
     wakeups = WakeupCount(far.pid, idle_s)
     try:
         rtts = (
