@@ -408,6 +408,11 @@ def _add_card(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument("--compare-notes", type=Path, default=None, help="markdown: what the comparison shows")
     p.add_argument(
+        "--compare-curve", type=_network_and_csv, default=None, metavar="NETWORK=RESULTS_CSV",
+        help="another network's results.csv on the same data, e.g. yolov8n=training/checkpoints/"
+        "n_dr_results.csv: its val curve beside this run's, epoch for epoch",
+    )  # fmt: skip
+    p.add_argument(
         "--invalid-ablation", type=Path, default=None,
         help="summary.json of an eval grid with models of each invalid-return rule (sentinel, empty)",
     )  # fmt: skip
@@ -416,8 +421,18 @@ def _add_card(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=_run_card)
 
 
+def _network_and_csv(text: str) -> tuple[str, Path]:
+    """``yolov8n=path/results.csv`` → ("yolov8n", Path): a network's name and its training curve."""
+    network, sep, path = text.partition("=")
+    if not sep or not network or not path:
+        raise argparse.ArgumentTypeError(
+            f"expected NETWORK=RESULTS_CSV (yolov8n=runs/n/results.csv), got {text!r}"
+        )
+    return network, Path(path)
+
+
 def _run_card(args: argparse.Namespace) -> int:
-    from training.model_card import GridSection, write_card
+    from training.model_card import CurveComparison, GridSection, write_card
 
     def notes(path: Path | None) -> str:
         return path.read_text() if path else ""
@@ -460,6 +475,7 @@ def _run_card(args: argparse.Namespace) -> int:
         ablation_notes=notes(args.ablation_notes),
         conditions=args.eval_conditions,
         grids=grids,
+        curves=CurveComparison(*args.compare_curve) if args.compare_curve else None,
     )
     print(f"wrote {args.out}/MODEL_CARD.md (recommended: {card['recommended']})")
     return 0

@@ -10,7 +10,13 @@ from typing import Any
 import pytest
 
 from common.model_spec import SHIPPED_MODEL, model_stem, network_of_stem
-from training.model_card import GridSection, _float_parts_of_int8, checkpoint_epoch, write_card
+from training.model_card import (
+    CurveComparison,
+    GridSection,
+    _float_parts_of_int8,
+    checkpoint_epoch,
+    write_card,
+)
 
 INT8_MODEL = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
 CLASSES = ("chair", "box", "desk", "doorframe")
@@ -40,6 +46,20 @@ def grid_cell(map50: float) -> dict[str, Any]:
     return {"images": 10, "instances": 40, **figures(map50), "per_class_mAP50": dict.fromkeys(CLASSES, map50)}
 
 
+def write_results(path: Path, val_maps: list[tuple[float, float]]) -> Path:
+    """An Ultralytics results.csv, one row per epoch from 1 with its val mAP@0.5 and mAP@0.5:0.95."""
+    columns = ["epoch", "time", "train/box_loss", "metrics/precision(B)", "metrics/recall(B)"]
+    columns += ["metrics/mAP50(B)", "metrics/mAP50-95(B)"]
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        writer.writerows(
+            [epoch, 100 * epoch, 1.0, 0.95, 0.95, map50, map50_95]
+            for epoch, (map50, map50_95) in enumerate(val_maps, start=1)
+        )
+    return path
+
+
 def artefacts(tmp_path: Path, grid_int8: dict[str, float]) -> dict[str, Any]:
     """Data set summary, run directory, export report and evaluations of a pico model pair."""
     import torch
@@ -56,12 +76,7 @@ def artefacts(tmp_path: Path, grid_int8: dict[str, float]) -> dict[str, Any]:
     run = tmp_path / "run"
     (run / "weights").mkdir(parents=True)
     torch.save({"epoch": 1}, run / "weights" / "best.pt")  # 0-based: epoch 2
-    columns = ["epoch", "time", "train/box_loss", "metrics/precision(B)", "metrics/recall(B)"]
-    columns += ["metrics/mAP50(B)", "metrics/mAP50-95(B)"]
-    with (run / "results.csv").open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(columns)
-        writer.writerows([[1, 100, 1.2, 0.9, 0.9, 0.95, 0.6], [2, 200, 1.0, 0.95, 0.95, 0.98, 0.7]])
+    write_results(run / "results.csv", [(0.95, 0.6), (0.98, 0.7)])
     fp32_id, int8_id = "triscan-yolov8p-zero@aaaaaaaaaaaa", "triscan-yolov8p-zero-int8@bbbbbbbbbbbb"
     export = {
         "padding": "zero",
@@ -203,3 +218,46 @@ def test_the_card_says_what_int8_kept_float_for_old_and_new_reports(
     report: dict[str, Any], said: str
 ) -> None:
     assert _float_parts_of_int8(report) == said
+
+
+def test_the_card_sets_the_curve_beside_another_networks_epoch_for_epoch(tmp_path: Path) -> None:
+    # this pico run: epochs 1-2 (0.95 / 0.60, 0.98 / 0.70); YOLOv8n ran one epoch more
+    longer = write_results(tmp_path / "n.csv", [(0.96, 0.62), (0.99, 0.72), (0.995, 0.75)])
+    card = card_of(tmp_path / "behind", {"clean": 0.98}, curves=CurveComparison("yolov8n", longer))
+    text = (tmp_path / "behind" / "card" / "MODEL_CARD.md").read_text()
+    assert "## Against YOLOv8n after the same epochs" in text
+    assert "| 2 | 0.980 | 0.990 | 0.700 | 0.720 |" in text
+    assert (
+        "After 2 epochs, the last both ran: `yolov8p` is 1.00 points of mAP@0.5 behind `yolov8n` (outside"
+        in text
+    )
+    curves = card["curves"]
+    assert curves["last_common_epoch"] == 2 and [row["epoch"] for row in curves["rows"]] == [1, 2]
+    assert curves["map50_gap_points"] == pytest.approx(1.0) and curves[
+        "map50_95_gap_points"
+    ] == pytest.approx(2.0)
+    close = write_results(tmp_path / "close.csv", [(0.95, 0.6), (0.983, 0.69)])
+    card_of(tmp_path / "close", {"clean": 0.98}, curves=CurveComparison("yolov8n", close))
+    assert (
+        "0.30 points of mAP@0.5 behind `yolov8n` (within the 0.5-point goal)"
+        in (tmp_path / "close" / "card" / "MODEL_CARD.md").read_text()
+    )
+
+
+def test_a_curve_without_a_common_epoch_is_refused(tmp_path: Path) -> None:
+    empty = write_results(tmp_path / "none.csv", [])
+    with pytest.raises(ValueError, match="shares no epoch"):
+        card_of(tmp_path, {"clean": 0.98}, curves=CurveComparison("yolov8n", empty))
+    with pytest.raises(FileNotFoundError, match=r"missing\.csv"):
+        card_of(tmp_path / "b", {"clean": 0.98}, curves=CurveComparison("yolov8n", tmp_path / "missing.csv"))
+
+
+@pytest.mark.parametrize("text", ["yolov8n", "=x.csv", "yolov8n="])
+def test_compare_curve_takes_network_equals_csv(text: str) -> None:
+    import argparse
+
+    from services.cli import _network_and_csv
+
+    assert _network_and_csv("yolov8n=runs/n/results.csv") == ("yolov8n", Path("runs/n/results.csv"))
+    with pytest.raises(argparse.ArgumentTypeError, match="NETWORK=RESULTS_CSV"):
+        _network_and_csv(text)

@@ -23,6 +23,7 @@ from training.quantization import float_modules_label
 log = logging.getLogger(__name__)
 
 GATE_MARGIN = 0.05  # the gate sits this far below the gate set's mAP@0.5 measured at export time
+CURVE_GAP_GOAL_POINTS = 0.5  # a lighter network's val mAP@0.5 may trail the larger one's by this much
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -31,10 +32,17 @@ def _read_json(path: Path) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
-def training_history(run_dir: Path) -> list[dict[str, float]]:
-    """results.csv of an Ultralytics run as a list of rows (keys stripped of padding)."""
-    with (run_dir / "results.csv").open() as handle:
+def read_results_csv(path: Path) -> list[dict[str, float]]:
+    """An Ultralytics results.csv as a list of rows (keys stripped of padding)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found")
+    with path.open() as handle:
         return [{k.strip(): float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+
+
+def training_history(run_dir: Path) -> list[dict[str, float]]:
+    """results.csv of an Ultralytics run directory."""
+    return read_results_csv(run_dir / "results.csv")
 
 
 def checkpoint_epoch(weights: Path, history: list[dict[str, float]]) -> int:
@@ -142,6 +150,7 @@ def write_card(
     ablation_notes: str = "",
     conditions: Path | None = None,
     grids: list[GridSection] | None = None,
+    curves: CurveComparison | None = None,
 ) -> dict[str, Any]:
     """Write the card pair into ``out_dir`` and return the JSON half.
 
@@ -149,7 +158,7 @@ def write_card(
     ``conditions`` is the ``summary.json`` of ``triscan eval --fresh N --noise …`` run on this card's
     fp32 and INT8 files: unseen worlds under LiDAR imperfections, which also decide whether INT8 is
     recommended. ``grids`` are further such grids (another network, another invalid-return rule) shown
-    beside them.
+    beside them; ``curves`` sets this run's validation curve beside another network's, epoch for epoch.
     """
     data = _read_json(dataset_dir / "summary.json")
     export = _read_json(export_json)
@@ -172,6 +181,7 @@ def write_card(
         "",
         *_training_section(history, best_epoch, best_row, train_command),
         "",
+        *(curves.lines(history, card["network"]) if curves is not None else []),
         *_test_section(card, test32, test8),
         "",
         *(_conditions_section(card, conditions) if conditions is not None else []),
@@ -182,6 +192,8 @@ def write_card(
     ]
     if grids:
         card["grids"] = {section.title: section.figures() for section in grids}
+    if curves is not None:
+        card["curves"] = curves.figures(history)
     if ablation:
         ablation_lines, card["ablation"] = _ablation_lines(ablation, ablation_command)
         lines += ["", *ablation_lines]
@@ -533,3 +545,78 @@ class GridSection:
             "",
         ]
         return lines
+
+
+_VAL_MAP50, _VAL_MAP50_95 = "metrics/mAP50(B)", "metrics/mAP50-95(B)"
+
+
+@dataclass(frozen=True)
+class CurveComparison:
+    """This run's validation curve beside another network's trained on the same data, epoch for epoch.
+
+    A lighter network is worth shipping only if it stays close to the larger one after the same
+    training: here, within :data:`CURVE_GAP_GOAL_POINTS` of its val mAP@0.5 after the same epochs.
+    Final models alone would compare a converged run with a stopped one, so the card compares the
+    curves at every epoch both ran (Ultralytics' own val figures, one row per epoch of results.csv).
+    """
+
+    network: str  # the other run's network, as files are named: yolov8n
+    results_csv: Path
+
+    def rows(self, history: list[dict[str, float]]) -> list[dict[str, float]]:
+        """One row per epoch both runs have: each run's val mAP@0.5 and mAP@0.5:0.95."""
+        other = {int(row["epoch"]): row for row in read_results_csv(self.results_csv)}
+        return [
+            {
+                "epoch": int(row["epoch"]),
+                "this_map50": row[_VAL_MAP50],
+                "other_map50": other[int(row["epoch"])][_VAL_MAP50],
+                "this_map50_95": row[_VAL_MAP50_95],
+                "other_map50_95": other[int(row["epoch"])][_VAL_MAP50_95],
+            }
+            for row in history
+            if int(row["epoch"]) in other
+        ]
+
+    def figures(self, history: list[dict[str, float]]) -> dict[str, Any]:
+        """The card JSON's copy: every common epoch, and the gaps (other − this, in points) at the last."""
+        rows = self.rows(history)
+        if not rows:
+            raise ValueError(f"{self.results_csv} shares no epoch with this run's results.csv")
+        last = rows[-1]
+        return {
+            "network": self.network,
+            "results_csv": self.results_csv.as_posix(),
+            "last_common_epoch": last["epoch"],
+            "map50_gap_points": round(100 * (last["other_map50"] - last["this_map50"]), 2),
+            "map50_95_gap_points": round(100 * (last["other_map50_95"] - last["this_map50_95"]), 2),
+            "goal_map50_gap_points": CURVE_GAP_GOAL_POINTS,
+            "rows": rows,
+        }
+
+    def lines(self, history: list[dict[str, float]], network: str) -> list[str]:
+        figures = self.figures(history)
+        rows, last = figures["rows"], figures["last_common_epoch"]
+        shown = [row for row in rows if row["epoch"] == 1 or row["epoch"] % 5 == 0 or row["epoch"] == last]
+        this, other = network, self.network  # the short names: table headers stay narrow
+        within = figures["map50_gap_points"] <= CURVE_GAP_GOAL_POINTS
+        return [
+            f"## Against {network_title(other)} after the same epochs",
+            "",
+            f"`{other}` trained on the same data with the same recipe (`{self.results_csv.as_posix()}`), "
+            "val figures per epoch:",
+            "",
+            f"| epoch | {this} mAP@0.5 | {other} mAP@0.5 | {this} mAP@0.5:0.95 | {other} mAP@0.5:0.95 |",
+            "|---:|---:|---:|---:|---:|",
+            *(
+                f"| {row['epoch']} | {row['this_map50']:.3f} | {row['other_map50']:.3f} | "
+                f"{row['this_map50_95']:.3f} | {row['other_map50_95']:.3f} |"
+                for row in shown
+            ),
+            "",
+            f"After {last} epochs, the last both ran: `{this}` is {figures['map50_gap_points']:.2f} "
+            f"points of mAP@0.5 behind `{other}` ({'within' if within else 'outside'} the "
+            f"{CURVE_GAP_GOAL_POINTS:g}-point goal); in mAP@0.5:0.95 it is "
+            f"{figures['map50_95_gap_points']:.2f} points behind (a negative figure: ahead).",
+            "",
+        ]
