@@ -24,6 +24,9 @@ log = logging.getLogger(__name__)
 
 GATE_MARGIN = 0.05  # the gate sits this far below the gate set's mAP@0.5 measured at export time
 CURVE_GAP_GOAL_POINTS = 0.5  # a lighter network's val mAP@0.5 may trail the larger one's by this much
+# results.csv's validation columns (Ultralytics' names; B: boxes)
+_VAL_MAP50, _VAL_MAP50_95 = "metrics/mAP50(B)", "metrics/mAP50-95(B)"
+_VAL_PRECISION, _VAL_RECALL = "metrics/precision(B)", "metrics/recall(B)"
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -59,7 +62,7 @@ def checkpoint_epoch(weights: Path, history: list[dict[str, float]]) -> int:
     if epoch >= 1:
         return epoch
     held = checkpoint.get("train_metrics") or {}
-    keys = ("metrics/mAP50(B)", "metrics/mAP50-95(B)", "metrics/precision(B)", "metrics/recall(B)")
+    keys = (_VAL_MAP50, _VAL_MAP50_95, _VAL_PRECISION, _VAL_RECALL)
     matches = [int(row["epoch"]) for row in history if held and all(row.get(k) == held.get(k) for k in keys)]
     if len(matches) != 1:
         raise ValueError(
@@ -168,6 +171,8 @@ def write_card(
     best_epoch = checkpoint_epoch(run_dir / "weights" / "best.pt", history)
     best_row = next(r for r in history if int(r["epoch"]) == best_epoch)
     card = _card_json(export, test32, test8, gate_metrics, gate, history, best_epoch, grid)
+    grid_figures = {section.title: section.figures() for section in grids or []}
+    curve_figures = curves.figures(history) if curves is not None else None
     lines = [
         f"# Model card: triscan {network_title(card['network'])} (`{card['files']['fp32']}`)",
         "",
@@ -181,19 +186,23 @@ def write_card(
         "",
         *_training_section(history, best_epoch, best_row, train_command),
         "",
-        *(curves.lines(history, card["network"]) if curves is not None else []),
+        *(
+            curves.lines(curve_figures, card["network"])
+            if curves is not None and curve_figures is not None
+            else []
+        ),
         *_test_section(card, test32, test8),
         "",
         *(_conditions_section(card, conditions) if conditions is not None else []),
-        *(line for section in grids or [] for line in section.lines()),
+        *(line for section in grids or [] for line in section.lines(grid_figures[section.title])),
         *_latency_section(export, test32),
         "",
         *_gate_section(card, gate, gate_metrics),
     ]
-    if grids:
-        card["grids"] = {section.title: section.figures() for section in grids}
-    if curves is not None:
-        card["curves"] = curves.figures(history)
+    if grid_figures:
+        card["grids"] = grid_figures
+    if curve_figures is not None:
+        card["curves"] = curve_figures
     if ablation:
         ablation_lines, card["ablation"] = _ablation_lines(ablation, ablation_command)
         lines += ["", *ablation_lines]
@@ -395,15 +404,15 @@ def _training_section(
         f"`{train_command}`",
         "",
         f"Epochs run: {len(history)}; shipped epoch: **{best_epoch}** (best val mAP@0.5:0.95, Ultralytics' "
-        f"fitness: {best_row['metrics/mAP50-95(B)']:.3f}, val mAP@0.5 {best_row['metrics/mAP50(B)']:.3f}). "
+        f"fitness: {best_row[_VAL_MAP50_95]:.3f}, val mAP@0.5 {best_row[_VAL_MAP50]:.3f}). "
         f"Training wall time: {training_wall_time_s(history) / 3600:.2f} h on "
         f"{platform.machine()} CPU, {os.cpu_count()} cores, shared with other work (device: cpu).",
         "",
         "| epoch | train box loss | val P | val R | val mAP@0.5 | val mAP@0.5:0.95 |",
         "|---:|---:|---:|---:|---:|---:|",
         *(
-            f"| {int(r['epoch'])} | {r['train/box_loss']:.3f} | {r['metrics/precision(B)']:.3f} | "
-            f"{r['metrics/recall(B)']:.3f} | {r['metrics/mAP50(B)']:.3f} | {r['metrics/mAP50-95(B)']:.3f} |"
+            f"| {int(r['epoch'])} | {r['train/box_loss']:.3f} | {r[_VAL_PRECISION]:.3f} | "
+            f"{r[_VAL_RECALL]:.3f} | {r[_VAL_MAP50]:.3f} | {r[_VAL_MAP50_95]:.3f} |"
             for r in history
         ),
     ]
@@ -523,8 +532,8 @@ class GridSection:
             },
         }
 
-    def lines(self) -> list[str]:
-        grid = _read_json(self.summary)
+    def lines(self, grid: dict[str, Any]) -> list[str]:
+        """The card's section, from this grid's :meth:`figures`."""
         stems = list(grid["models"])
         lines = [f"## {self.title}", ""]
         if self.intro.strip():
@@ -545,9 +554,6 @@ class GridSection:
             "",
         ]
         return lines
-
-
-_VAL_MAP50, _VAL_MAP50_95 = "metrics/mAP50(B)", "metrics/mAP50-95(B)"
 
 
 @dataclass(frozen=True)
@@ -594,8 +600,8 @@ class CurveComparison:
             "rows": rows,
         }
 
-    def lines(self, history: list[dict[str, float]], network: str) -> list[str]:
-        figures = self.figures(history)
+    def lines(self, figures: dict[str, Any], network: str) -> list[str]:
+        """The card's section, from :meth:`figures`; ``network`` is this card's."""
         rows, last = figures["rows"], figures["last_common_epoch"]
         shown = [row for row in rows if row["epoch"] == 1 or row["epoch"] % 5 == 0 or row["epoch"] == last]
         this, other = network, self.network  # the short names: table headers stay narrow
