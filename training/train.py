@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 DIVERGENCE_RATIO = 0.5
 DIVERGENCE_EPOCHS = 2
 DIVERGENCE_MIN_BEST = 0.3  # only judge runs that have learnt something
+LR0 = 0.001  # AdamW's initial learning rate (the paper's)
 
 
 @dataclass(frozen=True)
@@ -125,9 +126,13 @@ def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
         "scale": 0.0,
         "erasing": 0.0,
         "optimizer": "AdamW",
-        "lr0": 0.001,
+        "lr0": LR0,
         "cos_lr": True,
-        "pretrained": False,
+        # Ultralytics trains a loaded model from its yaml, discarding the weights, when this is False.
+        "pretrained": config.init is not None,
+        # Warm-up runs biases at 0.1, a rate meant for SGD from random weights; with AdamW it walks a
+        # fine-tune's trained biases far off in the first hundred steps, so a fine-tune keeps lr0.
+        **({"warmup_bias_lr": LR0} if config.init is not None else {}),
         "amp": device != "cpu",  # AMP is a GPU feature; on the CPU it only triggers a download check
         "project": str(config.out.parent.resolve()),
         "name": config.out.name,
