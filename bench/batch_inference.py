@@ -27,15 +27,12 @@ from bench.machine import MachineInfo, machine_info
 from bench.report import write_report
 from common.encoding import to_model_input
 from common.inference import session_options
+from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
 from services.encoder.core import EncoderCore
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-ROOT = Path(__file__).resolve().parents[1]
-MODELS = (
-    ROOT / "models" / "triscan-yolov8n-zero-batch.onnx",
-    ROOT / "models" / "triscan-yolov8n-zero-int8-batch.onnx",
-)
+MODELS = (batch_variant_path(SHIPPED_FP32_MODEL), batch_variant_path(SHIPPED_INT8_MODEL))
 FRAMES = 64  # distinct real frames; batches are cut from them in turn
 
 

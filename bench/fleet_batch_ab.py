@@ -22,19 +22,13 @@ from bench import fleet_capacity
 from bench.fleet_ab import run_rounds, summary
 from bench.machine import machine_info
 from bench.report import write_report
+from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-ROOT = Path(__file__).resolve().parents[1]
 MODELS = {
-    "fp32": (
-        ROOT / "models" / "triscan-yolov8n-zero.onnx",
-        ROOT / "models" / "triscan-yolov8n-zero-batch.onnx",
-    ),
-    "int8": (
-        ROOT / "models" / "triscan-yolov8n-zero-int8.onnx",
-        ROOT / "models" / "triscan-yolov8n-zero-int8-batch.onnx",
-    ),
+    "fp32": (SHIPPED_FP32_MODEL, batch_variant_path(SHIPPED_FP32_MODEL)),
+    "int8": (SHIPPED_INT8_MODEL, batch_variant_path(SHIPPED_INT8_MODEL)),
 }
 
 

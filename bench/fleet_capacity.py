@@ -37,6 +37,7 @@ from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, decode_message, encode_message
+from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports, stop_processes
 
@@ -277,9 +278,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per step")
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="detector inference threads")
-    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
     parser.add_argument(
-        "--batch", type=int, default=1, help="detector --batch (above 1: default model is the -batch fp32)"
+        "--model",
+        type=Path,
+        default=None,
+        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
+    )
+    parser.add_argument(
+        "--batch", type=int, default=1, help="detector --batch (above 1: the default model's -batch file)"
     )
     parser.add_argument("--threads", type=int, default=None, help="detector --threads per worker")
     parser.add_argument(
@@ -341,9 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
         "from_scans": args.from_scans,
-        "model": str(
-            args.model or f"default ({'fp32 -batch' if args.detector_defaults or args.batch > 1 else 'fp32'})"
-        ),
+        "model": str(args.model or default_model_path(batched=args.detector_defaults or args.batch > 1).name),
         "seconds_per_step": args.seconds,
         "machine": asdict(machine_info()),
         "steps": [asdict(s) for s in steps],

@@ -61,11 +61,11 @@ from bench.occupancy_grid import (
 from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
 from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector
+from common.model_spec import MODELS_DIR, SHIPPED_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
 
 ROOT: Final[Path] = Path(__file__).resolve().parents[1]
 DEFAULT_OUT: Final[Path] = ROOT / "bench" / "results" / "frame_latency.json"
 DEFAULT_CACHE: Final[Path] = ROOT / "runs" / "bench_cache"
-MODELS: Final[Path] = ROOT / "models"
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -120,9 +120,9 @@ class BenchConfig:
     paper_warmup: int = 1
     threads: tuple[int, ...] = (1, os.cpu_count() or 1)
     seed: int = 1
-    fp32_model: Path = MODELS / "triscan-yolov8n-zero.onnx"
-    int8_model: Path = MODELS / "triscan-yolov8n-zero-int8.onnx"
-    pt_model: Path = MODELS / "triscan-yolov8n-zero.pt"  # the paper's runtime: its network, Ultralytics
+    fp32_model: Path = SHIPPED_FP32_MODEL
+    int8_model: Path = SHIPPED_INT8_MODEL
+    pt_model: Path = SHIPPED_CHECKPOINT  # the paper's runtime: its network (YOLOv8n), Ultralytics
     # Ultralytics on the same network as fp32_model (its .pt beside it), when that is not pt_model's
     same_network_pt: Path | None = None
     default: str = "fp32"  # which triscan file the detector runs by default (the card's recommendation)
@@ -527,7 +527,7 @@ def _existing(path: Path) -> Path | None:
 
 def _card_recommendation() -> str:
     """The file the shipped card recommends for the detector (``fp32`` without a card)."""
-    card = MODELS / "MODEL_CARD.json"
+    card = MODELS_DIR / "MODEL_CARD.json"
     return str(json.loads(card.read_text()).get("recommended", "fp32")) if card.is_file() else "fp32"
 
 

@@ -157,7 +157,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=200, help="frames per path and pacing")
     parser.add_argument("--rate", type=float, default=10.0, help="paced frames per second")
-    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     args = parser.parse_args(argv)
     if args.frames < 1 or args.rate <= 0:

@@ -308,7 +308,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--from-scans", action="store_true", help="encoder + detector in one process")
     parser.add_argument("--threads", type=int, default=None, help="detector ONNX Runtime threads")
-    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     parser.add_argument("--trace", type=Path, default=None, help="also write per-frame stage times (CSV)")
     parser.add_argument("--bare-frames", type=int, default=300, help="frames of the bare-network baseline")

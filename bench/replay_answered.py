@@ -267,7 +267,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", type=Path, default=None, help="a bag to replay (default: simulate one)")
     parser.add_argument("--scans", type=int, default=300, help="scans of the simulated 10 Hz bag")
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed (1: recorded pace)")
-    parser.add_argument("--model", type=Path, default=None, help="detector model (default: the shipped fp32)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
+    )
     parser.add_argument(
         "--connect", default=None, metavar="ENDPOINT", help="an already running detector's Zenoh endpoint"
     )

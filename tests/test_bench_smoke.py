@@ -17,6 +17,7 @@ from bench import (
     pipeline_latency,
     robot_footprint,
 )
+from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
@@ -195,7 +196,7 @@ def test_robot_footprint_reports_both_deployments(tmp_path: Path) -> None:
     report = json.loads(out.read_text())
     assert set(report["peak_rss_mb"]["encoder + detector (2 processes)"]) == {"encoder", "detector"}
     assert set(report["peak_rss_mb"]["detector --from-scans (1 process)"]) == {"detector"}
-    assert "triscan-yolov8n-zero.onnx" in report["model_files_mb"]
+    assert {SHIPPED_FP32_MODEL.name, SHIPPED_INT8_MODEL.name} <= set(report["model_files_mb"])
 
 
 def test_batch_inference_reports_per_image_cost_for_each_batch(tmp_path: Path) -> None:
@@ -208,7 +209,7 @@ def test_batch_inference_reports_per_image_cost_for_each_batch(tmp_path: Path) -
     assert [(r["model"], r["threads"], r["batch"]) for r in rows] == [
         (model, 1, batch) for model in report["models"] for batch in (1, 2)
     ]
-    assert report["models"] == ["triscan-yolov8n-zero-batch.onnx", "triscan-yolov8n-zero-int8-batch.onnx"]
+    assert report["models"] == [batch_variant_path(m).name for m in (SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL)]
     assert rows[0]["speedup_per_image"] == 1.0 and all(r["ms_per_image"] > 0 for r in rows)
 
 

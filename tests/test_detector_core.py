@@ -12,14 +12,15 @@ import pytest
 from common.inference import OnnxDetector
 from common.keys import tensor_key
 from common.messages import Detections, StackedTensor, decode_message, encode_message
+from common.model_spec import SHIPPED_FP32_MODEL, batch_variant_path
 from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
 from services.encoder.core import EncoderCore
 from tests.scan_replay import replay_scans
 from tests.waiting import wait_for
 from training.evaluate import box_iou
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "triscan-yolov8n-zero.onnx"
-BATCH_MODEL = MODEL.with_name("triscan-yolov8n-zero-batch.onnx")
+MODEL = SHIPPED_FP32_MODEL
+BATCH_MODEL = batch_variant_path(MODEL)
 
 
 @pytest.fixture(scope="module")

@@ -254,7 +254,7 @@ def test_fresh_worlds_with_clutter_are_the_same_worlds_with_unlabelled_things_in
 @pytest.mark.slow
 def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_path: Path) -> None:
     """`triscan eval --model A --model B --noise clean drop5`: one grid, identical worlds per cell."""
-    from common.model_spec import SHIPPED_MODEL
+    from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
     from services.cli import main as cli_main
     from training.offline import configure_offline
 
@@ -263,41 +263,37 @@ def test_eval_scores_every_model_under_every_condition_on_the_same_worlds(tmp_pa
 
     from training.onnx_model import set_metadata
 
-    int8 = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
+    fp32, int8 = SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
     # the same network declaring the other invalid-return rule: it must be fed tensors made that way
-    relabelled = onnx.load(SHIPPED_MODEL)
+    relabelled = onnx.load(fp32)
     set_metadata(relabelled, {"triscan.invalid": "empty"})
     empty_rule = tmp_path / "triscan-empty-rule.onnx"
     onnx.save(relabelled, empty_rule)
     out = tmp_path / "grid"
-    argv = ["eval", "--model", str(SHIPPED_MODEL), "--model", str(int8), "--fresh", "1", "--positions", "3"]
+    argv = ["eval", "--model", str(fp32), "--model", str(int8), "--fresh", "1", "--positions", "3"]
     argv += ["--model", str(empty_rule)]
     assert cli_main([*argv, "--seed", "4242", "--noise", "clean", "dropout=0.1", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["worlds"]["clutter"] == 0 and set(summary["box_grid"].values()) == {"none"}
+    # each model's own box rounding: the shipped model's card says `pixel`, and the copy keeps it
+    assert summary["worlds"]["clutter"] == 0 and set(summary["box_grid"].values()) == {"pixel"}
     assert list(summary["results"]) == ["clean", "dropout=0.1"]
     cells = [cell for row in summary["results"].values() for cell in row.values()]
     assert len(cells) == 6 and len({cell["images"] for cell in cells}) == 1 and cells[0]["images"] > 0
     summary_images = cells[0]["images"]  # the same worlds, with or without clutter
-    assert list(summary["results"]["dropout=0.1"]) == [SHIPPED_MODEL.stem, int8.stem, empty_rule.stem]
+    assert list(summary["results"]["dropout=0.1"]) == [fp32.stem, int8.stem, empty_rule.stem]
     for condition in ("clean", "dropout=0.1"):
-        for stem in (SHIPPED_MODEL.stem, int8.stem, empty_rule.stem):
+        for stem in (fp32.stem, int8.stem, empty_rule.stem):
             metrics = json.loads((out / condition / stem / "metrics.json").read_text())
             assert metrics["source"].endswith(f"noise={condition}") and metrics["model_id"].startswith(stem)
     # several conditions need simulated worlds; a bad condition fails before anything is simulated
-    assert (
-        cli_main(
-            ["eval", "--model", str(SHIPPED_MODEL), "--data", str(tmp_path), "--noise", "clean", "drop5"]
-        )
-        == 2
-    )
+    assert cli_main(["eval", "--model", str(fp32), "--data", str(tmp_path), "--noise", "clean", "drop5"]) == 2
     assert cli_main([*argv, "--noise", "clean", "bogus", "--out", str(tmp_path / "bad")]) == 2
-    assert cli_main(["eval", "--model", str(SHIPPED_MODEL), "--data", str(tmp_path), "--clutter", "2"]) == 2
-    one = ["eval", "--model", str(SHIPPED_MODEL), "--fresh", "1", "--positions", "3", "--seed", "4242"]
-    assert cli_main([*one, "--clutter", "2", "--box-grid", "pixel", "--out", str(tmp_path / "clutter")]) == 0
+    assert cli_main(["eval", "--model", str(fp32), "--data", str(tmp_path), "--clutter", "2"]) == 2
+    one = ["eval", "--model", str(fp32), "--fresh", "1", "--positions", "3", "--seed", "4242"]
+    assert cli_main([*one, "--clutter", "2", "--box-grid", "none", "--out", str(tmp_path / "clutter")]) == 0
     metrics = json.loads((tmp_path / "clutter" / "metrics.json").read_text())
     assert ",clutter=2,noise=clean" in metrics["source"] and metrics["images"] == summary_images
-    assert metrics["box_grid"] == "pixel"
+    assert metrics["box_grid"] == "none"  # asked for, over the model's own `pixel`
     # a data set of the other rule is refused, not silently misread
     (tmp_path / "summary.json").write_text(json.dumps({"config": {"invalid": "sentinel"}}))
     assert cli_main(["eval", "--model", str(empty_rule), "--data", str(tmp_path)]) == 2

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from common.model_spec import SHIPPED_MODEL
 from services.launcher import SERVICES, UpConfig, free_tcp_ports, service_commands
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -45,7 +46,7 @@ def test_viewer_choices() -> None:
 
 def test_encoder_padding_and_invalid_rule_follow_the_model(tmp_path: Path) -> None:
     onnx = pytest.importorskip("onnx")
-    model = onnx.load(str(MODELS / "triscan-yolov8n-zero.onnx"))
+    model = onnx.load(str(SHIPPED_MODEL))
     for prop in model.metadata_props:
         if prop.key == "triscan.padding":
             prop.value = "wrap"
@@ -71,7 +72,7 @@ def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything
     assert flag_values(service_commands(UpConfig(viewer="none"), ports, None)["detector"], "--batch") == []
     batched = service_commands(UpConfig(viewer="none", batch=8), ports, None)["detector"]
     assert flag_values(batched, "--batch") == ["8"] and flag_values(batched, "--model") == []
-    fixed = MODELS / "triscan-yolov8n-zero.onnx"
+    fixed = SHIPPED_MODEL
     with pytest.raises(ValueError, match="free batch axis"):
         up(UpConfig(viewer="none", batch=4, model=fixed), threading.Event())
     with pytest.raises(ValueError, match="--batch must be >= 1"):

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from common.model_spec import SHIPPED_MODEL, model_stem, network_of_stem
+from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, model_stem, network_of_stem
 from training.model_card import (
     CurveComparison,
     GridSection,
@@ -18,7 +18,6 @@ from training.model_card import (
     write_card,
 )
 
-INT8_MODEL = SHIPPED_MODEL.with_name(f"{SHIPPED_MODEL.stem}-int8.onnx")
 CLASSES = ("chair", "box", "desk", "doorframe")
 
 
@@ -169,8 +168,8 @@ def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path
 
 
 def test_network_of_a_model_file() -> None:
-    assert network_of_stem(SHIPPED_MODEL.stem) == "yolov8n"
-    assert network_of_stem(INT8_MODEL.stem) == "yolov8n"
+    assert network_of_stem(SHIPPED_FP32_MODEL.stem) == "yolov8n"
+    assert network_of_stem(SHIPPED_INT8_MODEL.stem) == "yolov8n"
     assert network_of_stem("triscan-yolov8p-zero-int8-batch") == "yolov8p"
     assert network_of_stem("triscan-yolov8p-relu-wrap-int8") == "yolov8p-relu"
     assert model_stem("yolov8p", "zero") == "triscan-yolov8p-zero"

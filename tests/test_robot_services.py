@@ -22,6 +22,7 @@ import pytest
 from bench.harness import start_loopback_service
 from common.keys import DETECTIONS, TENSOR, scan_key, service_stats_key, wildcard_key
 from common.messages import Detections, StackedTensor, decode_message, encode_message
+from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports
 from tests.scan_replay import replay_scans
@@ -202,7 +203,7 @@ def test_detector_from_scans_with_two_workers_serves_in_order_and_forgets_silent
 
 
 def test_detector_refuses_a_batch_its_model_cannot_run() -> None:
-    fixed = ROOT / "models" / "triscan-yolov8n-zero.onnx"
+    fixed = SHIPPED_MODEL
     result = subprocess.run(
         [sys.executable, "-m", "services.detector", "--batch", "4", "--model", str(fixed), "--no-multicast"],
         cwd=ROOT,
@@ -211,4 +212,4 @@ def test_detector_refuses_a_batch_its_model_cannot_run() -> None:
         timeout=60,
     )
     assert result.returncode == 2
-    assert "free batch axis" in result.stderr and "triscan-yolov8n-zero-batch.onnx" in result.stderr
+    assert "free batch axis" in result.stderr and SHIPPED_BATCH_MODEL.name in result.stderr
