@@ -30,8 +30,9 @@ from tests.waiting import wait_for
 rerun_chunk = pytest.importorskip("rerun.chunk")
 
 ROOT = Path(__file__).resolve().parents[1]
-DURATION_S = 24
+DURATION_S = 40  # the launcher's run; a slow 2-core CI host spends 10-20 s of it starting four processes
 WARM_UP_S = 6.0  # model load, peers connecting, first two scans of each FIFO
+MIN_JUDGED_S = 8.0  # scans must have flowed at least this long after warm-up for the rates to mean anything
 ROBOTS = 2
 
 
@@ -82,7 +83,12 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
         "--listen",
         f"tcp/127.0.0.1:{port}",
     ]
-    launcher = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    launcher = subprocess.Popen(
+        command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    lines: list[str] = []  # read all along, so a failed wait can show what the services said
+    reader = threading.Thread(target=lambda: lines.extend(iter(launcher.stdout.readline, "")), daemon=True)
+    reader.start()
     example = subprocess.Popen(
         [
             sys.executable,
@@ -104,7 +110,8 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
             ]
             # Every robot answered, then one stats period so each service has published its counters.
             every_robot = {f"robot{i}" for i in range(ROBOTS)}
-            assert wait_for(lambda: log.robots_answered() == every_robot, timeout=DURATION_S)
+            answered_all = wait_for(lambda: log.robots_answered() == every_robot, timeout=DURATION_S)
+            assert answered_all, f"answered {sorted(log.robots_answered())}: " + "".join(lines)[-4000:]
             assert wait_for(lambda: len(log.detections) >= 20 * ROBOTS, timeout=DURATION_S)
             status = subprocess.run(
                 [sys.executable, "-m", "services.cli", "status", "--json", "-e", f"tcp/127.0.0.1:{port}"],
@@ -113,7 +120,8 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
                 text=True,
                 timeout=60,
             )
-            output, _ = launcher.communicate(timeout=DURATION_S + 60)
+            launcher.wait(timeout=DURATION_S + 60)
+            reader.join(10)
             for sub in subs:
                 sub.undeclare()
         example_output, _ = example.communicate(timeout=10)
@@ -121,7 +129,7 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
         for process in (launcher, example):
             if process.poll() is None:
                 process.kill()
-    text = output.decode(errors="replace")
+    text = "".join(lines)
     assert launcher.returncode == 0, text[-4000:]
     assert "all services up" in text, text[-4000:]
     # The example app (zenoh + msgpack only) joined through the launcher's endpoint and printed 5.
@@ -131,9 +139,12 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
     first = min(log.scans.values())
     last = max(log.scans.values())
     # Scans published after warm-up and early enough that their detections had time to come back.
+    judged_s = (last - 1.0) - (first + WARM_UP_S)
     judged = [key for key, t in log.scans.items() if first + WARM_UP_S <= t <= last - 1.0]
+    assert judged_s >= MIN_JUDGED_S, f"scans flowed for only {judged_s + WARM_UP_S + 1.0:.1f} s"
     assert {robot for robot, _ in judged} == {f"robot{i}" for i in range(ROBOTS)}
-    assert len(judged) >= ROBOTS * 10 * (DURATION_S - WARM_UP_S - 8)  # ~10 Hz per robot got through
+    # ~10 Hz per robot got through (a loaded 2-core host may lag: 60 % of the nominal rate).
+    assert len(judged) >= 0.6 * ROBOTS * 10 * judged_s, f"{len(judged)} scans in {judged_s:.1f} s"
     answered = [key for key in judged if key in log.detections]
     assert len(answered) >= 0.9 * len(judged), f"{len(answered)}/{len(judged)} scans got detections"
     services = {s["service"]: s for s in json.loads(status.stdout)}
