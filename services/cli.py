@@ -210,6 +210,11 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         help="quantise the box branches' last convs too (default: float, for box tightness)",
     )  # fmt: skip
     p.add_argument(
+        "--float-head-convs", action="store_true",
+        help="keep every conv of the Detect head float (box and class branches): tighter INT8 boxes, "
+        "about a quarter more time per frame",
+    )  # fmt: skip
+    p.add_argument(
         "--activations",
         choices=ACTIVATION_TYPES,
         default="uint8",
@@ -256,6 +261,7 @@ def _run_export(args: argparse.Namespace) -> int:
         activation_type=args.activations,
         float_leading_modules=args.float_modules,
         keep_box_logits_float=not args.quantize_box_logits,
+        keep_head_convs_float=args.float_head_convs,
         compare_count=args.compare_count,
         timing_runs=args.timing_runs,
         box_grid=args.box_grid,

@@ -33,6 +33,7 @@ from training.quantization import (
     box_logit_nodes,
     calibration_images,
     calibration_reader,
+    head_conv_nodes,
     head_decode_nodes,
     leading_module_nodes,
     quantize_int8,
@@ -273,6 +274,20 @@ def test_int8_keeps_the_leading_modules_and_box_logits_float_unless_asked(
     record = json.loads(onnx_metadata(quantised)["triscan.quantization"])
     assert record["float_leading_modules"] == record["float_leading_nodes"] == 0
     assert record["float_box_logit_nodes"] == 0
+    assert record["float_head_conv_nodes"] == 0
+
+    head_float = quantize_int8(
+        fp32, tmp_path / "head.onnx", calibration_images(dataset, CALIB_COUNT), keep_head_convs_float=True
+    )
+    head_model = onnx.load(str(head_float))
+    convs = head_conv_nodes(head_model)
+    assert set(box_logit_nodes(head_model)) < set(convs)  # the box logits and more
+    assert {n.split("/")[2][:3] for n in convs} == {"cv2", "cv3"}  # /model.22/cv2.0/...: both branches
+    assert not any(_conv_weights_are_int8(head_model, convs))
+    assert all(_conv_weights_are_int8(model, sorted(set(convs) - set(box_logit_nodes(model)))))  # default
+    assert json.loads(onnx_metadata(head_float)["triscan.quantization"])["float_head_conv_nodes"] == len(
+        convs
+    )
     with pytest.raises(ValueError, match="float leading modules must be 0 to 22"):
         quantize_int8(
             fp32, tmp_path / "bad.onnx", calibration_images(dataset, CALIB_COUNT), float_leading_modules=23
@@ -510,20 +525,22 @@ def test_checkpoints_name_their_network(tmp_path: Path) -> None:
 def test_int8_recipes_score_every_recipe_beside_fp32_on_the_same_samples(fp32: Path, dataset: Path) -> None:
     scores = compare_recipes(
         fp32, dataset, methods=["minmax"], float_modules=[1, 3], box_logits=(False, True), split="test",
-        every=1, calib_count=CALIB_COUNT,
+        every=1, calib_count=CALIB_COUNT, head_convs=(True,),
     )  # fmt: skip
     assert [s.recipe for s in scores] == [
         "fp32",
         "minmax, stem float, box logits int8",
         "minmax, stem float, box logits float",
+        "minmax, stem float, Detect head convs float",
         "minmax, modules 0–2 float, box logits int8",
         "minmax, modules 0–2 float, box logits float",
+        "minmax, modules 0–2 float, Detect head convs float",
     ]
     assert scores[0].delta_map50 == 0.0
     for s in scores[1:]:  # each Δ is its own mAP minus the reference's, not a copied figure
         assert s.delta_map50 == pytest.approx(s.map50 - scores[0].map50, abs=2e-4)
         assert s.worst_class in CLASS_NAMES and 0.0 <= s.worst_class_map50 <= s.map50 + 1e-9 <= 1.0 + 1e-9
     table = format_recipe_table(scores)
-    assert table.count("\n") == 6 and "| minmax, modules 0–2 float, box logits float |" in table
+    assert table.count("\n") == 8 and "| minmax, modules 0–2 float, box logits float |" in table
     with pytest.raises(ValueError, match="every"):
         compare_recipes(fp32, dataset, methods=["minmax"], every=0)

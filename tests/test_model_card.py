@@ -207,6 +207,10 @@ def test_a_stripped_checkpoint_is_dated_by_the_validation_figures_it_keeps(tmp_p
             {"float_leading_modules": 5, "float_box_logits": True},
             "modules 0–4, box logits, head decode in float",
         ),
+        (
+            {"float_leading_modules": 5, "float_box_logits": True, "float_head_convs": True},
+            "modules 0–4, the Detect head's convs, head decode in float",
+        ),
         ({"float_leading_modules": 1, "float_box_logits": False}, "stem, head decode in float"),
         ({"float_leading_modules": 0, "float_box_logits": False}, "head decode in float"),
         ({"float_stem": True}, "stem and head decode in float"),  # a report from before the leading rule

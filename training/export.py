@@ -51,6 +51,7 @@ def export_models(
     activation_type: ActivationType = "uint8",
     float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
     keep_box_logits_float: bool = True,
+    keep_head_convs_float: bool = False,
     compare_count: int = 20,
     timing_runs: int = 200,
     box_grid: str = DEFAULT_BOX_GRID,
@@ -96,6 +97,7 @@ def export_models(
         activation_type=activation_type,
         float_leading_modules=float_leading_modules,
         keep_box_logits_float=keep_box_logits_float,
+        keep_head_convs_float=keep_head_convs_float,
     )
     fp32_batch = add_batch_axis(fp32, batch_variant_path(fp32))
     int8_batch = add_batch_axis(int8, batch_variant_path(int8))
@@ -114,6 +116,7 @@ def export_models(
         "calibration_method": method,
         "float_leading_modules": float_leading_modules,
         "float_box_logits": keep_box_logits_float,
+        "float_head_convs": keep_head_convs_float,
         "int8_vs_fp32": compare_outputs(fp32, int8, compare),
     }
     log.info("INT8 vs fp32 on %d unseen val images: %s", len(compare), result["int8_vs_fp32"])

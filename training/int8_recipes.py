@@ -52,9 +52,13 @@ class RecipeScore:
     delta_map50: float  # against the fp32 model, in mAP (0.005 = half a point)
 
 
-def recipe_name(method: str, float_leading_modules: int, box_logits_float: bool) -> str:
+def recipe_name(
+    method: str, float_leading_modules: int, box_logits_float: bool, head_convs_float: bool = False
+) -> str:
     label = float_modules_label(float_leading_modules)
     leading = f"{label} float" if label else "all modules int8"
+    if head_convs_float:  # the box logits are among the head's convs
+        return f"{method}, {leading}, Detect head convs float"
     return f"{method}, {leading}, box logits {'float' if box_logits_float else 'int8'}"
 
 
@@ -87,12 +91,14 @@ def compare_recipes(
     methods: list[CalibMethod],
     float_modules: Sequence[int] = RECIPE_FLOAT_MODULES,
     box_logits: Sequence[bool] = RECIPE_BOX_LOGITS_FLOAT,
+    head_convs: Sequence[bool] = (False,),
     split: str = "test",
     every: int = 5,
     calib_count: int = DEFAULT_CALIB_COUNT,
 ) -> list[RecipeScore]:
     """fp32 first, then each method × leading float modules × box logits (float or not), on every
-    ``every``-th sample."""
+    ``every``-th sample; with ``head_convs`` True, one more recipe per method × leading modules that
+    keeps every conv of the Detect head float (box logits included)."""
     from training.evaluate import dataset_samples
 
     if every < 1:
@@ -106,11 +112,14 @@ def compare_recipes(
         scores = [reference]
         for method in methods:
             for leading in float_modules:
-                for box_float in box_logits:
-                    name = recipe_name(method, leading, box_float)
+                variants = [(box_float, False) for box_float in box_logits]
+                variants += [(True, True)] if any(head_convs) else []
+                for box_float, head_float in variants:
+                    name = recipe_name(method, leading, box_float, head_float)
                     model = quantize_int8(
-                        fp32, scratch / f"{method}-{leading}-{box_float}.onnx", calibration,
+                        fp32, scratch / f"{method}-{leading}-{box_float}-{head_float}.onnx", calibration,
                         method=method, float_leading_modules=leading, keep_box_logits_float=box_float,
+                        keep_head_convs_float=head_float,
                     )  # fmt: skip
                     scores.append(score(model, name, samples, scratch, reference.map50))
                     log.info("%s", scores[-1])
@@ -149,13 +158,18 @@ def main(argv: list[str] | None = None) -> int:
         default=["float" if kept else "int8" for kept in RECIPE_BOX_LOGITS_FLOAT],
         help="the box branches' last convs quantised, float, or one recipe each (default: %(default)s)",
     )  # fmt: skip
+    parser.add_argument(
+        "--head-convs", action="store_true",
+        help="also score, per method and leading modules, the recipe keeping every Detect head conv float",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="also write the scores as JSON")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("training.quantization").setLevel(logging.WARNING)
     scores = compare_recipes(
         args.fp32, args.data, methods=args.methods, float_modules=args.float_modules,
-        box_logits=tuple(choice == "float" for choice in args.box_logits), split=args.split,
+        box_logits=tuple(choice == "float" for choice in args.box_logits), head_convs=(args.head_convs,),
+        split=args.split,
         every=args.every, calib_count=args.calib_count,
     )  # fmt: skip
     print(format_recipe_table(scores))

@@ -312,7 +312,10 @@ def _float_parts_of_int8(export: dict[str, Any]) -> str:
     if "float_leading_modules" in export:
         leading = float_modules_label(int(export["float_leading_modules"]))
         parts = [leading] if leading else []
-        parts += ["box logits"] if export.get("float_box_logits") else []
+        if export.get("float_head_convs"):
+            parts.append("the Detect head's convs")
+        elif export.get("float_box_logits"):
+            parts.append("box logits")
         return ", ".join([*parts, "head decode"]) + " in float"
     # Reports from before the leading-modules rule: the stem alone or nothing but the head's decode.
     return "stem and head decode in float" if export.get("float_stem") else "head decode in float"
