@@ -32,7 +32,14 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import proc_cpu_s, proc_status_mb, recorded_scans, start_loopback_service, thread_cpu_s
+from bench.harness import (
+    add_detector_model_argument,
+    proc_cpu_s,
+    proc_status_mb,
+    recorded_scans,
+    start_loopback_service,
+    thread_cpu_s,
+)
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
@@ -278,12 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per step")
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="detector inference threads")
-    parser.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
-    )
+    add_detector_model_argument(parser)
     parser.add_argument(
         "--batch", type=int, default=1, help="detector --batch (above 1: the default model's -batch file)"
     )

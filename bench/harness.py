@@ -4,6 +4,7 @@ processes that keep every CPU awake (``--busy``)."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
@@ -16,11 +17,22 @@ import numpy as np
 
 from common.encoding import ScanStacker
 from common.messages import Scan
+from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
 from services.launcher import child_environment
 from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
 
 T = TypeVar("T")
+
+
+def add_detector_model_argument(parser: argparse.ArgumentParser) -> None:
+    """``--model`` for a bench that runs the detector; None leaves the detector's own default."""
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help=f"detector model (default: ${MODEL_ENV} or the shipped default)",
+    )
 
 
 def start_loopback_service(

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import recorded_scans
+from bench.harness import add_detector_model_argument, recorded_scans
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.inference import OnnxDetector
@@ -157,12 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=200, help="frames per path and pacing")
     parser.add_argument("--rate", type=float, default=10.0, help="paced frames per second")
-    parser.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
-    )
+    add_detector_model_argument(parser)
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     args = parser.parse_args(argv)
     if args.frames < 1 or args.rate <= 0:

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import cpu_spinners, proc_status_mb, start_loopback_service
+from bench.harness import add_detector_model_argument, cpu_spinners, proc_status_mb, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
@@ -308,12 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--from-scans", action="store_true", help="encoder + detector in one process")
     parser.add_argument("--threads", type=int, default=None, help="detector ONNX Runtime threads")
-    parser.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
-    )
+    add_detector_model_argument(parser)
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     parser.add_argument("--trace", type=Path, default=None, help="also write per-frame stage times (CSV)")
     parser.add_argument("--bare-frames", type=int, default=300, help="frames of the bare-network baseline")

@@ -43,7 +43,7 @@ from typing import Any, Final
 import numpy as np
 import zenoh
 
-from bench.harness import start_loopback_service
+from bench.harness import add_detector_model_argument, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import ALL_STATS, DETECTIONS, scan_key, tensor_key, wildcard_key
@@ -267,12 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", type=Path, default=None, help="a bag to replay (default: simulate one)")
     parser.add_argument("--scans", type=int, default=300, help="scans of the simulated 10 Hz bag")
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed (1: recorded pace)")
-    parser.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        help="detector model (default: $TRISCAN_MODEL or the shipped default)",
-    )
+    add_detector_model_argument(parser)
     parser.add_argument(
         "--connect", default=None, metavar="ENDPOINT", help="an already running detector's Zenoh endpoint"
     )

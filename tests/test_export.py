@@ -525,7 +525,7 @@ def test_checkpoints_name_their_network(tmp_path: Path) -> None:
 def test_int8_recipes_score_every_recipe_beside_fp32_on_the_same_samples(fp32: Path, dataset: Path) -> None:
     scores = compare_recipes(
         fp32, dataset, methods=["minmax"], float_modules=[1, 3], box_logits=(False, True), split="test",
-        every=1, calib_count=CALIB_COUNT, head_convs=(True,),
+        every=1, calib_count=CALIB_COUNT, head_convs=True,
     )  # fmt: skip
     assert [s.recipe for s in scores] == [
         "fp32",

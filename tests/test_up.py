@@ -65,6 +65,19 @@ class SeqLog:
             return {robot for robot, _ in self.detections}
 
 
+def start_launcher(command: list[str]) -> tuple[subprocess.Popen[str], list[str], threading.Thread]:
+    """``triscan up`` with its output read line by line all along, so a failed wait can show it."""
+    launcher = subprocess.Popen(
+        command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    stdout = launcher.stdout
+    assert stdout is not None  # stdout=PIPE
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(stdout.readline, "")), daemon=True)
+    reader.start()
+    return launcher, lines, reader
+
+
 def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
     (port,) = free_tcp_ports(1)
     rrd = tmp_path / "loop.rrd"
@@ -83,12 +96,7 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
         "--listen",
         f"tcp/127.0.0.1:{port}",
     ]
-    launcher = subprocess.Popen(
-        command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    )
-    lines: list[str] = []  # read all along, so a failed wait can show what the services said
-    reader = threading.Thread(target=lambda: lines.extend(iter(launcher.stdout.readline, "")), daemon=True)
-    reader.start()
+    launcher, lines, reader = start_launcher(command)
     example = subprocess.Popen(
         [
             sys.executable,
@@ -179,12 +187,7 @@ def test_up_restarts_a_killed_service_and_detections_flow_again(tmp_path: Path) 
         sys.executable, "-m", "services.cli", "up", "--headless", "--duration", "30",
         "--rrd", str(tmp_path / "x.rrd"), "--listen", f"tcp/127.0.0.1:{port}",
     ]  # fmt: skip
-    launcher = subprocess.Popen(
-        command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    )
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(iter(launcher.stdout.readline, "")), daemon=True)
-    reader.start()
+    launcher, lines, reader = start_launcher(command)
     log = SeqLog()
     try:
         with open_session(ZenohSettings.loopback(None, [port])) as session:

@@ -91,7 +91,7 @@ def compare_recipes(
     methods: list[CalibMethod],
     float_modules: Sequence[int] = RECIPE_FLOAT_MODULES,
     box_logits: Sequence[bool] = RECIPE_BOX_LOGITS_FLOAT,
-    head_convs: Sequence[bool] = (False,),
+    head_convs: bool = False,
     split: str = "test",
     every: int = 5,
     calib_count: int = DEFAULT_CALIB_COUNT,
@@ -113,7 +113,7 @@ def compare_recipes(
         for method in methods:
             for leading in float_modules:
                 variants = [(box_float, False) for box_float in box_logits]
-                variants += [(True, True)] if any(head_convs) else []
+                variants += [(True, True)] if head_convs else []
                 for box_float, head_float in variants:
                     name = recipe_name(method, leading, box_float, head_float)
                     model = quantize_int8(
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("training.quantization").setLevel(logging.WARNING)
     scores = compare_recipes(
         args.fp32, args.data, methods=args.methods, float_modules=args.float_modules,
-        box_logits=tuple(choice == "float" for choice in args.box_logits), head_convs=(args.head_convs,),
+        box_logits=tuple(choice == "float" for choice in args.box_logits), head_convs=args.head_convs,
         split=args.split,
         every=args.every, calib_count=args.calib_count,
     )  # fmt: skip
