@@ -138,7 +138,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--init", type=Path, default=None, metavar="WEIGHTS",
         help="start from these weights instead of random ones, e.g. a shipped .pt to fine-tune on your "
-        "own rooms (--arch/--activation must name its network)",
+        "own rooms (--arch must name its network; another --activation starts that network from them)",
     )  # fmt: skip
     p.add_argument("--resume", action="store_true", help="continue from OUT/weights/last.pt if it exists")
     p.add_argument(

@@ -519,6 +519,17 @@ def test_checkpoints_name_their_network(tmp_path: Path) -> None:
         assert network_of_checkpoint(tmp_path / f"{arch}.pt") == network
 
 
+def test_network_names_read_back_into_arch_and_activation() -> None:
+    from training.architectures import ACTIVATIONS, ARCHS, network_name, parse_network_name
+
+    for arch in ARCHS:
+        for activation in ACTIVATIONS:
+            assert parse_network_name(network_name(arch, activation)) == (arch, activation)
+    for bad in ("yolov8x", "yolov8p-gelu", "resnet18", "yolov8"):
+        with pytest.raises(ValueError, match="not a triscan network name"):
+            parse_network_name(bad)
+
+
 # --- INT8 recipes --------------------------------------------------------------------------------------
 
 

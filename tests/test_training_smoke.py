@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
@@ -11,6 +12,9 @@ import pytest
 from common.inference import OnnxDetector
 from training.dataset import DatasetConfig, generate_dataset
 from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate
+
+if TYPE_CHECKING:
+    import torch
 
 pytestmark = pytest.mark.slow
 
@@ -69,6 +73,39 @@ def test_export_then_eval_runs_through_the_runtime_detector(
     assert np.isfinite(report.mean_timings_ms["inference_ms"])
 
 
+def _one_epoch_from(init: Path, data: Path, out: Path, activation: str = "silu") -> Path:
+    """One CPU epoch of ``activation``'s YOLOv8n from ``init`` on the smoke set; its ``last.pt``."""
+    from training.train import TrainConfig, train
+
+    config = TrainConfig(
+        data=data / "data.yaml",
+        out=out,
+        epochs=1,
+        batch=8,
+        workers=0,
+        device="cpu",
+        activation=activation,
+        init=init,
+    )
+    summary = train(config)
+    assert summary["epochs_run"] == 1 and summary["config"]["init"] == str(init)
+    return out / "weights" / "last.pt"
+
+
+def _network(checkpoint: Path) -> Any:
+    """The checkpoint's DetectionModel (an ``nn.Module`` with its YAML dict as ``.yaml``)."""
+    import torch
+
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    return saved.get("ema") or saved["model"]
+
+
+def _flat_weights(checkpoint: Path) -> torch.Tensor:
+    import torch
+
+    return torch.cat([w.detach().float().flatten() for w in _network(checkpoint).parameters()])
+
+
 def test_fine_tuning_starts_from_the_given_weights(trained_run: tuple[Path, Path], tmp_path: Path) -> None:
     """``--init``: one more epoch from the shipped weights stays near them.
 
@@ -79,31 +116,39 @@ def test_fine_tuning_starts_from_the_given_weights(trained_run: tuple[Path, Path
     import torch
 
     from common.model_spec import SHIPPED_CHECKPOINT
-    from training.train import TrainConfig, train
 
     data, seeded_run = trained_run
-    shipped = SHIPPED_CHECKPOINT
-    config = TrainConfig(
-        data=data / "data.yaml",
-        out=tmp_path / "tuned",
-        epochs=1,
-        batch=8,
-        workers=0,
-        device="cpu",
-        init=shipped,
-    )
-    summary = train(config)
-    assert summary["epochs_run"] == 1 and summary["config"]["init"] == str(shipped)
-
-    def weights(checkpoint: Path) -> torch.Tensor:
-        saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        model = saved.get("ema") or saved["model"]
-        return torch.cat([w.detach().float().flatten() for w in model.parameters()])
-
-    start, tuned = weights(shipped), weights(tmp_path / "tuned" / "weights" / "last.pt")
-    ignored_init = weights(seeded_run)
+    last = _one_epoch_from(SHIPPED_CHECKPOINT, data, tmp_path / "tuned")
+    start, tuned = _flat_weights(SHIPPED_CHECKPOINT), _flat_weights(last)
+    ignored_init = _flat_weights(seeded_run)
     assert tuned.shape == start.shape == ignored_init.shape
     assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(ignored_init - start)
+
+
+def test_a_relu_network_starts_from_trained_silu_weights(
+    trained_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """``--activation relu --init <SiLU .pt>``: the ReLU network, named as such, with the trained weights.
+
+    Activations hold no weights, so every tensor of the shipped SiLU checkpoint carries over; a run that
+    rebuilt the network from random weights, or kept SiLU, or named the result after the SiLU network
+    (export and the card read the name back) fails here.
+    """
+    import torch
+
+    from common.model_spec import SHIPPED_CHECKPOINT
+    from training.architectures import network_of_checkpoint
+
+    data, _ = trained_run
+    last = _one_epoch_from(SHIPPED_CHECKPOINT, data, tmp_path / "relu", activation="relu")
+    assert network_of_checkpoint(SHIPPED_CHECKPOINT) == "yolov8n"
+    assert network_of_checkpoint(last) == "yolov8n-relu"
+    kinds = {type(m) for m in _network(last).modules()}
+    assert torch.nn.ReLU in kinds and torch.nn.SiLU not in kinds
+    assert _network(last).yaml["nc"] == _network(SHIPPED_CHECKPOINT).yaml["nc"] == 4
+    start, tuned = _flat_weights(SHIPPED_CHECKPOINT), _flat_weights(last)
+    assert tuned.shape == start.shape
+    assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(start)
 
 
 def test_a_fine_tune_keeps_the_trained_weights_and_a_gentle_bias_warm_up(tmp_path: Path) -> None:
@@ -124,7 +169,7 @@ def test_fine_tuning_refuses_weights_of_another_network(
     from training.train import TrainConfig, initial_model
 
     data, best = trained_run
-    with pytest.raises(ValueError, match="holds a yolov8n network, not yolov8p-relu"):
+    with pytest.raises(ValueError, match="holds a yolov8n network, not yolov8p-relu: pass the --arch"):
         initial_model(
             TrainConfig(data=data / "data.yaml", out=tmp_path, arch="p", activation="relu", init=best)
         )

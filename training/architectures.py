@@ -43,6 +43,15 @@ def network_name(arch: str, activation: str = DEFAULT_ACTIVATION) -> str:
     return name if activation == DEFAULT_ACTIVATION else f"{name}-{activation}"
 
 
+def parse_network_name(name: str) -> tuple[Arch, Activation]:
+    """The inverse of :func:`network_name`: ``yolov8p-relu`` → ``("p", "relu")``."""
+    stem, _, activation = name.partition("-")
+    arch = stem.removeprefix("yolov8")
+    if not stem.startswith("yolov8") or arch not in ARCHS or (activation and activation not in ACTIVATIONS):
+        raise ValueError(f"{name!r} is not a triscan network name (yolov8<arch>[-<activation>])")
+    return check_arch(arch), check_activation(activation or DEFAULT_ACTIVATION)
+
+
 def check_arch(arch: str) -> Arch:
     if arch not in ARCHS:
         raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")

@@ -30,6 +30,7 @@ from training.architectures import (
     model_yaml,
     network_name,
     network_of_checkpoint,
+    parse_network_name,
 )
 from training.offline import configure_offline
 
@@ -76,9 +77,10 @@ def initial_model(config: TrainConfig) -> Any:
     """The Ultralytics model a new run starts from: ``config``'s network with random weights, or the
     weights of ``config.init`` to fine-tune them on new rooms (same classes, same recipe).
 
-    A checkpoint of another network than ``arch``/``activation`` name is refused rather than
-    silently trained as what it is: the run directory, the card and the exported files would be
-    named after a network the weights are not.
+    A checkpoint of another architecture than ``arch`` is refused rather than silently trained as what
+    it is: the run directory, the card and the exported files would be named after a network the
+    weights are not. One of the same architecture with another activation starts the requested
+    network from its weights (e.g. a ReLU pico from a trained SiLU pico).
     """
     from ultralytics import YOLO
 
@@ -91,12 +93,27 @@ def initial_model(config: TrainConfig) -> Any:
         )
     expected = network_name(config.arch, config.activation)
     found = network_of_checkpoint(config.init)
-    if found != expected:
+    if found == expected:
+        return YOLO(str(config.init))
+    found_arch, found_activation = parse_network_name(found)
+    if found_arch != config.arch:
         raise ValueError(
-            f"{config.init} holds a {found} network, not {expected}: pass the --arch/--activation it was "
-            "trained with"
+            f"{config.init} holds a {found} network, not {expected}: pass the --arch it was trained with"
         )
-    return YOLO(str(config.init))
+    # Same layers, another activation: activations hold no weights, so every tensor carries over and
+    # the run starts from the trained features rather than from scratch (SiLU and ReLU agree away
+    # from zero). The network is the requested one, built from its own YAML, and named after it.
+    # Ultralytics' trainer builds the network from the loaded model's YAML dict and copies its weights
+    # in, so swapping in the requested network's YAML (keeping the class count) is the whole change.
+    from ultralytics.nn.tasks import yaml_model_load
+
+    log.info("starting a %s network from the weights of %s (%s)", expected, config.init, found_activation)
+    model = YOLO(str(config.init))
+    network: Any = model.model  # the loaded DetectionModel (Ultralytics types it loosely)
+    spec = yaml_model_load(model_yaml(config.arch, config.out.resolve(), config.activation))
+    spec["nc"] = network.yaml["nc"]
+    network.yaml = spec
+    return model
 
 
 def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
