@@ -61,7 +61,7 @@ from bench.occupancy_grid import (
 from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
 from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector
-from common.model_spec import MODELS_DIR, SHIPPED_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
+from common.model_spec import PAPER_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
 
 ROOT: Final[Path] = Path(__file__).resolve().parents[1]
 DEFAULT_OUT: Final[Path] = ROOT / "bench" / "results" / "frame_latency.json"
@@ -122,7 +122,7 @@ class BenchConfig:
     seed: int = 1
     fp32_model: Path = SHIPPED_FP32_MODEL
     int8_model: Path = SHIPPED_INT8_MODEL
-    pt_model: Path = SHIPPED_CHECKPOINT  # the paper's runtime: its network (YOLOv8n), Ultralytics
+    pt_model: Path = PAPER_CHECKPOINT  # the paper's runtime: its network (YOLOv8n), Ultralytics
     # Ultralytics on the same network as fp32_model (its .pt beside it), when that is not pt_model's
     same_network_pt: Path | None = None
     default: str = "fp32"  # which triscan file the detector runs by default (the card's recommendation)
@@ -525,10 +525,16 @@ def _existing(path: Path) -> Path | None:
     return path if path.is_file() else None
 
 
-def _card_recommendation() -> str:
-    """The file the shipped card recommends for the detector (``fp32`` without a card)."""
-    card = MODELS_DIR / "MODEL_CARD.json"
-    return str(json.loads(card.read_text()).get("recommended", "fp32")) if card.is_file() else "fp32"
+def _card_recommendation(fp32_model: Path) -> str:
+    """What the card beside ``fp32_model`` recommends for the detector, when that card is the file's
+    (``fp32`` otherwise: no card speaks for it)."""
+    card_path = fp32_model.parent / "MODEL_CARD.json"
+    if not card_path.is_file():
+        return "fp32"
+    card = json.loads(card_path.read_text())
+    if card.get("files", {}).get("fp32") != fp32_model.name:
+        return "fp32"
+    return str(card.get("recommended", "fp32"))
 
 
 def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
@@ -550,7 +556,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
     )  # fmt: skip
     parser.add_argument(
         "--default", choices=sorted(PRECISION_PIPELINES), default=None,
-        help="the detector's default file (default: models/MODEL_CARD.json's recommendation)",
+        help="the detector's default file (default: the recommendation of the card beside --fp32-model)",
     )  # fmt: skip
     parser.add_argument("--grid-px", type=int, default=GRID_PX, help="grid image side (640)")
     parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help="exported grid model cache")
@@ -569,7 +575,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         int8_model=args.int8_model,
         pt_model=args.pt_model,
         same_network_pt=args.same_network_pt or _existing(args.fp32_model.with_suffix(".pt")),
-        default=args.default or _card_recommendation(),
+        default=args.default or _card_recommendation(args.fp32_model),
         grid_px=args.grid_px,
         cache_dir=args.cache_dir,
         skip_int8=args.skip_int8,

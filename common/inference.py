@@ -60,6 +60,7 @@ from common.model_spec import (
     META_CLASSES,
     META_INVALID,
     META_PADDING,
+    MODELS_DIR,
     NUM_ANCHORS,
     NUM_CLASSES,
     SHIPPED_BATCH_MODEL,
@@ -507,7 +508,8 @@ def check_batch(batch: int, takes_batches: bool, model_path: Path | str) -> None
     if batch > 1 and not takes_batches:
         raise ValueError(
             f"--batch {batch} needs a model with a free batch axis; {model_path} is fixed at batch 1 "
-            f"(its -batch variant, e.g. models/{SHIPPED_BATCH_MODEL.name}, is the same network)"
+            f"(its -batch variant, e.g. {SHIPPED_BATCH_MODEL.relative_to(MODELS_DIR.parent)}, is the same "
+            "network)"
         )
 
 

@@ -1,7 +1,7 @@
 """The models shipped in models/: same boxes as their checkpoints, same figures as Ultralytics, a gate.
 
-Each card is checked: the default model's (models/MODEL_CARD.json) and every model that ships beside it
-in a directory of its own with its own card (models/yolov8p/: trained, measured, not yet the default).
+Each card is checked: every shipped network's files and card share a directory (the paper's YOLOv8n in
+models/, the pico in models/yolov8p/), and the default is the one ``common.model_spec.SHIPPED_DIR`` names.
 The gate threshold is not picked to pass: it is read from the card, where it is derived from the
 held-out figures the card reports (see the card's "Quality gate" section).
 """
@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from common.inference import OnnxDetector
-from common.model_spec import model_stem
+from common.model_spec import MODELS_DIR, SHIPPED_DIR, model_stem
 from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate, fresh_samples
 
-MODELS = Path(__file__).resolve().parents[1] / "models"
+MODELS = MODELS_DIR
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class ShippedModel:
 
 
 CARDS = [ShippedModel(card.parent) for card in sorted(MODELS.glob("**/MODEL_CARD.json"))]
-DEFAULT = ShippedModel(MODELS)
+DEFAULT = ShippedModel(SHIPPED_DIR)
 FP32 = DEFAULT.file("fp32")
 # The padding ablation's wrap model (the first recipe: YOLOv8n, epoch 3, clean scans; README, "Padding
 # ablation"); it ships without a card of its own.

@@ -107,19 +107,19 @@ def _flat_weights(checkpoint: Path) -> torch.Tensor:
 
 
 def test_fine_tuning_starts_from_the_given_weights(trained_run: tuple[Path, Path], tmp_path: Path) -> None:
-    """``--init``: one more epoch from the shipped weights stays near them.
+    """``--init``: one more epoch from the shipped YOLOv8n's weights stays near them.
 
-    The shipped checkpoint is 30 epochs away from any random start. A run that ignored ``--init``
+    That checkpoint is 30 epochs away from any random start. A run that ignored ``--init``
     would start from the same seeded random weights as this module's short run and end near its
     ``best.pt`` (which is why that file cannot serve as the start here: it is the seeded start).
     """
     import torch
 
-    from common.model_spec import SHIPPED_CHECKPOINT
+    from common.model_spec import PAPER_CHECKPOINT
 
     data, seeded_run = trained_run
-    last = _one_epoch_from(SHIPPED_CHECKPOINT, data, tmp_path / "tuned")
-    start, tuned = _flat_weights(SHIPPED_CHECKPOINT), _flat_weights(last)
+    last = _one_epoch_from(PAPER_CHECKPOINT, data, tmp_path / "tuned")
+    start, tuned = _flat_weights(PAPER_CHECKPOINT), _flat_weights(last)
     ignored_init = _flat_weights(seeded_run)
     assert tuned.shape == start.shape == ignored_init.shape
     assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(ignored_init - start)
@@ -130,23 +130,23 @@ def test_a_relu_network_starts_from_trained_silu_weights(
 ) -> None:
     """``--activation relu --init <SiLU .pt>``: the ReLU network, named as such, with the trained weights.
 
-    Activations hold no weights, so every tensor of the shipped SiLU checkpoint carries over; a run that
+    Activations hold no weights, so every tensor of the shipped SiLU YOLOv8n carries over; a run that
     rebuilt the network from random weights, or kept SiLU, or named the result after the SiLU network
     (export and the card read the name back) fails here.
     """
     import torch
 
-    from common.model_spec import SHIPPED_CHECKPOINT
+    from common.model_spec import PAPER_CHECKPOINT
     from training.architectures import network_of_checkpoint
 
     data, _ = trained_run
-    last = _one_epoch_from(SHIPPED_CHECKPOINT, data, tmp_path / "relu", activation="relu")
-    assert network_of_checkpoint(SHIPPED_CHECKPOINT) == "yolov8n"
+    last = _one_epoch_from(PAPER_CHECKPOINT, data, tmp_path / "relu", activation="relu")
+    assert network_of_checkpoint(PAPER_CHECKPOINT) == "yolov8n"
     assert network_of_checkpoint(last) == "yolov8n-relu"
     kinds = {type(m) for m in _network(last).modules()}
     assert torch.nn.ReLU in kinds and torch.nn.SiLU not in kinds
-    assert _network(last).yaml["nc"] == _network(SHIPPED_CHECKPOINT).yaml["nc"] == 4
-    start, tuned = _flat_weights(SHIPPED_CHECKPOINT), _flat_weights(last)
+    assert _network(last).yaml["nc"] == _network(PAPER_CHECKPOINT).yaml["nc"] == 4
+    start, tuned = _flat_weights(PAPER_CHECKPOINT), _flat_weights(last)
     assert tuned.shape == start.shape
     assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(start)
 
