@@ -25,12 +25,11 @@ from bench.harness import simulated_tensor
 from bench.machine import machine_info
 from bench.report import write_report
 from common.encoding import to_model_input
+from common.model_spec import SHIPPED_CHECKPOINT
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-DEFAULT_WEIGHTS: Final[Path] = (
-    Path(__file__).resolve().parents[1] / "models" / "yolov8p" / "triscan-yolov8p-zero.pt"
-)
+DEFAULT_WEIGHTS: Final[Path] = SHIPPED_CHECKPOINT  # the default pico's .pt
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "dfl_rewrite.json"
 
 

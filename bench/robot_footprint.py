@@ -2,8 +2,8 @@
 
 Runs the robot's processes under real load (one simulated robot at 10 Hz for ``--seconds``, via
 :mod:`bench.pipeline_latency`) in both deployments: encoder and detector as two processes, and the
-single ``--from-scans`` detector. Peak RSS is each process's ``VmHWM``; model sizes are the files in
-``models/``.
+single ``--from-scans`` detector. Peak RSS is each process's ``VmHWM``; model sizes are every ONNX
+file under ``models/``, named by its path there (the default's in ``yolov8p/``).
 
     python -m bench.robot_footprint --seconds 30
 """
@@ -16,8 +16,7 @@ from pathlib import Path
 
 from bench.pipeline_latency import run as run_pipeline
 from bench.report import write_report
-
-MODELS = Path(__file__).resolve().parents[1] / "models"
+from common.model_spec import MODELS_DIR
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +36,10 @@ def main(argv: list[str] | None = None) -> int:
             "encoder + detector (2 processes)": round(sum(separate.peak_rss_mb.values()), 1),
             "detector --from-scans (1 process)": round(sum(combined.peak_rss_mb.values()), 1),
         },
-        "model_files_mb": {f.name: round(f.stat().st_size / 2**20, 2) for f in sorted(MODELS.glob("*.onnx"))},
+        "model_files_mb": {
+            f.relative_to(MODELS_DIR).as_posix(): round(f.stat().st_size / 2**20, 2)
+            for f in sorted(MODELS_DIR.rglob("*.onnx"))
+        },
         "seconds": args.seconds,
     }
     write_report(report, args.out)

@@ -17,7 +17,7 @@ from bench import (
     pipeline_latency,
     robot_footprint,
 )
-from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
+from common.model_spec import MODELS_DIR, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
@@ -196,7 +196,8 @@ def test_robot_footprint_reports_both_deployments(tmp_path: Path) -> None:
     report = json.loads(out.read_text())
     assert set(report["peak_rss_mb"]["encoder + detector (2 processes)"]) == {"encoder", "detector"}
     assert set(report["peak_rss_mb"]["detector --from-scans (1 process)"]) == {"detector"}
-    assert {SHIPPED_FP32_MODEL.name, SHIPPED_INT8_MODEL.name} <= set(report["model_files_mb"])
+    shipped = {m.relative_to(MODELS_DIR).as_posix() for m in (SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL)}
+    assert shipped <= set(report["model_files_mb"])
 
 
 def test_batch_inference_reports_per_image_cost_for_each_batch(tmp_path: Path) -> None:

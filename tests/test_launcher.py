@@ -9,8 +9,6 @@ import pytest
 from common.model_spec import SHIPPED_MODEL
 from services.launcher import SERVICES, UpConfig, free_tcp_ports, service_commands
 
-MODELS = Path(__file__).resolve().parents[1] / "models"
-
 
 def flag_values(command: list[str], flag: str) -> list[str]:
     return [command[i + 1] for i, arg in enumerate(command) if arg == flag]
