@@ -126,6 +126,13 @@ def _module_ids(model: Any) -> list[int]:
     return ids
 
 
+def _detect_head(model: Any) -> tuple[str, tuple[str, str]]:
+    """The Detect head's node-name prefix (``/model.<last>/``) and those of its per-stride conv branches
+    (``cv2.`` box distributions, ``cv3.`` class logits), which every head rule below splits on."""
+    prefix = f"/model.{max(_module_ids(model))}/"
+    return prefix, (f"{prefix}cv2.", f"{prefix}cv3.")
+
+
 def head_decode_nodes(model: Any) -> list[str]:
     """Names of the detection head's decode nodes: everything after its per-stride conv branches.
 
@@ -134,8 +141,7 @@ def head_decode_nodes(model: Any) -> list[str]:
     The rest of the head — reshapes, concats, DFL softmax and conv, box arithmetic, sigmoid, the output
     concat — mixes pixel-scale boxes with 0–1 scores and is left in float.
     """
-    prefix = f"/model.{max(_module_ids(model))}/"
-    branches = (f"{prefix}cv2.", f"{prefix}cv3.")
+    prefix, branches = _detect_head(model)
     tail = [n.name for n in model.graph.node if n.name.startswith(prefix) and not n.name.startswith(branches)]
     output = model.graph.output[0].name
     producers = {o: n.name for n in model.graph.node for o in n.output}
@@ -171,7 +177,7 @@ def box_logit_nodes(model: Any) -> list[str]:
 
     Their outputs are the 16-bin distance distributions the DFL decodes into box edges.
     """
-    prefix = f"/model.{max(_module_ids(model))}/cv2."
+    prefix = _detect_head(model)[1][0]  # /model.<head>/cv2.
     nodes = [
         n.name for n in model.graph.node if n.name.startswith(prefix) and re.search(r"cv2\.\d+\.2/", n.name)
     ]
@@ -188,8 +194,7 @@ def head_conv_nodes(model: Any) -> list[str]:
     50-epoch pico, INT8 then lost 0.2 points of val mAP@0.5:0.95 against fp32 instead of 0.8, for
     about a quarter more time per frame (README, "A longer pico run").
     """
-    prefix = f"/model.{max(_module_ids(model))}/"
-    branches = (f"{prefix}cv2.", f"{prefix}cv3.")
+    prefix, branches = _detect_head(model)
     nodes = [n.name for n in model.graph.node if n.name.startswith(branches)]
     if not nodes:
         raise ExportError(f"no conv branches under {prefix}: not an Ultralytics Detect head")
