@@ -110,10 +110,10 @@ def compare_recipes(
         reference = score(fp32, "fp32", samples, scratch, None)
         log.info("%s", reference)
         scores = [reference]
+        # (box logits float, head convs float): the box-logit choices, then the head convs (logits included)
+        variants = [(box_float, False) for box_float in box_logits] + ([(True, True)] if head_convs else [])
         for method in methods:
             for leading in float_modules:
-                variants = [(box_float, False) for box_float in box_logits]
-                variants += [(True, True)] if head_convs else []
                 for box_float, head_float in variants:
                     name = recipe_name(method, leading, box_float, head_float)
                     model = quantize_int8(
