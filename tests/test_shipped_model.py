@@ -21,8 +21,6 @@ from common.inference import OnnxDetector
 from common.model_spec import MODELS_DIR, SHIPPED_DIR, model_stem
 from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate, fresh_samples
 
-MODELS = MODELS_DIR
-
 
 @dataclass(frozen=True)
 class ShippedModel:
@@ -42,15 +40,15 @@ class ShippedModel:
         return self.card["quality_gate"]
 
 
-CARDS = [ShippedModel(card.parent) for card in sorted(MODELS.glob("**/MODEL_CARD.json"))]
+CARDS = [ShippedModel(card.parent) for card in sorted(MODELS_DIR.glob("**/MODEL_CARD.json"))]
 DEFAULT = ShippedModel(SHIPPED_DIR)
 FP32 = DEFAULT.file("fp32")
 # The padding ablation's wrap model (the first recipe: YOLOv8n, epoch 3, clean scans; README, "Padding
 # ablation"); it ships without a card of its own.
-WRAP = MODELS / f"{model_stem('yolov8n', 'wrap')}.onnx"
+WRAP = MODELS_DIR / f"{model_stem('yolov8n', 'wrap')}.onnx"
 
 
-@pytest.fixture(params=CARDS, ids=lambda m: m.directory.relative_to(MODELS.parent).as_posix())
+@pytest.fixture(params=CARDS, ids=lambda m: m.directory.relative_to(MODELS_DIR.parent).as_posix())
 def shipped(request: pytest.FixtureRequest) -> ShippedModel:
     return request.param
 

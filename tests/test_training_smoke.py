@@ -100,10 +100,10 @@ def _network(checkpoint: Path) -> Any:
     return saved.get("ema") or saved["model"]
 
 
-def _flat_weights(checkpoint: Path) -> torch.Tensor:
+def _flat_weights(network: Any) -> torch.Tensor:
     import torch
 
-    return torch.cat([w.detach().float().flatten() for w in _network(checkpoint).parameters()])
+    return torch.cat([w.detach().float().flatten() for w in network.parameters()])
 
 
 def test_fine_tuning_starts_from_the_given_weights(trained_run: tuple[Path, Path], tmp_path: Path) -> None:
@@ -119,8 +119,8 @@ def test_fine_tuning_starts_from_the_given_weights(trained_run: tuple[Path, Path
 
     data, seeded_run = trained_run
     last = _one_epoch_from(PAPER_CHECKPOINT, data, tmp_path / "tuned")
-    start, tuned = _flat_weights(PAPER_CHECKPOINT), _flat_weights(last)
-    ignored_init = _flat_weights(seeded_run)
+    start, tuned = _flat_weights(_network(PAPER_CHECKPOINT)), _flat_weights(_network(last))
+    ignored_init = _flat_weights(_network(seeded_run))
     assert tuned.shape == start.shape == ignored_init.shape
     assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(ignored_init - start)
 
@@ -143,10 +143,11 @@ def test_a_relu_network_starts_from_trained_silu_weights(
     last = _one_epoch_from(PAPER_CHECKPOINT, data, tmp_path / "relu", activation="relu")
     assert network_of_checkpoint(PAPER_CHECKPOINT) == "yolov8n"
     assert network_of_checkpoint(last) == "yolov8n-relu"
-    kinds = {type(m) for m in _network(last).modules()}
+    tuned_network, start_network = _network(last), _network(PAPER_CHECKPOINT)
+    kinds = {type(m) for m in tuned_network.modules()}
     assert torch.nn.ReLU in kinds and torch.nn.SiLU not in kinds
-    assert _network(last).yaml["nc"] == _network(PAPER_CHECKPOINT).yaml["nc"] == 4
-    start, tuned = _flat_weights(PAPER_CHECKPOINT), _flat_weights(last)
+    assert tuned_network.yaml["nc"] == start_network.yaml["nc"] == 4
+    start, tuned = _flat_weights(start_network), _flat_weights(tuned_network)
     assert tuned.shape == start.shape
     assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(start)
 
