@@ -8,7 +8,11 @@ and the detector's (tensor payload → decoded tensor → ``DetectorCore.detect_
 time the frame itself reports. Each path runs back to back (*warm*: caches hot) and paced at the
 scan rate (*paced*: one frame every 1/rate s, as a robot sends them, caches cooled by the sleep),
 and ``tracemalloc`` records the peak memory each frame allocates in Python and numpy (ONNX Runtime's
-own arena is not traced).
+own arena is not traced). Minor page faults per frame (``getrusage``, around each frame but outside
+its timing) tell whether a paced frame's extra time is memory the allocator returned to the kernel
+between frames and faults back in; a second paced pass whose thread spins between frames instead of
+sleeping tells whether it is the idle vCPU (halted, rescheduled, clocked down) or time itself (caches
+and predictors overwritten by everything else the host runs in 100 ms).
 
     python -m bench.hot_path --out bench/results/hot_path.json
 """
@@ -17,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import resource
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -47,7 +52,9 @@ class PathCost:
     path: str
     warm_us: dict[str, float]
     paced_us: dict[str, float]
+    paced_spinning_us: dict[str, float]  # paced, the thread spinning between frames instead of sleeping
     peak_alloc_kb: float
+    paced_minor_faults_per_frame: float  # mean over the paced frames
 
 
 @dataclass
@@ -59,19 +66,37 @@ class HotPathReport:
     machine: MachineInfo = field(default_factory=machine_info)
 
 
-def timed_us(frame: Callable[[int], float], frames: int, period_s: float) -> list[float]:
+def minor_faults() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def wait_until(deadline: float, spin: bool) -> None:
+    if not spin:
+        time.sleep(max(0.0, deadline - time.monotonic()))
+        return
+    while time.monotonic() < deadline:
+        pass
+
+
+def timed_us(
+    frame: Callable[[int], float], frames: int, period_s: float, spin: bool = False
+) -> tuple[list[float], int]:
     """µs of ``frame(i)`` for ``i`` in range(frames), less the µs each call says it spent elsewhere
-    (the network); ``period_s`` apart when above 0."""
+    (the network), and the minor page faults the frames took; ``period_s`` apart when above 0, the
+    thread sleeping between frames or, with ``spin``, busy (its vCPU never idles)."""
     times = []
+    faults = 0
     next_due = time.monotonic()
     for i in range(frames):
+        faults_before = minor_faults()
         started = time.perf_counter_ns()
         excluded_us = frame(i)
         times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
+        faults += minor_faults() - faults_before
         if period_s > 0:
             next_due += period_s
-            time.sleep(max(0.0, next_due - time.monotonic()))
-    return times
+            wait_until(next_due, spin)
+    return times, faults
 
 
 def peak_alloc_kb(frame: Callable[[int], float], frames: int) -> float:
@@ -91,11 +116,16 @@ def peak_alloc_kb(frame: Callable[[int], float], frames: int) -> float:
 
 def measure(name: str, frame: Callable[[int], float], frames: int, rate_hz: float) -> PathCost:
     frame(0)  # first-call costs (imports, caches) are not what a running service pays
+    warm_us, _ = timed_us(frame, frames, 0.0)
+    paced_us, paced_faults = timed_us(frame, frames, 1.0 / rate_hz)
+    spinning_us, _ = timed_us(frame, frames, 1.0 / rate_hz, spin=True)
     return PathCost(
         name,
-        latency_quantiles_ms(timed_us(frame, frames, 0.0)),  # quantiles of µs, in µs
-        latency_quantiles_ms(timed_us(frame, frames, 1.0 / rate_hz)),
+        latency_quantiles_ms(warm_us),  # quantiles of µs, in µs
+        latency_quantiles_ms(paced_us),
+        latency_quantiles_ms(spinning_us),
         peak_alloc_kb(frame, ALLOC_FRAMES),
+        round(paced_faults / frames, 2),
     )
 
 
@@ -115,7 +145,7 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
     stream = iter(
         [
             encode_message(scans[k % len(scans)].model_copy(update={"seq": k, "stamp_ns": k * period_ns}))
-            for k in range(2 * (frames + 1) + ALLOC_FRAMES + 2)
+            for k in range(2 + 1 + 3 * frames + ALLOC_FRAMES)  # priming, first call, three passes
         ]
     )
     encoder = EncoderCore("zero")
@@ -143,11 +173,14 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
     ):
         cost = measure(name, frame, frames, rate_hz)
         log.info(
-            "%-62s warm p50 %7.1f µs, paced p50 %7.1f µs, peak %6.1f kB a frame",
+            "%-62s p50 warm %6.1f µs, paced %6.1f µs (spinning between frames %6.1f), peak %6.1f kB,"
+            " %.2f minor faults a paced frame",
             name,
             cost.warm_us["p50"],
             cost.paced_us["p50"],
+            cost.paced_spinning_us["p50"],
             cost.peak_alloc_kb,
+            cost.paced_minor_faults_per_frame,
         )
         report.paths.append(cost)
     return report

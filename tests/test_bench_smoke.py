@@ -7,6 +7,7 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench import (
@@ -157,9 +158,24 @@ def test_hot_path_times_both_services_python_per_frame(tmp_path: Path) -> None:
     report = hot_path.run(frames=3, rate_hz=50.0)
     assert [cost.path.split(":")[0] for cost in report.paths] == ["encoder", "detector"]
     for cost in report.paths:
-        assert cost.warm_us["p50"] > 0 and cost.paced_us["p50"] > 0
+        assert cost.warm_us["p50"] > 0 and cost.paced_us["p50"] > 0 and cost.paced_spinning_us["p50"] > 0
         # At least the tensor itself (64 × 384 × 3 bytes) passes through each service's frame.
         assert cost.peak_alloc_kb > 73
+        assert cost.paced_minor_faults_per_frame >= 0
+
+
+def test_hot_path_counts_the_page_faults_a_frame_takes() -> None:
+    from bench import hot_path
+
+    def fresh_memory(_: int) -> float:
+        # 64 MiB is above glibc's largest mmap threshold: mapped anew and faulted in every frame
+        # (in 2 MiB pages at least, when the kernel backs it with transparent huge pages).
+        np.ones(64 << 20, np.uint8)
+        return 0.0
+
+    _, idle_faults = hot_path.timed_us(lambda _: 0.0, 3, 0.0)
+    _, fresh_faults = hot_path.timed_us(fresh_memory, 3, 0.0)
+    assert fresh_faults >= idle_faults + 3 * 32
 
 
 def test_fleet_ab_runs_every_size_under_every_setting(tmp_path: Path) -> None:
@@ -291,3 +307,18 @@ def test_activation_speed_times_and_profiles_both_activations(tmp_path: Path) ->
     assert "QLinearSigmoid" not in profiles["relu int8"]
     for shares in profiles.values():
         assert sum(shares.values()) == pytest.approx(100.0, abs=1.0)
+
+
+def test_hot_path_paces_frames_with_a_sleeping_or_a_spinning_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench import hot_path
+
+    sleeps: list[float] = []
+    real_sleep = time.sleep
+    monkeypatch.setattr(hot_path.time, "sleep", lambda s: (sleeps.append(s), real_sleep(s)))
+    for spin in (False, True):
+        sleeps.clear()
+        started = time.monotonic()
+        hot_path.timed_us(lambda _: 0.0, 3, 0.02, spin=spin)
+        assert time.monotonic() - started >= 0.06  # three frames, each 20 ms apart
+        # The spinning thread keeps its vCPU busy through the waits; the sleeping one idles.
+        assert len(sleeps) == (0 if spin else 3)
