@@ -12,7 +12,8 @@ own arena is not traced). Minor page faults per frame (``getrusage``, around eac
 its timing) tell whether a paced frame's extra time is memory the allocator returned to the kernel
 between frames and faults back in; a second paced pass whose thread spins between frames instead of
 sleeping tells whether it is the idle vCPU (halted, rescheduled, clocked down) or time itself (caches
-and predictors overwritten by everything else the host runs in 100 ms).
+and predictors overwritten by everything else the host runs in 100 ms); a sweep of shorter periods
+(one frame every 1, 3, 10, 30 ms) shows how fast that happens.
 
     python -m bench.hot_path --out bench/results/hot_path.json
 """
@@ -43,6 +44,8 @@ log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import p
 
 SCANS = 60  # recorded scans: 58 tensors, cycled through
 ALLOC_FRAMES = 50  # frames traced by tracemalloc (slower: not timed)
+# Shorter frame periods than the scan rate's: how long the host takes to cool a frame's caches.
+PERIOD_SWEEP_MS = (1.0, 3.0, 10.0, 30.0)
 
 
 @dataclass
@@ -55,6 +58,7 @@ class PathCost:
     paced_spinning_us: dict[str, float]  # paced, the thread spinning between frames instead of sleeping
     peak_alloc_kb: float
     paced_minor_faults_per_frame: float  # mean over the paced frames
+    p50_us_by_period_ms: dict[str, float]  # one frame every N ms, sleeping between; 0 = back to back
 
 
 @dataclass
@@ -126,7 +130,18 @@ def measure(name: str, frame: Callable[[int], float], frames: int, rate_hz: floa
         latency_quantiles_ms(spinning_us),
         peak_alloc_kb(frame, ALLOC_FRAMES),
         round(paced_faults / frames, 2),
+        by_period_ms(frame, frames, 1e3 / rate_hz, warm_us, paced_us),
     )
+
+
+def by_period_ms(
+    frame: Callable[[int], float], frames: int, paced_ms: float, warm_us: list[float], paced_us: list[float]
+) -> dict[str, float]:
+    """p50 µs of a frame at each period of PERIOD_SWEEP_MS, beside back to back (0) and paced."""
+    p50s = {0.0: warm_us, paced_ms: paced_us}
+    for period_ms in PERIOD_SWEEP_MS:
+        p50s.setdefault(period_ms, timed_us(frame, frames, period_ms / 1e3)[0])
+    return {f"{ms:g}": round(float(np.median(times)), 1) for ms, times in sorted(p50s.items())}
 
 
 def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport:
@@ -145,7 +160,9 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
     stream = iter(
         [
             encode_message(scans[k % len(scans)].model_copy(update={"seq": k, "stamp_ns": k * period_ns}))
-            for k in range(2 + 1 + 3 * frames + ALLOC_FRAMES)  # priming, first call, three passes
+            for k in range(
+                2 + 1 + (3 + len(PERIOD_SWEEP_MS)) * frames + ALLOC_FRAMES
+            )  # priming, first call, passes
         ]
     )
     encoder = EncoderCore("zero")
@@ -182,6 +199,7 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
             cost.peak_alloc_kb,
             cost.paced_minor_faults_per_frame,
         )
+        log.info("    p50 µs at one frame every N ms: %s", cost.p50_us_by_period_ms)
         report.paths.append(cost)
     return report
 

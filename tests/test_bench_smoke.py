@@ -162,6 +162,8 @@ def test_hot_path_times_both_services_python_per_frame(tmp_path: Path) -> None:
         # At least the tensor itself (64 × 384 × 3 bytes) passes through each service's frame.
         assert cost.peak_alloc_kb > 73
         assert cost.paced_minor_faults_per_frame >= 0
+        assert list(cost.p50_us_by_period_ms) == ["0", "1", "3", "10", "20", "30"]  # 20: paced at 50 Hz
+        assert cost.p50_us_by_period_ms["0"] == pytest.approx(cost.warm_us["p50"], abs=0.1)
 
 
 def test_hot_path_counts_the_page_faults_a_frame_takes() -> None:
