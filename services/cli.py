@@ -419,6 +419,11 @@ def _add_card(sub: argparse._SubParsersAction) -> None:
         "n_dr_results.csv: its val curve beside this run's, epoch for epoch",
     )  # fmt: skip
     p.add_argument(
+        "--compare-curve-epochs-before", type=int, default=0, metavar="N",
+        help="both runs of --compare-curve continued (--init) from N epochs each: count epochs from the "
+        "start of training",
+    )  # fmt: skip
+    p.add_argument(
         "--invalid-ablation", type=Path, default=None,
         help="summary.json of an eval grid with models of each invalid-return rule (sentinel, empty)",
     )  # fmt: skip
@@ -443,6 +448,14 @@ def _run_card(args: argparse.Namespace) -> int:
     def notes(path: Path | None) -> str:
         return path.read_text() if path else ""
 
+    if args.compare_curve_epochs_before and not args.compare_curve:
+        raise ValueError(
+            "--compare-curve-epochs-before counts the epochs of --compare-curve's runs: give both"
+        )
+    curves = None
+    if args.compare_curve:
+        network, results_csv = args.compare_curve
+        curves = CurveComparison(network, results_csv, epochs_before=args.compare_curve_epochs_before)
     grids = [
         GridSection(title, summary, notes(intro))
         for title, summary, intro in (
@@ -481,7 +494,7 @@ def _run_card(args: argparse.Namespace) -> int:
         ablation_notes=notes(args.ablation_notes),
         conditions=args.eval_conditions,
         grids=grids,
-        curves=CurveComparison(*args.compare_curve) if args.compare_curve else None,
+        curves=curves,
     )
     print(f"wrote {args.out}/MODEL_CARD.md (recommended: {card['recommended']})")
     return 0

@@ -248,6 +248,30 @@ def test_the_card_sets_the_curve_beside_another_networks_epoch_for_epoch(tmp_pat
     )
 
 
+def test_continued_runs_are_compared_in_epochs_from_the_start_of_training(tmp_path: Path) -> None:
+    # both runs continued from 30 epochs of their own network: their epochs 1-2 are training's 31-32
+    other = write_results(tmp_path / "n.csv", [(0.96, 0.62), (0.99, 0.72)])
+    card = card_of(
+        tmp_path / "c", {"clean": 0.98}, curves=CurveComparison("yolov8n", other, epochs_before=30)
+    )
+    text = (tmp_path / "c" / "card" / "MODEL_CARD.md").read_text()
+    assert "both runs continuing from 30 epochs of their own network" in text
+    assert "| 32 | 0.980 | 0.990 | 0.700 | 0.720 |" in text and "| 2 | 0.980" not in text
+    assert "After 32 epochs, the last both ran: `yolov8p` is 1.00 points" in text
+    assert card["curves"]["epochs_before"] == 30 and card["curves"]["last_common_epoch"] == 2
+    with pytest.raises(ValueError, match=">= 0"):
+        CurveComparison("yolov8n", other, epochs_before=-1)
+
+
+def test_epochs_before_needs_a_curve_to_count(caplog: pytest.LogCaptureFixture) -> None:
+    from services.cli import main
+
+    assert main(["card", "--data", "d", "--run-dir", "r", "--export-report", "e", "--eval-fp32", "f",
+                 "--eval-int8", "i", "--eval-gate", "g", "--train-command", "t",
+                 "--compare-curve-epochs-before", "30"]) == 2  # fmt: skip
+    assert "give both" in caplog.text
+
+
 def test_a_curve_without_a_common_epoch_is_refused(tmp_path: Path) -> None:
     empty = write_results(tmp_path / "none.csv", [])
     with pytest.raises(ValueError, match="shares no epoch"):

@@ -567,10 +567,17 @@ class CurveComparison:
     training: here, within :data:`CURVE_GAP_GOAL_POINTS` of its val mAP@0.5 after the same epochs.
     Final models alone would compare a converged run with a stopped one, so the card compares the
     curves at every epoch both ran (Ultralytics' own val figures, one row per epoch of results.csv).
+    When both runs continued (``--init``) from runs of ``epochs_before`` epochs each, the card counts
+    epochs from the start of training, so the comparison names the total training both had.
     """
 
     network: str  # the other run's network, as files are named: yolov8n
     results_csv: Path
+    epochs_before: int = 0  # epochs each network trained before these runs (their --init weights)
+
+    def __post_init__(self) -> None:
+        if self.epochs_before < 0:
+            raise ValueError(f"epochs before the compared runs must be >= 0, got {self.epochs_before}")
 
     def rows(self, history: list[dict[str, float]]) -> list[dict[str, float]]:
         """One row per epoch both runs have: each run's val mAP@0.5 and mAP@0.5:0.95."""
@@ -597,6 +604,7 @@ class CurveComparison:
             "network": self.network,
             "results_csv": self.results_csv.as_posix(),
             "last_common_epoch": last["epoch"],
+            "epochs_before": self.epochs_before,
             "map50_gap_points": round(100 * (last["other_map50"] - last["this_map50"]), 2),
             "map50_95_gap_points": round(100 * (last["other_map50_95"] - last["this_map50_95"]), 2),
             "goal_map50_gap_points": CURVE_GAP_GOAL_POINTS,
@@ -609,21 +617,28 @@ class CurveComparison:
         shown = [row for row in rows if row["epoch"] == 1 or row["epoch"] % 5 == 0 or row["epoch"] == last]
         this, other = network, self.network  # the short names: table headers stay narrow
         within = figures["map50_gap_points"] <= CURVE_GAP_GOAL_POINTS
+        before = self.epochs_before
+        continued = (
+            f", both runs continuing from {before} epochs of their own network on the same data (`--init`); "
+            f"val figures per epoch, counted from the start of training ({before + 1} is these runs' first):"
+            if before
+            else ", val figures per epoch:"
+        )
         return [
             f"## Against {network_title(other)} after the same epochs",
             "",
-            f"`{other}` trained on the same data with the same recipe (`{self.results_csv.as_posix()}`), "
-            "val figures per epoch:",
+            f"`{other}` trained on the same data with the same recipe (`{self.results_csv.as_posix()}`)"
+            + continued,
             "",
             f"| epoch | {this} mAP@0.5 | {other} mAP@0.5 | {this} mAP@0.5:0.95 | {other} mAP@0.5:0.95 |",
             "|---:|---:|---:|---:|---:|",
             *(
-                f"| {row['epoch']} | {row['this_map50']:.3f} | {row['other_map50']:.3f} | "
+                f"| {before + row['epoch']} | {row['this_map50']:.3f} | {row['other_map50']:.3f} | "
                 f"{row['this_map50_95']:.3f} | {row['other_map50_95']:.3f} |"
                 for row in shown
             ),
             "",
-            f"After {last} epochs, the last both ran: `{this}` is {figures['map50_gap_points']:.2f} "
+            f"After {before + last} epochs, the last both ran: `{this}` is {figures['map50_gap_points']:.2f} "
             f"points of mAP@0.5 behind `{other}` ({'within' if within else 'outside'} the "
             f"{CURVE_GAP_GOAL_POINTS:g}-point goal); in mAP@0.5:0.95 it is "
             f"{figures['map50_95_gap_points']:.2f} points behind (a negative figure: ahead).",
