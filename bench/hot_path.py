@@ -15,7 +15,7 @@ sleeping tells whether it is the idle vCPU (halted, rescheduled, clocked down) o
 and predictors overwritten by everything else the host runs in 100 ms); a sweep of shorter periods
 (one frame every 1, 3, 10, 30 ms) shows how fast that happens.
 
-    python -m bench.hot_path --out bench/results/hot_path.json
+    python -m bench.hot_path --out bench/results/hot_path_pico_default.json
 """
 
 from __future__ import annotations
@@ -157,12 +157,12 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
     # One unbroken stream for the encoder, the recorded scans cycled with ever larger seqs and stamps,
     # so every frame after the first two yields a tensor (a restarted stream would warm up again).
     period_ns = round(1e9 / rate_hz)
+    # Two to prime the FIFO, the first call, the warm, paced, spinning and period passes, the traced ones.
+    payloads = 2 + 1 + (3 + len(PERIOD_SWEEP_MS)) * frames + ALLOC_FRAMES
     stream = iter(
         [
             encode_message(scans[k % len(scans)].model_copy(update={"seq": k, "stamp_ns": k * period_ns}))
-            for k in range(
-                2 + 1 + (3 + len(PERIOD_SWEEP_MS)) * frames + ALLOC_FRAMES
-            )  # priming, first call, passes
+            for k in range(payloads)
         ]
     )
     encoder = EncoderCore("zero")
