@@ -1,13 +1,15 @@
 """What benchmarks (and the tests of real processes) need around the services: start one by hand,
-read a process's memory, real scans recorded up front so a timed loop simulates nothing, and spinning
-processes that keep every CPU awake (``--busy``)."""
+read a process's memory, real scans recorded up front so a timed loop simulates nothing, frames timed
+one per period as a robot sends them, and spinning processes that keep every CPU awake (``--busy``)."""
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -129,6 +131,40 @@ def thread_wakeups(pid: int) -> dict[str, int]:
     for name, switches in _per_thread(pid, _voluntary_switches):
         totals[name] = totals.get(name, 0) + switches
     return totals
+
+
+def _minor_faults() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def _wait_for_deadline(deadline: float, spin: bool) -> None:
+    if not spin:
+        time.sleep(max(0.0, deadline - time.monotonic()))
+        return
+    while time.monotonic() < deadline:
+        pass
+
+
+def timed_us(
+    frame: Callable[[int], float], frames: int, period_s: float, spin: bool = False
+) -> tuple[list[float], int]:
+    """µs of ``frame(i)`` for ``i`` in range(frames), less the µs each call returns as spent elsewhere
+    (e.g. the network, for a bench of what surrounds it), and the minor page faults the frames took;
+    ``period_s`` apart when above 0, the thread sleeping between frames or, with ``spin``, busy (its
+    vCPU never idles)."""
+    times = []
+    faults = 0
+    next_due = time.monotonic()
+    for i in range(frames):
+        faults_before = _minor_faults()
+        started = time.perf_counter_ns()
+        excluded_us = frame(i)
+        times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
+        faults += _minor_faults() - faults_before
+        if period_s > 0:
+            next_due += period_s
+            _wait_for_deadline(next_due, spin)
+    return times, faults
 
 
 def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:

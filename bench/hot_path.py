@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import resource
-import time
 import tracemalloc
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -31,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import add_detector_model_argument, recorded_scans
+from bench.harness import add_detector_model_argument, recorded_scans, timed_us
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.inference import OnnxDetector
@@ -70,39 +68,6 @@ class HotPathReport:
     machine: MachineInfo = field(default_factory=machine_info)
 
 
-def minor_faults() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-
-
-def wait_until(deadline: float, spin: bool) -> None:
-    if not spin:
-        time.sleep(max(0.0, deadline - time.monotonic()))
-        return
-    while time.monotonic() < deadline:
-        pass
-
-
-def timed_us(
-    frame: Callable[[int], float], frames: int, period_s: float, spin: bool = False
-) -> tuple[list[float], int]:
-    """µs of ``frame(i)`` for ``i`` in range(frames), less the µs each call says it spent elsewhere
-    (the network), and the minor page faults the frames took; ``period_s`` apart when above 0, the
-    thread sleeping between frames or, with ``spin``, busy (its vCPU never idles)."""
-    times = []
-    faults = 0
-    next_due = time.monotonic()
-    for i in range(frames):
-        faults_before = minor_faults()
-        started = time.perf_counter_ns()
-        excluded_us = frame(i)
-        times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
-        faults += minor_faults() - faults_before
-        if period_s > 0:
-            next_due += period_s
-            wait_until(next_due, spin)
-    return times, faults
-
-
 def peak_alloc_kb(frame: Callable[[int], float], frames: int) -> float:
     """Median over frames of the peak memory one frame allocates (``tracemalloc``), in kB."""
     peaks = []
@@ -138,10 +103,10 @@ def by_period_ms(
     frame: Callable[[int], float], frames: int, paced_ms: float, warm_us: list[float], paced_us: list[float]
 ) -> dict[str, float]:
     """p50 µs of a frame at each period of PERIOD_SWEEP_MS, beside back to back (0) and paced."""
-    p50s = {0.0: warm_us, paced_ms: paced_us}
+    times_by_period = {0.0: warm_us, paced_ms: paced_us}
     for period_ms in PERIOD_SWEEP_MS:
-        p50s.setdefault(period_ms, timed_us(frame, frames, period_ms / 1e3)[0])
-    return {f"{ms:g}": round(float(np.median(times)), 1) for ms, times in sorted(p50s.items())}
+        times_by_period.setdefault(period_ms, timed_us(frame, frames, period_ms / 1e3)[0])
+    return {f"{ms:g}": round(float(np.median(times)), 1) for ms, times in sorted(times_by_period.items())}
 
 
 def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport:

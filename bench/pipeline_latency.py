@@ -273,7 +273,7 @@ def bare_frame_latency(model: Path, threads: int | None, rate_hz: float, frames:
     Paced like the pipeline (not back to back), so the ONNX Runtime thread pool idles between frames
     exactly as it does in the detector; the difference to the pipeline is what the pipeline adds.
     """
-    from bench.harness import recorded_scans
+    from bench.harness import recorded_scans, timed_us
     from common.inference import OnnxDetector
     from services.encoder.core import EncoderCore
 
@@ -281,15 +281,13 @@ def bare_frame_latency(model: Path, threads: int | None, rate_hz: float, frames:
     tensors = [t.tensor for scan in recorded_scans(60) if (t := encoder.push(scan)) is not None]
     detector = OnnxDetector(model, intra_op_threads=threads)
     detector.warmup()
-    period_s, times = 1.0 / rate_hz, []
-    next_due = time.monotonic()
-    for i in range(frames):
-        next_due += period_s
-        started = time.perf_counter()
+
+    def frame(i: int) -> float:
         detector.detect(tensors[i % len(tensors)])
-        times.append((time.perf_counter() - started) * 1e3)
-        time.sleep(max(0.0, next_due - time.monotonic()))
-    return {**latency_quantiles_ms(times), "frames": frames}
+        return 0.0  # the whole frame counts
+
+    times_us, _ = timed_us(frame, frames, 1.0 / rate_hz)
+    return {**latency_quantiles_ms([t / 1e3 for t in times_us]), "frames": frames}
 
 
 def write_trace(path: Path, latencies: list[float], stages: dict[str, list[float]]) -> None:

@@ -166,8 +166,8 @@ def test_hot_path_times_both_services_python_per_frame(tmp_path: Path) -> None:
         assert cost.p50_us_by_period_ms["0"] == pytest.approx(cost.warm_us["p50"], abs=0.1)
 
 
-def test_hot_path_counts_the_page_faults_a_frame_takes() -> None:
-    from bench import hot_path
+def test_paced_timing_counts_the_page_faults_a_frame_takes() -> None:
+    from bench import harness
 
     def fresh_memory(_: int) -> float:
         # 64 MiB is above glibc's largest mmap threshold: mapped anew and faulted in every frame
@@ -175,8 +175,8 @@ def test_hot_path_counts_the_page_faults_a_frame_takes() -> None:
         np.ones(64 << 20, np.uint8)
         return 0.0
 
-    _, idle_faults = hot_path.timed_us(lambda _: 0.0, 3, 0.0)
-    _, fresh_faults = hot_path.timed_us(fresh_memory, 3, 0.0)
+    _, idle_faults = harness.timed_us(lambda _: 0.0, 3, 0.0)
+    _, fresh_faults = harness.timed_us(fresh_memory, 3, 0.0)
     assert fresh_faults >= idle_faults + 3 * 32
 
 
@@ -311,16 +311,18 @@ def test_activation_speed_times_and_profiles_both_activations(tmp_path: Path) ->
         assert sum(shares.values()) == pytest.approx(100.0, abs=1.0)
 
 
-def test_hot_path_paces_frames_with_a_sleeping_or_a_spinning_thread(monkeypatch: pytest.MonkeyPatch) -> None:
-    from bench import hot_path
+def test_paced_timing_paces_frames_with_a_sleeping_or_a_spinning_thread(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from bench import harness
 
     sleeps: list[float] = []
     real_sleep = time.sleep
-    monkeypatch.setattr(hot_path.time, "sleep", lambda s: (sleeps.append(s), real_sleep(s)))
+    monkeypatch.setattr(harness.time, "sleep", lambda s: (sleeps.append(s), real_sleep(s)))
     for spin in (False, True):
         sleeps.clear()
         started = time.monotonic()
-        hot_path.timed_us(lambda _: 0.0, 3, 0.02, spin=spin)
+        harness.timed_us(lambda _: 0.0, 3, 0.02, spin=spin)
         assert time.monotonic() - started >= 0.06  # three frames, each 20 ms apart
         # The spinning thread keeps its vCPU busy through the waits; the sleeping one idles.
         assert len(sleeps) == (0 if spin else 3)
