@@ -146,12 +146,22 @@ def _wait_for_deadline(deadline: float, spin: bool) -> None:
 
 
 def timed_us(
-    frame: Callable[[int], float], frames: int, period_s: float, spin: bool = False
+    frame: Callable[[int], float],
+    frames: int,
+    period_s: float,
+    spin: bool = False,
+    *,
+    prewarm: Callable[[int], object] | None = None,
+    lead_s: float = 0.0,
 ) -> tuple[list[float], int]:
     """µs of ``frame(i)`` for ``i`` in range(frames), less the µs each call returns as spent elsewhere
     (e.g. the network, for a bench of what surrounds it), and the minor page faults the frames took;
     ``period_s`` apart when above 0, the thread sleeping between frames or, with ``spin``, busy (its
-    vCPU never idles)."""
+    vCPU never idles). With ``prewarm``, paced frames are each preceded by an untimed ``prewarm(i)``
+    that ends ``lead_s`` before the frame starts: does a throw-away frame just before a real one
+    leave the real one warm?"""
+    if prewarm is not None and not 0.0 < lead_s < period_s:
+        raise ValueError(f"a pre-warmed pass needs 0 < lead_s < period_s, got {lead_s} and {period_s}")
     times = []
     faults = 0
     next_due = time.monotonic()
@@ -162,7 +172,12 @@ def timed_us(
         times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
         faults += _minor_faults() - faults_before
         if period_s > 0:
-            next_due += period_s
+            if prewarm is None:
+                next_due += period_s
+            else:  # the period stretches by the throw-away frame's own time, the lead stays exact
+                _wait_for_deadline(next_due + period_s - lead_s, spin)
+                prewarm(i)
+                next_due = time.monotonic() + lead_s
             _wait_for_deadline(next_due, spin)
     return times, faults
 

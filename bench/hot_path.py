@@ -13,7 +13,10 @@ its timing) tell whether a paced frame's extra time is memory the allocator retu
 between frames and faults back in; a second paced pass whose thread spins between frames instead of
 sleeping tells whether it is the idle vCPU (halted, rescheduled, clocked down) or time itself (caches
 and predictors overwritten by everything else the host runs in 100 ms); a sweep of shorter periods
-(one frame every 1, 3, 10, 30 ms) shows how fast that happens.
+(one frame every 1, 3, 10, 30 ms) shows how fast that happens. A last paced pass runs an untimed
+throw-away frame of the same path (another input, its result discarded) 0.5, 1, 2 or 5 ms before
+each timed one: how much of a frame's cold cost a service could buy back by pre-warming itself just
+before a robot's next scan is due, and how much of the network's (``session.run``, reported beside).
 
     python -m bench.hot_path --out bench/results/hot_path_pico_default.json
 """
@@ -33,7 +36,7 @@ from bench.harness import add_detector_model_argument, recorded_scans, timed_us
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.inference import OnnxDetector
-from common.messages import encode_message
+from common.messages import Scan, encode_message
 from common.model_spec import default_model_path
 from services.detector.core import DetectorCore
 from services.encoder.core import EncoderCore
@@ -44,6 +47,8 @@ SCANS = 60  # recorded scans: 58 tensors, cycled through
 ALLOC_FRAMES = 50  # frames traced by tracemalloc (slower: not timed)
 # Shorter frame periods than the scan rate's: how long the host takes to cool a frame's caches.
 PERIOD_SWEEP_MS = (1.0, 3.0, 10.0, 30.0)
+# How long before each paced frame the pre-warmed passes run their throw-away frame.
+PREWARM_LEADS_MS = (0.5, 1.0, 2.0, 5.0)
 
 
 @dataclass
@@ -57,6 +62,10 @@ class PathCost:
     peak_alloc_kb: float
     paced_minor_faults_per_frame: float  # mean over the paced frames
     p50_us_by_period_ms: dict[str, float]  # one frame every N ms, sleeping between; 0 = back to back
+    # Paced, a throw-away frame N ms before each ("none": the plain paced pass), and the p50 of what
+    # the frames reported as spent elsewhere (the detector's session.run; 0 for the encoder).
+    prewarmed_p50_us_by_lead_ms: dict[str, float]
+    excluded_p50_us_by_lead_ms: dict[str, float]
 
 
 @dataclass
@@ -83,10 +92,29 @@ def peak_alloc_kb(frame: Callable[[int], float], frames: int) -> float:
     return round(float(np.median(peaks)) / 1e3, 1)
 
 
-def measure(name: str, frame: Callable[[int], float], frames: int, rate_hz: float) -> PathCost:
+def measure(
+    name: str, frame: Callable[[int], float], throwaway: Callable[[int], float], frames: int, rate_hz: float
+) -> PathCost:
+    """``frame(i)`` timed every way of the module docstring; ``throwaway(i)`` is the same path on
+    other inputs, for the pre-warmed passes."""
     frame(0)  # first-call costs (imports, caches) are not what a running service pays
+    throwaway(0)
     warm_us, _ = timed_us(frame, frames, 0.0)
-    paced_us, paced_faults = timed_us(frame, frames, 1.0 / rate_hz)
+    excluded: list[float] = []
+
+    def recorded(i: int) -> float:
+        excluded.append(frame(i))
+        return excluded[-1]
+
+    paced_us, paced_faults = timed_us(recorded, frames, 1.0 / rate_hz)
+    prewarmed_us = {"none": paced_us}
+    excluded_us = {"none": excluded[:]}
+    for lead_ms in PREWARM_LEADS_MS:
+        excluded.clear()
+        prewarmed_us[f"{lead_ms:g}"], _ = timed_us(
+            recorded, frames, 1.0 / rate_hz, prewarm=throwaway, lead_s=lead_ms / 1e3
+        )
+        excluded_us[f"{lead_ms:g}"] = excluded[:]
     spinning_us, _ = timed_us(frame, frames, 1.0 / rate_hz, spin=True)
     return PathCost(
         name,
@@ -96,6 +124,8 @@ def measure(name: str, frame: Callable[[int], float], frames: int, rate_hz: floa
         peak_alloc_kb(frame, ALLOC_FRAMES),
         round(paced_faults / frames, 2),
         by_period_ms(frame, frames, 1e3 / rate_hz, warm_us, paced_us),
+        {lead: round(float(np.median(times)), 1) for lead, times in prewarmed_us.items()},
+        {lead: round(float(np.median(times)), 1) for lead, times in excluded_us.items()},
     )
 
 
@@ -107,6 +137,30 @@ def by_period_ms(
     for period_ms in PERIOD_SWEEP_MS:
         times_by_period.setdefault(period_ms, timed_us(frame, frames, period_ms / 1e3)[0])
     return {f"{ms:g}": round(float(np.median(times)), 1) for ms, times in sorted(times_by_period.items())}
+
+
+def encoder_path(scans: list[Scan], payloads: int, rate_hz: float) -> Callable[[int], float]:
+    """The encoder's frame on a stream of ``payloads`` scan payloads of one robot, primed with two."""
+    period_ns = round(1e9 / rate_hz)
+    stream = iter(
+        [
+            encode_message(scans[k % len(scans)].model_copy(update={"seq": k, "stamp_ns": k * period_ns}))
+            for k in range(payloads)
+        ]
+    )
+    robot_id = scans[0].robot_id
+    encoder = EncoderCore("zero")
+    encoder.handle_payload(next(stream), robot_id)
+    encoder.handle_payload(next(stream), robot_id)
+
+    def encoder_frame(_: int) -> float:
+        tensor = encoder.handle_payload(next(stream), robot_id)
+        if tensor is None:
+            raise RuntimeError("the recorded stream broke: the encoder made no tensor")
+        encode_message(tensor)
+        return 0.0
+
+    return encoder_frame
 
 
 def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport:
@@ -121,25 +175,11 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
     report = HotPathReport(model.name, frames, rate_hz)
     # One unbroken stream for the encoder, the recorded scans cycled with ever larger seqs and stamps,
     # so every frame after the first two yields a tensor (a restarted stream would warm up again).
-    period_ns = round(1e9 / rate_hz)
-    # Two to prime the FIFO, the first call, the warm, paced, spinning and period passes, the traced ones.
-    payloads = 2 + 1 + (3 + len(PERIOD_SWEEP_MS)) * frames + ALLOC_FRAMES
-    stream = iter(
-        [
-            encode_message(scans[k % len(scans)].model_copy(update={"seq": k, "stamp_ns": k * period_ns}))
-            for k in range(payloads)
-        ]
-    )
-    encoder = EncoderCore("zero")
-    encoder.handle_payload(next(stream), robot_id)
-    encoder.handle_payload(next(stream), robot_id)
-
-    def encoder_frame(_: int) -> float:
-        tensor = encoder.handle_payload(next(stream), robot_id)
-        if tensor is None:
-            raise RuntimeError("the recorded stream broke: the encoder made no tensor")
-        encode_message(tensor)
-        return 0.0
+    # Two to prime the FIFO, the first call, the warm, paced, spinning, period, pre-warmed and traced
+    # passes; the throw-away frames have an encoder and a stream of their own.
+    timed_payloads = 2 + 1 + (3 + len(PERIOD_SWEEP_MS) + len(PREWARM_LEADS_MS)) * frames + ALLOC_FRAMES
+    encoder_frame = encoder_path(scans, timed_payloads, rate_hz)
+    encoder_throwaway = encoder_path(scans, 2 + 1 + len(PREWARM_LEADS_MS) * frames, rate_hz)
 
     def detector_frame(i: int) -> float:
         tensor = core.decode(tensor_payloads[i % len(tensor_payloads)], robot_id)
@@ -149,11 +189,18 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
         encode_message(message)
         return message.timings.inference_ms * 1e3
 
-    for name, frame in (
-        ("encoder: scan payload → tensor payload", encoder_frame),
-        ("detector: tensor payload → Detections payload, less session.run", detector_frame),
+    def detector_throwaway(i: int) -> float:
+        return detector_frame(i + len(tensor_payloads) // 2)  # another recorded tensor than the frame's
+
+    for name, frame, throwaway in (
+        ("encoder: scan payload → tensor payload", encoder_frame, encoder_throwaway),
+        (
+            "detector: tensor payload → Detections payload, less session.run",
+            detector_frame,
+            detector_throwaway,
+        ),
     ):
-        cost = measure(name, frame, frames, rate_hz)
+        cost = measure(name, frame, throwaway, frames, rate_hz)
         log.info(
             "%-62s p50 warm %6.1f µs, paced %6.1f µs (spinning between frames %6.1f), peak %6.1f kB,"
             " %.2f minor faults a paced frame",
@@ -165,6 +212,11 @@ def run(frames: int, rate_hz: float, model: Path | None = None) -> HotPathReport
             cost.paced_minor_faults_per_frame,
         )
         log.info("    p50 µs at one frame every N ms: %s", cost.p50_us_by_period_ms)
+        log.info(
+            "    paced, p50 µs with a throw-away frame N ms before: %s (session.run: %s)",
+            cost.prewarmed_p50_us_by_lead_ms,
+            cost.excluded_p50_us_by_lead_ms,
+        )
         report.paths.append(cost)
     return report
 

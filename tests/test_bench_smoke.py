@@ -164,6 +164,42 @@ def test_hot_path_times_both_services_python_per_frame(tmp_path: Path) -> None:
         assert cost.paced_minor_faults_per_frame >= 0
         assert list(cost.p50_us_by_period_ms) == ["0", "1", "3", "10", "20", "30"]  # 20: paced at 50 Hz
         assert cost.p50_us_by_period_ms["0"] == pytest.approx(cost.warm_us["p50"], abs=0.1)
+        assert list(cost.prewarmed_p50_us_by_lead_ms) == ["none", "0.5", "1", "2", "5"]
+        assert all(us > 0 for us in cost.prewarmed_p50_us_by_lead_ms.values())
+        assert cost.prewarmed_p50_us_by_lead_ms["none"] == pytest.approx(cost.paced_us["p50"], abs=0.1)
+    encoder, detector = report.paths
+    assert set(encoder.excluded_p50_us_by_lead_ms.values()) == {0.0}  # the encoder runs no network
+    assert all(us > 0 for us in detector.excluded_p50_us_by_lead_ms.values())  # session.run, beside
+
+
+def test_paced_timing_runs_the_throwaway_frame_a_lead_before_each_frame() -> None:
+    from bench import harness
+
+    events: list[tuple[str, int, float]] = []
+
+    def frame(i: int) -> float:
+        events.append(("frame", i, time.monotonic()))
+        return 0.0
+
+    def throwaway(i: int) -> None:
+        events.append(("throwaway", i, time.monotonic()))
+
+    harness.timed_us(frame, 3, 0.05, prewarm=throwaway, lead_s=0.02)
+    assert [(kind, i) for kind, i, _ in events] == [
+        ("frame", 0),
+        ("throwaway", 0),
+        ("frame", 1),
+        ("throwaway", 1),
+        ("frame", 2),
+        ("throwaway", 2),
+    ]
+    frame_starts = [t for kind, _, t in events if kind == "frame"]
+    throwaways = [t for kind, _, t in events if kind == "throwaway"]
+    for i in (1, 2):
+        assert frame_starts[i] - throwaways[i - 1] >= 0.02  # the lead, after the throw-away frame
+        assert frame_starts[i] - frame_starts[i - 1] >= 0.05  # still paced at the period
+    with pytest.raises(ValueError, match="lead_s"):
+        harness.timed_us(frame, 1, 0.05, prewarm=throwaway, lead_s=0.05)
 
 
 def test_paced_timing_counts_the_page_faults_a_frame_takes() -> None:
