@@ -14,7 +14,14 @@ from pathlib import Path
 from common.encoding import INVALID_RULES, PADDINGS
 from common.model_spec import BOX_GRIDS, DEFAULT_BOX_GRID
 from services.runtime import LOG_FORMAT
-from training.architectures import ACTIVATIONS, ARCHS, DEFAULT_ACTIVATION, DEFAULT_ARCH
+from training.architectures import (
+    ACTIVATIONS,
+    ARCHS,
+    DEFAULT_ACTIVATION,
+    DEFAULT_ARCH,
+    DEFAULT_DFL_BINS,
+    DFL_BINS,
+)
 from training.quantization import (
     ACTIVATION_TYPES,
     CALIB_METHODS,
@@ -126,6 +133,10 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "--activation", choices=ACTIVATIONS, default=DEFAULT_ACTIVATION,
         help="silu: YOLOv8's own; relu: folds into the conv, faster in INT8 (bench.activation_speed)",
     )  # fmt: skip
+    p.add_argument(
+        "--dfl-bins", type=int, choices=DFL_BINS, default=DEFAULT_DFL_BINS,
+        help="DFL bins per box edge (Ultralytics' reg_max): 8 halves the head's box branch",
+    )  # fmt: skip
     p.add_argument("--data", type=Path, required=True, help="data.yaml written by `triscan dataset`")
     p.add_argument("--out", type=Path, default=Path("runs/triscan"), help="run directory")
     p.add_argument("--epochs", type=int, default=30)
@@ -173,6 +184,7 @@ def _run_train(args: argparse.Namespace) -> int:
         arch=args.arch,
         activation=args.activation,
         init=args.init,
+        dfl_bins=args.dfl_bins,
     )
     summary = train(config, resume=args.resume, resume_from=args.resume_from, stop_after=args.stop_after)
     print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")

@@ -519,13 +519,24 @@ def test_checkpoints_name_their_network(tmp_path: Path) -> None:
         assert network_of_checkpoint(tmp_path / f"{arch}.pt") == network
 
 
-def test_network_names_read_back_into_arch_and_activation() -> None:
-    from training.architectures import ACTIVATIONS, ARCHS, network_name, parse_network_name
+def test_network_names_read_back_into_arch_activation_and_dfl_bins() -> None:
+    from training.architectures import ACTIVATIONS, ARCHS, DFL_BINS, network_name, parse_network_name
 
     for arch in ARCHS:
         for activation in ACTIVATIONS:
-            assert parse_network_name(network_name(arch, activation)) == (arch, activation)
-    for bad in ("yolov8x", "yolov8p-gelu", "resnet18", "yolov8"):
+            for bins in DFL_BINS:
+                assert parse_network_name(network_name(arch, activation, bins)) == (arch, activation, bins)
+    assert network_name("p", "relu", 8) == "yolov8p-relu-dfl8" and network_name("n") == "yolov8n"
+    for bad in (
+        "yolov8x",
+        "yolov8p-gelu",
+        "resnet18",
+        "yolov8",
+        "yolov8p-dfl16",
+        "yolov8p-dfl3",
+        "yolov8p-dfl8-relu",
+        "yolov8p-relu-dfl8-x",
+    ):
         with pytest.raises(ValueError, match="not a triscan network name"):
             parse_network_name(bad)
 

@@ -73,7 +73,7 @@ def test_export_then_eval_runs_through_the_runtime_detector(
     assert np.isfinite(report.mean_timings_ms["inference_ms"])
 
 
-def _one_epoch_from(init: Path, data: Path, out: Path, activation: str = "silu") -> Path:
+def _one_epoch_from(init: Path, data: Path, out: Path, activation: str = "silu", dfl_bins: int = 16) -> Path:
     """One CPU epoch of ``activation``'s YOLOv8n from ``init`` on the smoke set; its ``last.pt``."""
     from training.train import TrainConfig, train
 
@@ -86,6 +86,7 @@ def _one_epoch_from(init: Path, data: Path, out: Path, activation: str = "silu")
         device="cpu",
         activation=activation,
         init=init,
+        dfl_bins=dfl_bins,
     )
     summary = train(config)
     assert summary["epochs_run"] == 1 and summary["config"]["init"] == str(init)
@@ -150,6 +151,42 @@ def test_a_relu_network_starts_from_trained_silu_weights(
     start, tuned = _flat_weights(start_network), _flat_weights(tuned_network)
     assert tuned.shape == start.shape
     assert torch.linalg.norm(tuned - start) < 0.25 * torch.linalg.norm(start)
+
+
+def test_fewer_dfl_bins_keep_every_trained_tensor_but_the_box_branch(
+    trained_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """``--dfl-bins 8 --init <16-bin .pt>``: a narrower box branch, everything else from the weights.
+
+    The box branch is ``4 · bins`` wide, so its tensors cannot carry over and start afresh; every other
+    tensor (backbone, neck, class branch) must start from the trained ones. The run is named after the
+    new network, which exports to the same output layout (the DFL decodes inside the graph).
+    """
+    import torch
+
+    from common.model_spec import NUM_ANCHORS, NUM_CLASSES, PAPER_CHECKPOINT
+    from training.architectures import network_of_checkpoint
+    from training.onnx_export import export_onnx
+
+    data, _ = trained_run
+    last = _one_epoch_from(PAPER_CHECKPOINT, data, tmp_path / "dfl8", dfl_bins=8)
+    assert network_of_checkpoint(last) == "yolov8n-dfl8"
+    tuned, start = _network(last), _network(PAPER_CHECKPOINT)
+    head, start_head = tuned.model[-1], start.model[-1]
+    assert (head.reg_max, start_head.reg_max) == (8, 16)
+    assert [branch[-1].out_channels for branch in head.cv2] == [32, 32, 32]
+    tuned_tensors, start_tensors = tuned.state_dict(), start.state_dict()
+    kept = [k for k in start_tensors if not k.startswith(("model.22.cv2", "model.22.dfl"))]
+    assert kept and all(tuned_tensors[k].shape == start_tensors[k].shape for k in kept)
+    kept_weights = [k for k in kept if k.endswith(".weight")]
+    tuned_flat = torch.cat([tuned_tensors[k].float().flatten() for k in kept_weights])
+    start_flat = torch.cat([start_tensors[k].float().flatten() for k in kept_weights])
+    assert torch.linalg.norm(tuned_flat - start_flat) < 0.25 * torch.linalg.norm(start_flat)
+    import onnxruntime as ort
+
+    onnx_path = export_onnx(last, tmp_path / "dfl8.onnx", padding="zero")
+    outputs = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"]).get_outputs()
+    assert outputs[0].shape == [1, 4 + NUM_CLASSES, NUM_ANCHORS]
 
 
 def test_a_fine_tune_keeps_the_trained_weights_and_a_gentle_bias_warm_up(tmp_path: Path) -> None:

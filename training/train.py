@@ -25,8 +25,10 @@ from typing import Any
 from training.architectures import (
     DEFAULT_ACTIVATION,
     DEFAULT_ARCH,
+    DEFAULT_DFL_BINS,
     check_activation,
     check_arch,
+    check_dfl_bins,
     model_yaml,
     network_name,
     network_of_checkpoint,
@@ -59,10 +61,20 @@ class TrainConfig:
     arch: str = DEFAULT_ARCH  # training.architectures: n (the paper's YOLOv8n) or p (pico)
     activation: str = DEFAULT_ACTIVATION  # silu (YOLOv8's) or relu (cheaper in INT8)
     init: Path | None = None  # weights to start from (fine-tuning a shipped .pt), else random
+    dfl_bins: int = DEFAULT_DFL_BINS  # the box branch's DFL bins (training.architectures)
 
     def __post_init__(self) -> None:
         check_arch(self.arch)
         check_activation(self.activation)
+        check_dfl_bins(self.dfl_bins)
+
+    @property
+    def network(self) -> str:
+        """The network this run trains, as its files are named (``yolov8p-relu-dfl8``)."""
+        return network_name(self.arch, self.activation, self.dfl_bins)
+
+    def network_yaml(self) -> str:
+        return model_yaml(self.arch, self.out.resolve(), self.activation, self.dfl_bins)
 
 
 def pick_device(requested: str) -> str:
@@ -79,38 +91,48 @@ def initial_model(config: TrainConfig) -> Any:
 
     A checkpoint of another architecture than ``arch`` is refused rather than silently trained as what
     it is: the run directory, the card and the exported files would be named after a network the
-    weights are not. One of the same architecture with another activation starts the requested
-    network from its weights (e.g. a ReLU pico from a trained SiLU pico).
+    weights are not. One of the same architecture with another activation or DFL bin count starts the
+    requested network from its weights (e.g. a ReLU pico from a trained SiLU pico): every tensor whose
+    shape agrees carries over, so only a box branch of another width starts afresh.
     """
     from ultralytics import YOLO
 
     if config.init is None:
         # Architecture only: no pretrained weights exist offline.
-        return YOLO(model_yaml(config.arch, config.out.resolve(), config.activation))
+        return YOLO(config.network_yaml())
     if not config.init.is_file():
         raise FileNotFoundError(
             f"{config.init} not found: pass an Ultralytics checkpoint (.pt) to start from"
         )
-    expected = network_name(config.arch, config.activation)
+    expected = config.network
     found = network_of_checkpoint(config.init)
     if found == expected:
         return YOLO(str(config.init))
-    found_arch, found_activation = parse_network_name(found)
+    found_arch, _, found_bins = parse_network_name(found)
     if found_arch != config.arch:
         raise ValueError(
             f"{config.init} holds a {found} network, not {expected}: pass the --arch it was trained with"
         )
     # Same layers, another activation: activations hold no weights, so every tensor carries over and
     # the run starts from the trained features rather than from scratch (SiLU and ReLU agree away
-    # from zero). The network is the requested one, built from its own YAML, and named after it.
-    # Ultralytics' trainer builds the network from the loaded model's YAML dict and copies its weights
-    # in, so swapping in the requested network's YAML (keeping the class count) is the whole change.
+    # from zero). Other DFL bins change only the box branch's widths: Ultralytics copies the tensors
+    # whose shapes agree (its ``intersect_dicts``), so the backbone, neck and class branch carry over
+    # and the box branch learns anew. The network is the requested one, built from its own YAML, and
+    # named after it. Ultralytics' trainer builds the network from the loaded model's YAML dict and
+    # copies its weights in, so swapping in the requested network's YAML (keeping the class count) is
+    # the whole change.
     from ultralytics.nn.tasks import yaml_model_load
 
-    log.info("starting a %s network from the weights of %s (%s)", expected, config.init, found_activation)
+    log.info("starting a %s network from the weights of %s (%s)", expected, config.init, found)
+    if found_bins != config.dfl_bins:
+        log.info(
+            "the box branch has %d DFL bins here, %d there: it starts from random weights",
+            config.dfl_bins,
+            found_bins,
+        )
     model = YOLO(str(config.init))
     network: Any = model.model  # the loaded DetectionModel (Ultralytics types it loosely)
-    spec = yaml_model_load(model_yaml(config.arch, config.out.resolve(), config.activation))
+    spec = yaml_model_load(config.network_yaml())
     spec["nc"] = network.yaml["nc"]
     network.yaml = spec
     return model
