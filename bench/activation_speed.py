@@ -8,11 +8,17 @@ each activation, exports it the way ``triscan export`` does (fp32, then INT8 wit
 calibrated on simulated frames), times ``session.run`` of the four files run by run in turns (1 ONNX
 Runtime thread, the detector's setting), and profiles each file's node time by operator type.
 
+The same holds for the Detect head's DFL bins (``training.architectures``): ``--dfl-bins 16 8`` builds
+every activation at each bin count, so the narrower box branch is priced in the same turns, and
+``--float-head-convs`` quantises as the shipped default is (the head's convs kept float).
+
 Speed does not depend on the weights, so no training is needed to price the activation; what ReLU
 costs in accuracy only a trained model can say (``triscan train --activation relu``).
 
     python -m bench.activation_speed                 # the pico network
     python -m bench.activation_speed --arch n --out bench/results/activation_speed_n.json
+    python -m bench.activation_speed --dfl-bins 16 8 --float-head-convs \
+        --out bench/results/dfl_bins_speed.json
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "activa
 CALIBRATION_FRAMES: Final[int] = 16  # simulated frames: enough for ranges, speed does not depend on them
 
 
-def untrained_checkpoint(arch: str, activation: str, directory: Path) -> Path:
+def untrained_checkpoint(arch: str, activation: str, directory: Path, dfl_bins: int = 16) -> Path:
     """An Ultralytics checkpoint of the untrained network, with triscan's classes (what export checks)."""
     from ultralytics import YOLO
     from ultralytics.nn.tasks import DetectionModel
@@ -46,7 +52,7 @@ def untrained_checkpoint(arch: str, activation: str, directory: Path) -> Path:
     from common.model_spec import CLASS_NAMES
     from training.architectures import model_yaml
 
-    network_yaml = model_yaml(arch, directory, activation)
+    network_yaml = model_yaml(arch, directory, activation, dfl_bins)
     yolo = YOLO(network_yaml)
     yolo.model = DetectionModel(network_yaml, nc=len(CLASS_NAMES), verbose=False)  # as training sets it
     yolo.model.names = dict(enumerate(CLASS_NAMES))
@@ -92,10 +98,25 @@ def node_time_by_op(model: Path, model_input: np.ndarray, runs: int) -> dict[str
     return {op: float(np.round(100.0 * us / whole, 1)) for op, us in total.most_common()}
 
 
-def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
-    """Build, export, quantise and time the network with each activation; see the module docstring."""
+def file_label(activation: str, dfl_bins: int, precision: str) -> str:
+    """``silu fp32``, ``relu-dfl8 int8``: a timed file's name in the report (bins only when not 16)."""
+    from training.architectures import DEFAULT_DFL_BINS
+
+    bins = "" if dfl_bins == DEFAULT_DFL_BINS else f"-dfl{dfl_bins}"
+    return f"{activation}{bins} {precision}"
+
+
+def run(
+    arch: str,
+    runs: int,
+    profile_runs: int,
+    dfl_bins: tuple[int, ...] = (16,),
+    float_head_convs: bool = False,
+) -> dict[str, Any]:
+    """Build, export, quantise and time the network with each activation and bin count; see the
+    module docstring."""
     from common.encoding import to_model_input
-    from training.architectures import ACTIVATIONS, model_name
+    from training.architectures import ACTIVATIONS, DEFAULT_DFL_BINS, check_dfl_bins, model_name
     from training.export_checks import median_latency_ms
     from training.offline import configure_offline
     from training.onnx_export import export_onnx
@@ -108,28 +129,49 @@ def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
         tensors = [simulated_tensor(seed) for seed in range(1, CALIBRATION_FRAMES + 1)]
         frames = calibration_frames(scratch / "frames", tensors)
         files: dict[str, Path] = {}
-        for activation in ACTIVATIONS:
-            weights = untrained_checkpoint(arch, activation, scratch)
-            fp32 = export_onnx(weights, scratch / f"{activation}.onnx", padding="zero")
-            files[f"{activation} fp32"] = fp32
-            files[f"{activation} int8"] = quantize_int8(fp32, scratch / f"{activation}-int8.onnx", frames)
+        for bins in map(check_dfl_bins, dfl_bins):
+            for activation in ACTIVATIONS:
+                weights = untrained_checkpoint(arch, activation, scratch, bins)
+                fp32 = export_onnx(weights, scratch / f"{weights.stem}.onnx", padding="zero")
+                files[file_label(activation, bins, "fp32")] = fp32
+                files[file_label(activation, bins, "int8")] = quantize_int8(
+                    fp32,
+                    scratch / f"{weights.stem}-int8.onnx",
+                    frames,
+                    keep_head_convs_float=float_head_convs,
+                )
         medians = median_latency_ms(list(files.values()), frames[0], runs=runs)
         model_input = to_model_input(tensors[0])
         profiles = {name: node_time_by_op(path, model_input, profile_runs) for name, path in files.items()}
     median_ms = {name: round(ms, 4) for name, ms in zip(files, medians, strict=True)}
-    for precision in ("fp32", "int8"):
-        silu, relu = median_ms[f"silu {precision}"], median_ms[f"relu {precision}"]
+    for name, ms in median_ms.items():
+        precision = name.split()[-1]
+        reference = (
+            median_ms[file_label("silu", DEFAULT_DFL_BINS, precision)] if DEFAULT_DFL_BINS in dfl_bins else ms
+        )
         log.info(
-            "%s %s, session.run median of %d in turns: SiLU %.3f ms, ReLU %.3f ms (%.1f %% less)",
-            *(model_name(arch), precision, runs, silu, relu, 100 * (1 - relu / silu)),
+            "%s %s, session.run median of %d in turns: %.3f ms (%.1f %% less than SiLU at 16 bins)",
+            *(model_name(arch), name, runs, ms, 100 * (1 - ms / reference)),
         )
     return {
         "network": model_name(arch),
         "runs": runs,
         "profile_runs": profile_runs,
+        "dfl_bins": list(dfl_bins),
+        "int8_head_convs_float": float_head_convs,
         "median_ms": median_ms,
+        # ReLU against SiLU at the same bins: "fp32", "int8" at 16 bins, "dfl8 fp32" and so on otherwise.
         "relu_saves_percent": {
-            precision: round(100 * (1 - median_ms[f"relu {precision}"] / median_ms[f"silu {precision}"]), 1)
+            file_label("", bins, precision).strip("-").strip(): round(
+                100
+                * (
+                    1
+                    - median_ms[file_label("relu", bins, precision)]
+                    / median_ms[file_label("silu", bins, precision)]
+                ),
+                1,
+            )
+            for bins in dfl_bins
             for precision in ("fp32", "int8")
         },
         "node_time_percent_by_op": profiles,
@@ -138,18 +180,28 @@ def run(arch: str, runs: int, profile_runs: int) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from training.architectures import ARCHS
+    from training.architectures import ARCHS, DEFAULT_DFL_BINS, DFL_BINS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", choices=ARCHS, default="p", help="network scale (default: pico)")
     parser.add_argument("--runs", type=int, default=2000, help="timed runs of each file")
     parser.add_argument("--profile-runs", type=int, default=200, help="profiled runs of each file")
+    parser.add_argument(
+        "--dfl-bins", type=int, nargs="+", choices=DFL_BINS, default=[DEFAULT_DFL_BINS],
+        help="build each activation at each of these DFL bin counts (default: Ultralytics' 16)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--float-head-convs",
+        action="store_true",
+        help="INT8 with the Detect head's convs float (the default's)",
+    )
     parser.add_argument("--out", type=Path, default=None, help=f"default {DEFAULT_OUT}")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.profile_runs < 1:
         parser.error("--runs and --profile-runs must be >= 1")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    write_report(run(args.arch, args.runs, args.profile_runs), args.out or DEFAULT_OUT, echo=False)
+    report = run(args.arch, args.runs, args.profile_runs, tuple(args.dfl_bins), args.float_head_convs)
+    write_report(report, args.out or DEFAULT_OUT, echo=False)
     return 0
 
 
