@@ -347,6 +347,35 @@ def test_activation_speed_times_and_profiles_both_activations(tmp_path: Path) ->
         assert sum(shares.values()) == pytest.approx(100.0, abs=1.0)
 
 
+def test_activation_speed_prices_fewer_dfl_bins_beside_the_default(tmp_path: Path) -> None:
+    from bench import activation_speed
+
+    out = tmp_path / "bins.json"
+    argv = [
+        "--runs",
+        "3",
+        "--profile-runs",
+        "2",
+        "--dfl-bins",
+        "16",
+        "8",
+        "--float-head-convs",
+        "--out",
+        str(out),
+    ]
+    assert activation_speed.main(argv) == 0
+    report = json.loads(out.read_text())
+    files = {f"{a}{b} {p}" for a in ("silu", "relu") for b in ("", "-dfl8") for p in ("fp32", "int8")}
+    assert set(report["median_ms"]) == files and report["dfl_bins"] == [16, 8]
+    assert report["int8_head_convs_float"] is True
+    assert set(report["relu_saves_percent"]) == {"fp32", "int8", "dfl8 fp32", "dfl8 int8"}
+    # Head convs float: the INT8 files run the box branch as float Conv nodes, fp32 files have no QLinear.
+    assert "Conv" in report["node_time_percent_by_op"]["silu-dfl8 int8"]
+    assert not any(op.startswith("QLinear") for op in report["node_time_percent_by_op"]["relu-dfl8 fp32"])
+    with pytest.raises(SystemExit):
+        activation_speed.main(["--dfl-bins", "12", "--out", str(out)])
+
+
 def test_paced_timing_paces_frames_with_a_sleeping_or_a_spinning_thread(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
