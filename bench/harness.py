@@ -167,6 +167,7 @@ def timed_us(
     next_due = time.monotonic()
     for i in range(frames):
         faults_before = _minor_faults()
+        frame_started = time.monotonic()
         started = time.perf_counter_ns()
         excluded_us = frame(i)
         times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
@@ -174,8 +175,11 @@ def timed_us(
         if period_s > 0:
             if prewarm is None:
                 next_due += period_s
-            else:  # the period stretches by the throw-away frame's own time, the lead stays exact
-                _wait_for_deadline(next_due + period_s - lead_s, spin)
+            else:
+                # The period stretches by the throw-away frame's own time, the lead stays exact. Counted
+                # from this frame's own start, not its due time: a frame that started late (the thread
+                # was preempted) must not bring the next one closer than a period.
+                _wait_for_deadline(frame_started + period_s - lead_s, spin)
                 prewarm(i)
                 next_due = time.monotonic() + lead_s
             _wait_for_deadline(next_due, spin)
