@@ -37,6 +37,7 @@ import numpy as np
 from bench.harness import simulated_tensor
 from bench.machine import machine_info
 from bench.report import write_report
+from training.architectures import DEFAULT_DFL_BINS, dfl_bins_tag
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -44,7 +45,9 @@ DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "activa
 CALIBRATION_FRAMES: Final[int] = 16  # simulated frames: enough for ranges, speed does not depend on them
 
 
-def untrained_checkpoint(arch: str, activation: str, directory: Path, dfl_bins: int = 16) -> Path:
+def untrained_checkpoint(
+    arch: str, activation: str, directory: Path, dfl_bins: int = DEFAULT_DFL_BINS
+) -> Path:
     """An Ultralytics checkpoint of the untrained network, with triscan's classes (what export checks)."""
     from ultralytics import YOLO
     from ultralytics.nn.tasks import DetectionModel
@@ -100,23 +103,20 @@ def node_time_by_op(model: Path, model_input: np.ndarray, runs: int) -> dict[str
 
 def file_label(activation: str, dfl_bins: int, precision: str) -> str:
     """``silu fp32``, ``relu-dfl8 int8``: a timed file's name in the report (bins only when not 16)."""
-    from training.architectures import DEFAULT_DFL_BINS
-
-    bins = "" if dfl_bins == DEFAULT_DFL_BINS else f"-dfl{dfl_bins}"
-    return f"{activation}{bins} {precision}"
+    return f"{'-'.join(filter(None, (activation, dfl_bins_tag(dfl_bins))))} {precision}"
 
 
 def run(
     arch: str,
     runs: int,
     profile_runs: int,
-    dfl_bins: tuple[int, ...] = (16,),
+    dfl_bins: tuple[int, ...] = (DEFAULT_DFL_BINS,),
     float_head_convs: bool = False,
 ) -> dict[str, Any]:
     """Build, export, quantise and time the network with each activation and bin count; see the
     module docstring."""
     from common.encoding import to_model_input
-    from training.architectures import ACTIVATIONS, DEFAULT_DFL_BINS, check_dfl_bins, model_name
+    from training.architectures import ACTIVATIONS, check_dfl_bins, model_name
     from training.export_checks import median_latency_ms
     from training.offline import configure_offline
     from training.onnx_export import export_onnx
@@ -145,13 +145,10 @@ def run(
         profiles = {name: node_time_by_op(path, model_input, profile_runs) for name, path in files.items()}
     median_ms = {name: round(ms, 4) for name, ms in zip(files, medians, strict=True)}
     for name, ms in median_ms.items():
-        precision = name.split()[-1]
-        reference = (
-            median_ms[file_label("silu", DEFAULT_DFL_BINS, precision)] if DEFAULT_DFL_BINS in dfl_bins else ms
-        )
+        reference = median_ms.get(file_label("silu", DEFAULT_DFL_BINS, name.split()[-1]))
+        versus = f" ({100 * (1 - ms / reference):.1f} % less than SiLU at 16 bins)" if reference else ""
         log.info(
-            "%s %s, session.run median of %d in turns: %.3f ms (%.1f %% less than SiLU at 16 bins)",
-            *(model_name(arch), name, runs, ms, 100 * (1 - ms / reference)),
+            "%s %s, session.run median of %d in turns: %.3f ms%s", model_name(arch), name, runs, ms, versus
         )
     return {
         "network": model_name(arch),
@@ -162,7 +159,7 @@ def run(
         "median_ms": median_ms,
         # ReLU against SiLU at the same bins: "fp32", "int8" at 16 bins, "dfl8 fp32" and so on otherwise.
         "relu_saves_percent": {
-            file_label("", bins, precision).strip("-").strip(): round(
+            " ".join(filter(None, (dfl_bins_tag(bins), precision))): round(
                 100
                 * (
                     1
@@ -180,7 +177,7 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from training.architectures import ARCHS, DEFAULT_DFL_BINS, DFL_BINS
+    from training.architectures import ARCHS, DFL_BINS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", choices=ARCHS, default="p", help="network scale (default: pico)")

@@ -50,13 +50,18 @@ def network_name(arch: str, activation: str = DEFAULT_ACTIVATION, dfl_bins: int 
     activation and DFL bin count, as checkpoints, model YAMLs and exported files are named
     (:func:`network_of_checkpoint` reads it back)."""
     check_activation(activation)
-    check_dfl_bins(dfl_bins)
     parts = [model_name(arch)]
     if activation != DEFAULT_ACTIVATION:
         parts.append(activation)
-    if dfl_bins != DEFAULT_DFL_BINS:
-        parts.append(f"dfl{dfl_bins}")
+    if tag := dfl_bins_tag(dfl_bins):
+        parts.append(tag)
     return "-".join(parts)
+
+
+def dfl_bins_tag(dfl_bins: int) -> str:
+    """``dfl8``: how a name marks a non-default DFL bin count (empty for Ultralytics' 16)."""
+    check_dfl_bins(dfl_bins)
+    return "" if dfl_bins == DEFAULT_DFL_BINS else f"dfl{dfl_bins}"
 
 
 def parse_network_name(name: str) -> tuple[Arch, Activation, int]:
@@ -66,8 +71,9 @@ def parse_network_name(name: str) -> tuple[Arch, Activation, int]:
     activation, dfl_bins = DEFAULT_ACTIVATION, DEFAULT_DFL_BINS
     if rest and rest[0] in ACTIVATIONS:
         activation = rest.pop(0)
-    if rest and rest[0].startswith("dfl") and rest[0][3:].isdigit() and int(rest[0][3:]) in DFL_BINS:
-        dfl_bins = int(rest.pop(0)[3:])
+    bins_by_tag = {dfl_bins_tag(bins): bins for bins in DFL_BINS if bins != DEFAULT_DFL_BINS}
+    if rest and rest[0] in bins_by_tag:
+        dfl_bins = bins_by_tag[rest.pop(0)]
     if (
         not stem.startswith("yolov8")
         or arch not in ARCHS
