@@ -26,19 +26,24 @@ two scans (untimed), run **one warm-up frame**, then time **100 consecutive fram
 mean — the paper's protocol — and then, continuing on the following scans, time ``--frames`` more
 (default 1,000) for p50 and p99: a mean of 100 hides the tail a robot's control loop has to live with.
 Per-stage means (encode, preprocess, inference, postprocess, other = frame − stages) come from the
-long run. Ratios are baseline ÷ triscan fp32 (and INT8 ÷ fp32) at each thread count.
+long run. Ratios are baseline ÷ triscan fp32 (and INT8 ÷ fp32) at each thread count. By default the
+pipelines run one after the other; ``--rounds N`` splits every long run into N shares that the
+pipelines time in turns (every pipeline in memory at once), for VMs whose speed drifts by more
+than the difference being measured within a minute.
 
 Nothing here asserts a time: the numbers depend on the machine, and a quiet machine is the caller's
 job (load averages at start and end are recorded in the JSON to show whether it was).
 
     python -m bench.frame_latency                     # full run → bench/results/frame_latency.json
     python -m bench.frame_latency --frames 200 --skip-grid --skip-ultralytics
+    python -m bench.frame_latency --threads 1 --skip-grid --rounds 10   # pipelines in turns
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
+import itertools
 import json
 import logging
 import os
@@ -131,6 +136,8 @@ class BenchConfig:
     skip_int8: bool = False
     skip_ultralytics: bool = False
     skip_grid: bool = False
+    # 1: each pipeline's long run in one go, one pipeline after the other; N: in N rounds taking turns
+    rounds: int = 1
 
     @property
     def scans_needed(self) -> int:
@@ -302,10 +309,8 @@ def time_frames(pipeline: Pipeline, scans: Sequence[ScanArgs]) -> tuple[np.ndarr
     return totals, stages, detections
 
 
-def measure(
-    name: str, pipeline: Pipeline, threads: int, scans: Sequence[ScanArgs], config: BenchConfig
-) -> LatencyRow:
-    """The protocol of the module docstring for one pipeline at one thread count."""
+def _paper_mean_phase(pipeline: Pipeline, scans: Sequence[ScanArgs], config: BenchConfig) -> np.ndarray:
+    """Prime the FIFO, run the warm-up frames, then time the paper's consecutive frames."""
     for scan in scans[:PRIME_SCANS]:
         pipeline.prime(scan)
     start = PRIME_SCANS
@@ -314,9 +319,53 @@ def measure(
     start += config.paper_warmup
     gc.collect()
     paper, _, _ = time_frames(pipeline, scans[start : start + config.paper_frames])
-    start += config.paper_frames
-    gc.collect()
-    totals, stages, detections = time_frames(pipeline, scans[start : start + config.frames])
+    return paper
+
+
+def round_bounds(frames: int, rounds: int) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each round's share of the ``frames`` long-run frames: consecutive, as even
+    as possible, together exactly ``range(frames)``."""
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
+    edges = np.linspace(0, frames, min(rounds, frames) + 1).round().astype(int).tolist()
+    return list(itertools.pairwise(edges))
+
+
+def measure_in_turns(
+    pipelines: Sequence[tuple[str, Pipeline]], threads: int, scans: Sequence[ScanArgs], config: BenchConfig
+) -> list[LatencyRow]:
+    """The protocol of the module docstring for several pipelines at one thread count, their long runs
+    split into ``config.rounds`` rounds that take turns.
+
+    Each pipeline first has its paper-style phase; then, round by round, each pipeline times its next
+    share of the same consecutive scans (its FIFO continues where its last share ended), so a drift
+    of the machine's speed during the run reaches every pipeline alike instead of whichever ran last.
+    """
+    papers = [_paper_mean_phase(pipeline, scans, config) for _, pipeline in pipelines]
+    start = PRIME_SCANS + config.paper_warmup + config.paper_frames
+    parts: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in pipelines]
+    for lo, hi in round_bounds(config.frames, config.rounds):
+        for timed, (_, pipeline) in zip(parts, pipelines, strict=True):
+            gc.collect()
+            timed.append(time_frames(pipeline, scans[start + lo : start + hi]))
+    rows = []
+    for (name, _), paper, timed in zip(pipelines, papers, parts, strict=True):
+        totals = np.concatenate([t for t, _, _ in timed])
+        stages = np.concatenate([s for _, s, _ in timed])
+        detections = np.concatenate([d for _, _, d in timed])
+        rows.append(_latency_row(name, threads, paper, totals, stages, detections, config))
+    return rows
+
+
+def _latency_row(
+    name: str,
+    threads: int,
+    paper: np.ndarray,
+    totals: np.ndarray,
+    stages: np.ndarray,
+    detections: np.ndarray,
+    config: BenchConfig,
+) -> LatencyRow:
     stage_means = stages.mean(axis=0)
     other = float(np.mean(totals - stages.sum(axis=1)))
     return LatencyRow(
@@ -419,10 +468,17 @@ def _factories(config: BenchConfig, grid_model: Path | None) -> list[tuple[str, 
     return factories
 
 
+def _log_row(row: LatencyRow) -> None:
+    log.info(
+        "%-15s %d thread(s): p50 %.3f ms, p99 %.3f ms", row.pipeline, row.threads, row.p50_ms, row.p99_ms
+    )
+
+
 def run(config: BenchConfig) -> BenchReport:
-    """Generate the scans, then measure every pipeline at every thread count, one after the other."""
-    if config.frames < 1 or config.paper_frames < 1 or config.paper_warmup < 0:
-        raise ValueError("need frames >= 1, paper_frames >= 1 and paper_warmup >= 0")
+    """Generate the scans, then measure every pipeline at every thread count: one after the other, or
+    in ``config.rounds`` turns."""
+    if config.frames < 1 or config.paper_frames < 1 or config.paper_warmup < 0 or config.rounds < 1:
+        raise ValueError("need frames >= 1, paper_frames >= 1, paper_warmup >= 0 and rounds >= 1")
     started = time.perf_counter()
     machine = machine_info()
     if machine.loadavg_start[0] > 0.5 * machine.usable_cpus:
@@ -436,15 +492,20 @@ def run(config: BenchConfig) -> BenchReport:
     # Exported (once, then cached) before anything is timed.
     grid_model = None if config.skip_grid else grid_model_onnx(config.cache_dir, config.grid_px)
     factories = _factories(config, grid_model)
-    rows = []
+    rows: list[LatencyRow] = []
     for threads in dict.fromkeys(config.threads):  # ordered, without duplicates (1 core: one row)
-        for name, factory in factories:
-            pipeline = factory(threads)
-            row = measure(name, pipeline, threads, scans, config)
-            del pipeline
+        if config.rounds == 1:  # one after the other, each pipeline alone in memory
+            for name, factory in factories:
+                rows += measure_in_turns([(name, factory(threads))], threads, scans, config)
+                gc.collect()
+                _log_row(rows[-1])
+        else:
+            pipelines = [(name, factory(threads)) for name, factory in factories]
+            rows += measure_in_turns(pipelines, threads, scans, config)
+            del pipelines
             gc.collect()
-            log.info("%-15s %d thread(s): p50 %.3f ms, p99 %.3f ms", name, threads, row.p50_ms, row.p99_ms)
-            rows.append(row)
+            for row in rows[-len(factories) :]:
+                _log_row(row)
     machine.loadavg_end = [round(x, 2) for x in os.getloadavg()]
     default = PRECISION_PIPELINES[config.default]
     ratio_rows = ratios(rows, default)
@@ -563,6 +624,11 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
     parser.add_argument("--skip-int8", action="store_true")
     parser.add_argument("--skip-ultralytics", action="store_true")
     parser.add_argument("--skip-grid", action="store_true")
+    parser.add_argument(
+        "--rounds", type=int, default=1,
+        help="split each pipeline's --frames into this many rounds, the pipelines taking turns (1: one "
+        "after the other); ratios then hold when the machine's speed drifts during the run",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON report path")
     args = parser.parse_args(argv)
     config = BenchConfig(
@@ -581,6 +647,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         skip_int8=args.skip_int8,
         skip_ultralytics=args.skip_ultralytics,
         skip_grid=args.skip_grid,
+        rounds=args.rounds,
     )
     return config, args.out
 

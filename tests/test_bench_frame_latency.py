@@ -18,17 +18,21 @@ pytest.importorskip("pybullet")
 from bench.frame_latency import (
     GRID,
     PRECISION_PIPELINES,
+    PRIME_SCANS,
     STAGES,
     TRISCAN_FP32,
     TRISCAN_INT8,
     ULTRALYTICS,
     ULTRALYTICS_SAME,
+    BenchConfig,
     LatencyRow,
     MachineInfo,
     RatioRow,
     goals,
     main,
+    measure_in_turns,
     ratios,
+    round_bounds,
 )
 from bench.occupancy_grid import rasterise_occupancy_grid
 
@@ -150,3 +154,52 @@ def test_ratios_name_the_same_network_and_the_shipped_default() -> None:
     }
     assert judged["occupancy_grid_over_triscan_int8_p50_at_1_thread"]["met"]
     assert not judged["triscan_fp32_p50_ms_at_1_thread"]["met"]
+
+
+def test_round_bounds_split_the_frames_into_consecutive_shares() -> None:
+    assert round_bounds(10, 1) == [(0, 10)]
+    assert round_bounds(10, 3) == [(0, 3), (3, 7), (7, 10)]
+    assert round_bounds(2, 5) == [(0, 1), (1, 2)]  # never an empty round
+    with pytest.raises(ValueError, match="rounds"):
+        round_bounds(10, 0)
+
+
+class RecordingPipeline:
+    """Counts what it is given, in the order it is given it, into a log shared with the others."""
+
+    def __init__(self, name: str, log: list[tuple[str, str, int]]) -> None:
+        self.name, self.log = name, log
+
+    def prime(self, scan: int) -> None:
+        self.log.append((self.name, "prime", scan))
+
+    def frame(self, scan: int) -> tuple[tuple[float, float, float, float], int]:
+        self.log.append((self.name, "frame", scan))
+        return (0.0, 0.0, 0.0, 0.0), 1
+
+
+def test_pipelines_take_turns_each_on_the_same_consecutive_scans() -> None:
+    """In rounds, every pipeline still sees every scan once and in order (its FIFO stays continuous),
+    and the long run alternates between pipelines instead of running one after the other."""
+    config = BenchConfig(frames=6, paper_frames=2, paper_warmup=1, rounds=3)
+    scans = list(range(config.scans_needed))
+    log: list[tuple[str, str, int]] = []
+    a, b = TRISCAN_FP32, TRISCAN_INT8
+    pipelines = [(a, RecordingPipeline(a, log)), (b, RecordingPipeline(b, log))]
+    rows = measure_in_turns(pipelines, 1, scans, config)  # type: ignore[arg-type]
+    assert [(r.pipeline, r.frames, r.paper_frames) for r in rows] == [(a, 6, 2), (b, 6, 2)]
+    for name in (a, b):
+        assert [scan for who, _, scan in log if who == name] == scans
+    long_run_start = PRIME_SCANS + config.paper_warmup + config.paper_frames
+    long_run = [who for who, _, scan in log if scan >= long_run_start]
+    assert long_run == [a, a, b, b] * 3
+
+
+def test_a_real_run_in_rounds_reports_every_frame(tmp_path) -> None:
+    out = tmp_path / "rounds.json"
+    argv = ["--frames", "4", "--paper-frames", "2", "--threads", "1", "--rounds", "2"]
+    argv += ["--skip-grid", "--skip-ultralytics", "--out", str(out)]
+    assert main(argv) == 0
+    report = json.loads(out.read_text())
+    assert report["config"]["rounds"] == 2
+    assert [(r["pipeline"], r["frames"]) for r in report["rows"]] == [(TRISCAN_FP32, 4), (TRISCAN_INT8, 4)]
