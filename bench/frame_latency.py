@@ -493,19 +493,17 @@ def run(config: BenchConfig) -> BenchReport:
     grid_model = None if config.skip_grid else grid_model_onnx(config.cache_dir, config.grid_px)
     factories = _factories(config, grid_model)
     rows: list[LatencyRow] = []
+    # One round: one pipeline after the other, each alone in memory. Rounds: all of them taking turns.
+    groups = [[factory] for factory in factories] if config.rounds == 1 else [factories]
     for threads in dict.fromkeys(config.threads):  # ordered, without duplicates (1 core: one row)
-        if config.rounds == 1:  # one after the other, each pipeline alone in memory
-            for name, factory in factories:
-                rows += measure_in_turns([(name, factory(threads))], threads, scans, config)
-                gc.collect()
-                _log_row(rows[-1])
-        else:
-            pipelines = [(name, factory(threads)) for name, factory in factories]
-            rows += measure_in_turns(pipelines, threads, scans, config)
+        for group in groups:
+            pipelines = [(name, factory(threads)) for name, factory in group]
+            measured = measure_in_turns(pipelines, threads, scans, config)
             del pipelines
             gc.collect()
-            for row in rows[-len(factories) :]:
+            for row in measured:
                 _log_row(row)
+            rows += measured
     machine.loadavg_end = [round(x, 2) for x in os.getloadavg()]
     default = PRECISION_PIPELINES[config.default]
     ratio_rows = ratios(rows, default)
