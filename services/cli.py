@@ -135,7 +135,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument(
         "--dfl-bins", type=int, choices=DFL_BINS, default=DEFAULT_DFL_BINS,
-        help="DFL bins per box edge (Ultralytics' reg_max): 8 halves the head's box branch",
+        help="DFL bins per box edge (Ultralytics' reg_max): 8 halve the head's box branch, 12 cut a quarter",
     )  # fmt: skip
     p.add_argument("--data", type=Path, required=True, help="data.yaml written by `triscan dataset`")
     p.add_argument("--out", type=Path, default=Path("runs/triscan"), help="run directory")
@@ -149,7 +149,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--init", type=Path, default=None, metavar="WEIGHTS",
         help="start from these weights instead of random ones, e.g. a shipped .pt to fine-tune on your "
-        "own rooms (--arch must name its network; another --activation starts that network from them)",
+        "own rooms (--arch must name its network; another --activation, or fewer --dfl-bins with the box "
+        "branch cut from the trained one, starts that network from them)",
     )  # fmt: skip
     p.add_argument("--resume", action="store_true", help="continue from OUT/weights/last.pt if it exists")
     p.add_argument(

@@ -158,9 +158,10 @@ def test_fewer_dfl_bins_keep_every_trained_tensor_but_the_box_branch(
 ) -> None:
     """``--dfl-bins 8 --init <16-bin .pt>``: a narrower box branch, everything else from the weights.
 
-    The box branch is ``4 · bins`` wide, so its tensors cannot carry over and start afresh; every other
-    tensor (backbone, neck, class branch) must start from the trained ones. The run is named after the
-    new network, which exports to the same output layout (the DFL decodes inside the graph).
+    The box branch is ``4 · bins`` wide, so its tensors cannot carry over as they are: they start cut
+    from the trained branch (``training.box_branch``), and every other tensor (backbone, neck, class
+    branch) from the trained ones. The run is named after the new network, which exports to the same
+    output layout (the DFL decodes inside the graph).
     """
     import torch
 
@@ -182,6 +183,11 @@ def test_fewer_dfl_bins_keep_every_trained_tensor_but_the_box_branch(
     tuned_flat = torch.cat([tuned_tensors[k].float().flatten() for k in kept_weights])
     start_flat = torch.cat([start_tensors[k].float().flatten() for k in kept_weights])
     assert torch.linalg.norm(tuned_flat - start_flat) < 0.25 * torch.linalg.norm(start_flat)
+    from training.box_branch import bin_rows, kept_channels
+
+    for branch, start_branch in zip(head.cv2, start_head.cv2, strict=True):
+        cut = start_branch[2].weight.float()[bin_rows(16, 8)][:, kept_channels(start_branch[1].bn, 32)]
+        assert torch.linalg.norm(branch[2].weight.float() - cut) < 0.25 * torch.linalg.norm(cut)
     import onnxruntime as ort
 
     onnx_path = export_onnx(last, tmp_path / "dfl8.onnx", padding="zero")

@@ -17,7 +17,8 @@ network's width: 64 channels at 16 bins, four times the pico's own stride-8 stag
 single cost of the pico network. 8 bins halve that branch; a box edge may then lie at most 7 strides
 from its anchor (56 px at stride 8, 224 px at stride 32, where the 384-px-wide image's largest objects
 go), and the edge within that range is still the bins' continuous expectation, not rounded to one.
-``python -m bench.activation_speed --dfl-bins 8`` prices it.
+12 bins are the middle ground (48 channels, 11 strides: 88 px at stride 8).
+``python -m bench.activation_speed --dfl-bins 16 12 8`` prices them.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ ACTIVATIONS: tuple[str, ...] = get_args(Activation)
 DEFAULT_ACTIVATION: Activation = "silu"  # YOLOv8's own, the paper's
 # What Ultralytics' YAML ``activation`` key takes (it evaluates the expression); SiLU is its default.
 _ACTIVATION_EXPRESSIONS: dict[str, str] = {"relu": "nn.ReLU()"}
-DFL_BINS: tuple[int, ...] = (16, 8)  # the box branch's distribution bins per edge (Ultralytics' reg_max)
+DFL_BINS: tuple[int, ...] = (16, 12, 8)  # the box branch's distribution bins per edge (Ultralytics' reg_max)
 DEFAULT_DFL_BINS = 16  # Ultralytics' and the paper's
 
 

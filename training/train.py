@@ -93,7 +93,8 @@ def initial_model(config: TrainConfig) -> Any:
     it is: the run directory, the card and the exported files would be named after a network the
     weights are not. One of the same architecture with another activation or DFL bin count starts the
     requested network from its weights (e.g. a ReLU pico from a trained SiLU pico): every tensor whose
-    shape agrees carries over, so only a box branch of another width starts afresh.
+    shape agrees carries over; a box branch with fewer bins is cut from the trained one
+    (:mod:`training.box_branch`), one with more starts afresh.
     """
     from ultralytics import YOLO
 
@@ -116,26 +117,50 @@ def initial_model(config: TrainConfig) -> Any:
     # Same layers, another activation: activations hold no weights, so every tensor carries over and
     # the run starts from the trained features rather than from scratch (SiLU and ReLU agree away
     # from zero). Other DFL bins change only the box branch's widths: Ultralytics copies the tensors
-    # whose shapes agree (its ``intersect_dicts``), so the backbone, neck and class branch carry over
-    # and the box branch learns anew. The network is the requested one, built from its own YAML, and
-    # named after it. Ultralytics' trainer builds the network from the loaded model's YAML dict and
-    # copies its weights in, so swapping in the requested network's YAML (keeping the class count) is
-    # the whole change.
+    # whose shapes agree (its ``intersect_dicts``), so the backbone, neck and class branch carry over;
+    # fewer bins get the trained branch cut to size first. The network is the requested one, built
+    # from its own YAML, and named after it: Ultralytics' trainer builds the network from the loaded
+    # model's YAML dict and copies its weights in, so swapping in the requested network's YAML
+    # (keeping the class count) is the whole change.
     from ultralytics.nn.tasks import yaml_model_load
 
     log.info("starting a %s network from the weights of %s (%s)", expected, config.init, found)
-    if found_bins != config.dfl_bins:
+    model = YOLO(str(config.init))
+    network: Any = model.model  # the loaded DetectionModel (Ultralytics types it loosely)
+    spec = yaml_model_load(config.network_yaml())
+    spec["nc"] = network.yaml["nc"]
+    if config.dfl_bins < found_bins:
+        model.model = _with_narrowed_box_branch(network, spec)
+        log.info(
+            "the box branch has %d DFL bins here, %d there: cut from the trained one (training.box_branch)",
+            config.dfl_bins,
+            found_bins,
+        )
+        return model
+    if config.dfl_bins > found_bins:
         log.info(
             "the box branch has %d DFL bins here, %d there: it starts from random weights",
             config.dfl_bins,
             found_bins,
         )
-    model = YOLO(str(config.init))
-    network: Any = model.model  # the loaded DetectionModel (Ultralytics types it loosely)
-    spec = yaml_model_load(config.network_yaml())
-    spec["nc"] = network.yaml["nc"]
     network.yaml = spec
     return model
+
+
+def _with_narrowed_box_branch(network: Any, spec: dict[str, Any]) -> Any:
+    """The network of ``spec`` holding every tensor of the trained ``network``, its box branch cut to the
+    fewer bins of ``spec``. Ultralytics' trainer then copies all of it, every shape agreeing."""
+    from ultralytics.nn.tasks import DetectionModel
+
+    from training.box_branch import narrow_box_branch
+
+    trained = network.float()
+    narrowed = DetectionModel(spec, nc=spec["nc"], verbose=False)
+    narrowed.load(trained, verbose=False)  # every tensor whose shape agrees: all but the box branch
+    narrow_box_branch(trained.model[-1], narrowed.model[-1])
+    narrowed.names = dict(trained.names)
+    narrowed.args = getattr(trained, "args", {})
+    return narrowed
 
 
 def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
