@@ -96,6 +96,8 @@ NETWORK_TITLES: Final[dict[str, str]] = {
     "yolov8n": "YOLOv8n",
     "yolov8p": "YOLOv8p (pico: YOLOv8 at width 0.125)",
     "yolov8p-relu": "YOLOv8p-ReLU (pico with ReLU instead of SiLU)",
+    "yolov8p-dfl12": "YOLOv8p-DFL12 (pico with 12 DFL bins: a box branch three quarters as wide)",
+    "yolov8p-relu-dfl12": "YOLOv8p-ReLU-DFL12 (pico with ReLU and 12 DFL bins)",
     "yolov8p-dfl8": "YOLOv8p-DFL8 (pico with 8 DFL bins: a box branch half as wide)",
     "yolov8p-relu-dfl8": "YOLOv8p-ReLU-DFL8 (pico with ReLU and 8 DFL bins)",
 }

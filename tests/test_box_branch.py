@@ -12,9 +12,11 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("ultralytics")
 
+from common.model_spec import MODELS_DIR  # noqa: E402
 from training.box_branch import EDGES, bin_rows, kept_channels, narrow_box_branch  # noqa: E402
 
 PICO_NECK = (32, 64, 128)  # the pico's P3, P4, P5 widths: what the head's branches read
+PICO_16_BINS = MODELS_DIR / "yolov8p" / "triscan-yolov8p-zero.pt"  # the 16-bin pico, trained
 
 
 def _detect_head(bins: int, neck: tuple[int, ...] = PICO_NECK) -> Any:
@@ -82,28 +84,27 @@ def test_a_head_over_another_neck_is_refused() -> None:
 
 
 def test_a_fine_tune_to_fewer_bins_starts_from_the_cut_trained_branch(tmp_path: Path) -> None:
-    """``initial_model`` with ``--dfl-bins 12 --init`` the shipped 16-bin pico: the requested network,
-    every other tensor the shipped one's, the box branch the shipped branch cut (not random weights)."""
-    from common.model_spec import SHIPPED_CHECKPOINT
+    """``initial_model`` with ``--dfl-bins 12 --init`` the trained 16-bin pico: the requested network,
+    every other tensor the trained one's, the box branch the trained branch cut (not random weights)."""
     from training.offline import configure_offline
     from training.train import TrainConfig, initial_model
 
     configure_offline()
     model = initial_model(
         TrainConfig(
-            data=tmp_path / "data.yaml", out=tmp_path / "run", arch="p", dfl_bins=12, init=SHIPPED_CHECKPOINT
+            data=tmp_path / "data.yaml", out=tmp_path / "run", arch="p", dfl_bins=12, init=PICO_16_BINS
         )
     )
     network = model.model
-    shipped = torch.load(SHIPPED_CHECKPOINT, map_location="cpu", weights_only=False)
-    shipped_network = (shipped.get("ema") or shipped["model"]).float()
-    head, shipped_head = network.model[-1], shipped_network.model[-1]
-    assert (head.reg_max, shipped_head.reg_max, network.yaml["reg_max"]) == (12, 16, 12)
-    assert network.names == shipped_network.names
-    tensors, shipped_tensors = network.state_dict(), shipped_network.state_dict()
-    others = [k for k in shipped_tensors if not k.startswith(("model.22.cv2", "model.22.dfl"))]
-    assert others and all(torch.equal(tensors[k], shipped_tensors[k]) for k in others)
-    for branch, shipped_branch in zip(head.cv2, shipped_head.cv2, strict=True):
-        hidden = kept_channels(shipped_branch[1].bn, 48)
-        expected = shipped_branch[2].weight[bin_rows(16, 12)][:, hidden]
+    source = torch.load(PICO_16_BINS, map_location="cpu", weights_only=False)
+    source_network = (source.get("ema") or source["model"]).float()
+    head, source_head = network.model[-1], source_network.model[-1]
+    assert (head.reg_max, source_head.reg_max, network.yaml["reg_max"]) == (12, 16, 12)
+    assert network.names == source_network.names
+    tensors, source_tensors = network.state_dict(), source_network.state_dict()
+    others = [k for k in source_tensors if not k.startswith(("model.22.cv2", "model.22.dfl"))]
+    assert others and all(torch.equal(tensors[k], source_tensors[k]) for k in others)
+    for branch, source_branch in zip(head.cv2, source_head.cv2, strict=True):
+        hidden = kept_channels(source_branch[1].bn, 48)
+        expected = source_branch[2].weight[bin_rows(16, 12)][:, hidden]
         assert torch.equal(branch[2].weight, expected)
