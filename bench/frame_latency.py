@@ -200,6 +200,14 @@ class Pipeline(Protocol):
     def frame(self, scan: ScanArgs) -> tuple[Stages, int]: ...
 
 
+def _stacked(stacker: ScanStacker, scan: ScanArgs) -> np.ndarray:
+    """The stacked tensor of a FIFO primed with two scans (``prime``), after pushing ``scan``."""
+    tensor = stacker.push_scan(*scan)
+    if tensor is None:
+        raise RuntimeError("the scan FIFO holds fewer than three scans: prime the pipeline first")
+    return tensor
+
+
 class TriscanPipeline:
     """ScanStacker + OnnxDetector: the detector service's per-frame path."""
 
@@ -212,7 +220,7 @@ class TriscanPipeline:
 
     def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
         t0 = time.perf_counter_ns()
-        tensor = self.stacker.push_scan(*scan)
+        tensor = _stacked(self.stacker, scan)
         t1 = time.perf_counter_ns()
         boxes, _scores, _classes, timings = self.detector.detect_boxes(tensor)
         encode_ms = (t1 - t0) / _NS_PER_MS
@@ -240,17 +248,18 @@ class UltralyticsPipeline:
 
     def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
         t0 = time.perf_counter_ns()
-        tensor = self.stacker.push_scan(*scan)
+        tensor = _stacked(self.stacker, scan)
         bgr = np.ascontiguousarray(tensor[..., ::-1])  # Ultralytics flips "BGR" back: net sees t−2 first
         t1 = time.perf_counter_ns()
-        result = self.model.predict(
+        results: Any = self.model.predict(  # Ultralytics types its results loosely
             source=bgr,
             imgsz=(RANGE_ROWS, IMAGE_WIDTH),
             device="cpu",
             verbose=False,
             conf=DEFAULT_CONF,
             iou=DEFAULT_IOU,
-        )[0]
+        )
+        result = results[0]
         boxes = result.boxes.xyxy.numpy()  # what a consumer would read; part of the deployed cost
         speed = result.speed  # ms, measured by Ultralytics inside predict
         encode_ms = (t1 - t0) / _NS_PER_MS
