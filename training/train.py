@@ -154,8 +154,8 @@ def _with_narrowed_box_branch(network: Any, spec: dict[str, Any]) -> Any:
 
     from training.box_branch import narrow_box_branch
 
-    trained = network.float()
-    narrowed = DetectionModel(spec, nc=spec["nc"], verbose=False)
+    trained: Any = network.float()
+    narrowed: Any = DetectionModel(spec, nc=spec["nc"], verbose=False)
     narrowed.load(trained, verbose=False)  # every tensor whose shape agrees: all but the box branch
     narrow_box_branch(trained.model[-1], narrowed.model[-1])
     narrowed.names = dict(trained.names)
