@@ -373,7 +373,7 @@ def test_activation_speed_prices_fewer_dfl_bins_beside_the_default(tmp_path: Pat
     assert "Conv" in report["node_time_percent_by_op"]["silu-dfl8 int8"]
     assert not any(op.startswith("QLinear") for op in report["node_time_percent_by_op"]["relu-dfl8 fp32"])
     with pytest.raises(SystemExit):
-        activation_speed.main(["--dfl-bins", "12", "--out", str(out)])
+        activation_speed.main(["--dfl-bins", "10", "--out", str(out)])
 
 
 def test_paced_timing_paces_frames_with_a_sleeping_or_a_spinning_thread(
