@@ -5,7 +5,8 @@ as the pipeline's messages travel: a 100-byte one and the 73 KB tensor, with Zen
 express publishers (no batching), with QoS off (one priority queue instead of eight; negotiated per
 link, so a peer that keeps it on still connects), with the low-latency transport and with direct
 callbacks (run on Zenoh's receiving thread instead of being handed to a Python thread), over a Unix
-stream socket instead of TCP, then a plain
+stream socket instead of TCP, with the transmission queue's batching off (``nobatch``) and with two
+transmission threads (``tx2``), then a plain
 TCP ping-pong between the same two kinds of process. Round trip = two hops. Peers on loopback,
 multicast off. Each case also counts, per round trip, how often each kind of thread in either process
 slept and was woken (``wakeups_per_round_trip``, from /proc): the hand-offs a message costs.
@@ -49,6 +50,8 @@ VARIANTS: Final[tuple[str, ...]] = (
     "direct",
     "lowlatency+direct",
     "unix",
+    "nobatch",
+    "tx2",
 )
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
 # --delivery: one put of each size, under each transport, with and without shared memory. The
@@ -138,6 +141,10 @@ def zenoh_config(variant: str, listen: int | None, connect: int | None) -> Any:
         config.insert_json5("transport/unicast/qos/enabled", "false")
     if "noshm" in flags:
         config.insert_json5("transport/shared_memory/enabled", "false")
+    if "nobatch" in flags:  # the tx queue sends each message alone instead of coalescing under load
+        config.insert_json5("transport/link/tx/queue/batching/enabled", "false")
+    if "tx2" in flags:  # two transmission threads instead of one
+        config.insert_json5("transport/link/tx/threads", "2")
     return config
 
 
