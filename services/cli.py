@@ -130,12 +130,14 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "--arch", choices=ARCHS, default=DEFAULT_ARCH, help="n: YOLOv8n (paper); p: pico, width 0.125"
     )
     p.add_argument(
-        "--activation", choices=ACTIVATIONS, default=DEFAULT_ACTIVATION,
-        help="silu: YOLOv8's own; relu: folds into the conv, faster in INT8 (bench.activation_speed)",
+        "--activation", choices=ACTIVATIONS, default=None,
+        help=f"silu: YOLOv8's own; relu: folds into the conv, faster in INT8 (bench.activation_speed) "
+        f"(default: the --init checkpoint's, else {DEFAULT_ACTIVATION})",
     )  # fmt: skip
     p.add_argument(
-        "--dfl-bins", type=int, choices=DFL_BINS, default=DEFAULT_DFL_BINS,
-        help="DFL bins per box edge (Ultralytics' reg_max): 8 halve the head's box branch, 12 cut a quarter",
+        "--dfl-bins", type=int, choices=DFL_BINS, default=None,
+        help="DFL bins per box edge (Ultralytics' reg_max): 8 halve the head's box branch, 12 cut a quarter "
+        f"(default: the --init checkpoint's, else {DEFAULT_DFL_BINS})",
     )  # fmt: skip
     p.add_argument("--data", type=Path, required=True, help="data.yaml written by `triscan dataset`")
     p.add_argument("--out", type=Path, default=Path("runs/triscan"), help="run directory")
@@ -170,8 +172,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from training.train import TrainConfig, train
+    from training.train import TrainConfig, network_choices, train
 
+    activation, dfl_bins = network_choices(args.arch, args.init, args.activation, args.dfl_bins)
     config = TrainConfig(
         data=args.data,
         out=args.out,
@@ -183,9 +186,9 @@ def _run_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         fraction=args.fraction,
         arch=args.arch,
-        activation=args.activation,
+        activation=activation,
         init=args.init,
-        dfl_bins=args.dfl_bins,
+        dfl_bins=dfl_bins,
     )
     summary = train(config, resume=args.resume, resume_from=args.resume_from, stop_after=args.stop_after)
     print(f"best weights: {summary['best_weights']} (epochs run {summary['epochs_run']})")

@@ -221,6 +221,24 @@ def test_fine_tuning_refuses_weights_of_another_network(
         initial_model(TrainConfig(data=data / "data.yaml", out=tmp_path, init=tmp_path / "missing.pt"))
 
 
+def test_a_fine_tune_keeps_the_checkpoints_network_unless_told_otherwise(tmp_path: Path) -> None:
+    """``triscan train --arch p --init <the shipped .pt>`` fine-tunes the network the file holds: the
+    shipped pico's 12 DFL bins, not a 16-bin branch restarted from random weights."""
+    from common.model_spec import PAPER_CHECKPOINT, SHIPPED_CHECKPOINT
+    from training.architectures import network_of_checkpoint, parse_network_name
+    from training.train import network_choices
+
+    arch, activation, bins = parse_network_name(network_of_checkpoint(SHIPPED_CHECKPOINT))
+    assert (arch, bins) == ("p", 12)
+    assert network_choices("p", SHIPPED_CHECKPOINT, None, None) == (activation, 12)
+    assert network_choices("p", SHIPPED_CHECKPOINT, "relu", None) == ("relu", 12)
+    assert network_choices("p", SHIPPED_CHECKPOINT, None, 8) == (activation, 8)
+    # Without weights, or with another architecture's (which initial_model then refuses), the defaults.
+    assert network_choices("p", None, None, None) == ("silu", 16)
+    assert network_choices("p", PAPER_CHECKPOINT, None, None) == ("silu", 16)
+    assert network_choices("p", tmp_path / "missing.pt", None, None) == ("silu", 16)
+
+
 def test_validation_sees_the_images_unpadded(trained_run: tuple[Path, Path]) -> None:
     """Stock rect validation letterboxes 64 rows to 96; ours must validate the 64×384 run-time tensor."""
     from ultralytics.cfg import get_cfg

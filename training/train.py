@@ -77,6 +77,24 @@ class TrainConfig:
         return model_yaml(self.arch, self.out.resolve(), self.activation, self.dfl_bins)
 
 
+def network_choices(
+    arch: str, init: Path | None, activation: str | None, dfl_bins: int | None
+) -> tuple[str, int]:
+    """The activation and DFL bins a run trains: those asked for, else those of the ``init`` checkpoint
+    when it is one of ``arch`` (a fine-tune of the shipped 12-bin pico stays a 12-bin pico without
+    naming its bins), else the defaults. Asking for others than the checkpoint's is a deliberate
+    change of network (:func:`initial_model`), never a silent one."""
+    found_activation, found_bins = DEFAULT_ACTIVATION, DEFAULT_DFL_BINS
+    if init is not None and init.is_file() and (activation is None or dfl_bins is None):
+        found_arch, checkpoint_activation, checkpoint_bins = parse_network_name(network_of_checkpoint(init))
+        if found_arch == arch:  # another architecture is refused by initial_model, with its reason
+            found_activation, found_bins = checkpoint_activation, checkpoint_bins
+    return (
+        activation if activation is not None else found_activation,
+        dfl_bins if dfl_bins is not None else found_bins,
+    )
+
+
 def pick_device(requested: str) -> str:
     if requested:
         return requested
