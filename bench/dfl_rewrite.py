@@ -29,7 +29,7 @@ from common.model_spec import SHIPPED_CHECKPOINT
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-DEFAULT_WEIGHTS: Final[Path] = SHIPPED_CHECKPOINT  # the default pico's .pt
+DEFAULT_WEIGHTS: Final[Path] = SHIPPED_CHECKPOINT  # the default model's .pt
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "dfl_rewrite.json"
 
 

@@ -168,8 +168,8 @@ def test_card_names_the_network_the_randomised_data_and_every_condition(tmp_path
 
 
 def test_network_of_a_model_file() -> None:
-    assert network_of_stem(SHIPPED_FP32_MODEL.stem) == "yolov8p"
-    assert network_of_stem(SHIPPED_INT8_MODEL.stem) == "yolov8p"
+    assert network_of_stem(SHIPPED_FP32_MODEL.stem) == "yolov8p-dfl12"
+    assert network_of_stem(SHIPPED_INT8_MODEL.stem) == "yolov8p-dfl12"
     assert network_of_stem("triscan-yolov8n-zero") == "yolov8n"
     assert network_of_stem("triscan-yolov8p-zero-int8-batch") == "yolov8p"
     assert network_of_stem("triscan-yolov8p-relu-wrap-int8") == "yolov8p-relu"
