@@ -221,6 +221,29 @@ def test_fine_tuning_refuses_weights_of_another_network(
         initial_model(TrainConfig(data=data / "data.yaml", out=tmp_path, init=tmp_path / "missing.pt"))
 
 
+def test_triscan_train_fine_tunes_the_shipped_default_as_the_readme_says(
+    trained_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """`triscan train --init <the shipped .pt> --arch p …`, the README's command for your own rooms:
+    the run trains the shipped network (12 DFL bins) from its weights, not a 16-bin one."""
+    import torch
+
+    from common.model_spec import SHIPPED_CHECKPOINT
+    from services.cli import main as cli_main
+    from training.architectures import network_of_checkpoint
+
+    data, _ = trained_run
+    out = tmp_path / "my_rooms"
+    argv = ["train", "--init", str(SHIPPED_CHECKPOINT), "--arch", "p", "--data", str(data / "data.yaml")]
+    argv += ["--out", str(out), "--epochs", "1", "--batch", "8", "--workers", "0", "--device", "cpu"]
+    assert cli_main(argv) == 0
+    tuned = out / "weights" / "last.pt"
+    assert network_of_checkpoint(tuned) == network_of_checkpoint(SHIPPED_CHECKPOINT) == "yolov8p-dfl12"
+    start, after = _flat_weights(_network(SHIPPED_CHECKPOINT)), _flat_weights(_network(tuned))
+    assert after.shape == start.shape
+    assert torch.linalg.norm(after - start) < 0.25 * torch.linalg.norm(start)
+
+
 def test_a_fine_tune_keeps_the_checkpoints_network_unless_told_otherwise(tmp_path: Path) -> None:
     """``triscan train --arch p --init <the shipped .pt>`` fine-tunes the network the file holds: the
     shipped pico's 12 DFL bins, not a 16-bin branch restarted from random weights."""
