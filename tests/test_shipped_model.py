@@ -103,6 +103,25 @@ def test_the_detector_runs_the_file_the_default_card_recommends() -> None:
     assert DEFAULT.file("checkpoint") == SHIPPED_CHECKPOINT
 
 
+def test_the_robot_image_ships_the_default_model() -> None:
+    """docker/Dockerfile's robot stage copies the files the detector runs when given no model (the
+    default and its -batch variant), wherever common.model_spec puts them."""
+    from fnmatch import fnmatch
+
+    from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
+
+    stages = (MODELS_DIR.parent / "docker" / "Dockerfile").read_text().split("\nFROM ")
+    robot = next(stage for stage in stages if stage.split("\n", 1)[0].endswith(" AS robot"))
+    sources = [line.split()[1] for line in robot.splitlines() if line.startswith("COPY models/")]
+
+    def copied(relative: str) -> bool:  # fnmatch's * crosses "/": a glob matches only its own directory
+        return any(fnmatch(relative, s) and relative.count("/") == s.count("/") for s in sources)
+
+    for model in (SHIPPED_MODEL, SHIPPED_BATCH_MODEL):
+        relative = model.relative_to(MODELS_DIR.parent).as_posix()
+        assert copied(relative), (relative, sources)
+
+
 def test_card_files_exist_and_ids_match(shipped: ShippedModel) -> None:
     assert OnnxDetector(shipped.file("fp32")).model_id == shipped.card["model_ids"]["fp32"]
     assert OnnxDetector(shipped.file("int8")).model_id == shipped.card["model_ids"]["int8"]
