@@ -10,6 +10,7 @@ held-out figures the card reports (see the card's "Quality gate" section).
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,13 +104,59 @@ def test_the_detector_runs_the_file_the_default_card_recommends() -> None:
     assert DEFAULT.file("checkpoint") == SHIPPED_CHECKPOINT
 
 
+def _docker_pattern(pattern: str) -> re.Pattern[str]:
+    """A .dockerignore pattern as Docker (moby/patternmatcher) reads it: ``*`` and ``?`` stay within
+    one path segment, ``**`` spans any number of them (none included)."""
+    out = ""
+    i = 0
+    while i < len(pattern):
+        if pattern.startswith("**/", i):
+            out, i = out + "(?:.*/)?", i + 3
+        elif pattern.startswith("**", i):
+            out, i = out + ".*", i + 2
+        else:
+            out += {"*": "[^/]*", "?": "[^/]"}.get(pattern[i], re.escape(pattern[i]))
+            i += 1
+    return re.compile(out + "$")
+
+
+def _in_build_context(relative: str, dockerignore: str) -> bool:
+    """Whether ``relative`` reaches the build context: the last pattern matching it or one of its
+    parent directories decides, a ``!`` pattern letting it in."""
+    parts = relative.split("/")
+    candidates = ["/".join(parts[: n + 1]) for n in range(len(parts))]
+    included = True
+    for line in dockerignore.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        negated = line.startswith("!")
+        regex = _docker_pattern(line.removeprefix("!").strip("/"))
+        if any(regex.match(c) for c in candidates):
+            included = negated
+    return included
+
+
+def test_docker_pattern_matching() -> None:
+    """The matcher the next test relies on, on Docker's documented cases."""
+    ignore = "*\n!models/**/*.onnx\n**/*.pyc\n"
+    assert _in_build_context("models/a.onnx", ignore)
+    assert _in_build_context("models/yolov8p-dfl12/b.onnx", ignore)
+    assert not _in_build_context("models/yolov8p-dfl12/b.pt", ignore)
+    assert not _in_build_context("README.md", ignore)
+    assert not _in_build_context("models/x/c.pyc", "!models/**\n**/*.pyc\n")
+    assert not _in_build_context("models/sub/a.onnx", "*\n!models/*.onnx\n")
+
+
 def test_the_robot_image_ships_the_default_model() -> None:
     """docker/Dockerfile's robot stage copies the files the detector runs when given no model (the
-    default and its -batch variant), wherever common.model_spec puts them."""
+    default and its -batch variant), wherever common.model_spec puts them, and .dockerignore lets them
+    into the build context (it once kept a new default's directory out, and the build failed)."""
     from fnmatch import fnmatch
 
     from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 
+    dockerignore = (MODELS_DIR.parent / ".dockerignore").read_text()
     stages = (MODELS_DIR.parent / "docker" / "Dockerfile").read_text().split("\nFROM ")
     robot = next(stage for stage in stages if stage.split("\n", 1)[0].endswith(" AS robot"))
     sources = [line.split()[1] for line in robot.splitlines() if line.startswith("COPY models/")]
@@ -120,6 +167,7 @@ def test_the_robot_image_ships_the_default_model() -> None:
     for model in (SHIPPED_MODEL, SHIPPED_BATCH_MODEL):
         relative = model.relative_to(MODELS_DIR.parent).as_posix()
         assert copied(relative), (relative, sources)
+        assert _in_build_context(relative, dockerignore), f"{relative} is left out by .dockerignore"
 
 
 def test_card_files_exist_and_ids_match(shipped: ShippedModel) -> None:
