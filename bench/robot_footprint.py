@@ -3,7 +3,8 @@
 Runs the robot's processes under real load (one simulated robot at 10 Hz for ``--seconds``, via
 :mod:`bench.pipeline_latency`) in both deployments: encoder and detector as two processes, and the
 single ``--from-scans`` detector. Peak RSS is each process's ``VmHWM``; model sizes are every ONNX
-file under ``models/``, named by its path there (the default's in ``yolov8p/``).
+file under ``models/``, named by its path there (the default's directory is
+``common.model_spec.SHIPPED_DIR``).
 
     python -m bench.robot_footprint --seconds 30
 """
