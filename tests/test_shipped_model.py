@@ -148,6 +148,25 @@ def test_docker_pattern_matching() -> None:
     assert not _in_build_context("models/sub/a.onnx", "*\n!models/*.onnx\n")
 
 
+def test_every_dockerfile_copy_finds_files_in_the_build_context() -> None:
+    """Each ``COPY`` from the build context (not from another stage) matches files .dockerignore lets
+    in: what podman reported as "no items matching glob" only when an image was built."""
+    root = MODELS_DIR.parent
+    dockerignore = (root / ".dockerignore").read_text()
+    copies = [
+        line.split()[1:-1]
+        for line in (root / "docker" / "Dockerfile").read_text().splitlines()
+        if line.startswith("COPY ") and "--from=" not in line
+    ]
+    assert copies
+    for sources in copies:
+        for source in sources:
+            matched = [p for p in root.glob(source) if not any(part.startswith(".") for part in p.parts)]
+            files = [f for p in matched for f in ([p] if p.is_file() else p.rglob("*")) if f.is_file()]
+            in_context = [f for f in files if _in_build_context(f.relative_to(root).as_posix(), dockerignore)]
+            assert in_context, f"COPY {source}: nothing of it reaches the build context"
+
+
 def test_the_robot_image_ships_the_default_model() -> None:
     """docker/Dockerfile's robot stage copies the files the detector runs when given no model (the
     default and its -batch variant), wherever common.model_spec puts them, and .dockerignore lets them
