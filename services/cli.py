@@ -159,7 +159,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "--resume-from",
         type=Path,
         default=None,
-        help="with --resume: checkpoint to continue from when OUT has none (e.g. training/checkpoints/)",
+        help="with --resume: checkpoint to continue from when OUT has none (e.g. training/checkpoints/;"
+        " a .gz one is gunzipped)",
     )
     p.add_argument(
         "--stop-after",

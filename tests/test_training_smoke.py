@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gzip
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -40,7 +42,11 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     # Stopped by --stop-after, not finished: last.pt must still hold the optimizer to be resumable.
     last = torch.load(root / "run" / "weights" / "last.pt", map_location="cpu", weights_only=False)
     assert last["optimizer"] is not None and last["epoch"] == 0
-    summary = train(config, resume=True)
+    # Resumed elsewhere from the gzipped checkpoint, as a run committed to training/checkpoints/ is.
+    saved = root / "run_last.pt.gz"
+    with gzip.open(saved, "wb") as out:
+        out.write((root / "run" / "weights" / "last.pt").read_bytes())
+    summary = train(replace(config, out=root / "resumed"), resume=True, resume_from=saved)
     assert summary["epochs_run"] == 2 and not summary["diverged"]
     return data, Path(summary["best_weights"])
 

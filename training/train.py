@@ -10,6 +10,7 @@ far below its best, so a diverged run cannot waste hours. Training resumes from 
 
 from __future__ import annotations
 
+import gzip
 import json
 import logging
 import os
@@ -353,6 +354,23 @@ def _add_callbacks(model: Any, watch: DivergenceWatch, stopper: StopAfterEpoch |
         model.add_callback("on_fit_epoch_end", stopper)
 
 
+def seed_last_checkpoint(resume_from: Path, last: Path) -> None:
+    """Copy a saved resumable checkpoint to ``last``, gunzipping a ``.gz`` one.
+
+    A resumable YOLOv8n checkpoint is about 30 MB, most of it AdamW's two moments per weight, over
+    what a repository should track per file; gzipped it is about 27 MB (``gzip -c last.pt >
+    training/checkpoints/<run>_last.pt.gz``), and resuming from it needs no other step.
+    """
+    if not resume_from.is_file():
+        raise FileNotFoundError(f"{resume_from} not found: no checkpoint to resume from")
+    last.parent.mkdir(parents=True, exist_ok=True)
+    if resume_from.suffix == ".gz":
+        with gzip.open(resume_from, "rb") as src, last.open("wb") as dst:
+            shutil.copyfileobj(src, dst)
+    else:
+        shutil.copyfile(resume_from, last)
+
+
 def train(
     config: TrainConfig,
     *,
@@ -378,10 +396,7 @@ def train(
     stopper = StopAfterEpoch(stop_after) if stop_after is not None else None
     started = time.perf_counter()
     if resume and resume_from is not None and not last.is_file():
-        if not resume_from.is_file():
-            raise FileNotFoundError(f"{resume_from} not found: no checkpoint to resume from")
-        last.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(resume_from, last)
+        seed_last_checkpoint(resume_from, last)
     if resume and last.is_file():
         log.info("resuming from %s", last)
         model = YOLO(str(last))
