@@ -56,7 +56,9 @@ def test_training_writes_weights_and_a_summary(trained_run: tuple[Path, Path]) -
     assert best.is_file() and best.name == "best.pt"
     summary = json.loads((best.parent.parent / "train_summary.json").read_text())
     assert summary["device"] == "cpu" and summary["config"]["epochs"] == 2
-    assert (best.parent.parent / "results.csv").is_file()
+    # Resumed in another directory at epoch 2: the curve still starts at epoch 1 (from the checkpoint).
+    rows = (best.parent.parent / "results.csv").read_text().splitlines()
+    assert [row.split(",")[0] for row in rows[1:]] == ["1", "2"]
 
 
 def test_export_then_eval_runs_through_the_runtime_detector(

@@ -359,7 +359,10 @@ def seed_last_checkpoint(resume_from: Path, last: Path) -> None:
 
     A resumable YOLOv8n checkpoint is about 30 MB, most of it AdamW's two moments per weight, over
     what a repository should track per file; gzipped it is about 27 MB (``gzip -c last.pt >
-    training/checkpoints/<run>_last.pt.gz``), and resuming from it needs no other step.
+    training/checkpoints/<run>_last.pt.gz``), and resuming from it needs no other step. A run
+    directory without ``results.csv`` gets the curve the checkpoint carries (Ultralytics stores it
+    as ``train_results``): Ultralytics would otherwise start the file afresh at the resumed epoch,
+    and the run's curve would lose every epoch before it.
     """
     if not resume_from.is_file():
         raise FileNotFoundError(f"{resume_from} not found: no checkpoint to resume from")
@@ -369,6 +372,17 @@ def seed_last_checkpoint(resume_from: Path, last: Path) -> None:
             shutil.copyfileobj(src, dst)
     else:
         shutil.copyfile(resume_from, last)
+    results_csv = last.parent.parent / "results.csv"
+    if not results_csv.exists():
+        import torch
+
+        curve = torch.load(last, map_location="cpu", weights_only=False).get("train_results") or {}
+        if curve:
+            columns = list(curve)
+            rows = zip(*(curve[c] for c in columns), strict=True)
+            results_csv.write_text(
+                ",".join(columns) + "\n" + "".join(",".join(f"{v:.6g}" for v in r) + "\n" for r in rows)
+            )
 
 
 def train(
