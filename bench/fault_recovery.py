@@ -100,9 +100,15 @@ def wait_until(condition: Any, timeout_s: float) -> float | None:
 
 
 def run(timeout_s: float = 30.0) -> FaultReport:
+    # The recording is only a sink for the visualizer; it must not outlive the run, or repeated
+    # runs (the suite runs this) slowly fill /tmp.
+    with tempfile.TemporaryDirectory(prefix="triscan-faults-") as workdir:
+        return _run_in(Path(workdir) / "faults.rrd", timeout_s)
+
+
+def _run_in(rrd: Path, timeout_s: float) -> FaultReport:
     report = FaultReport()
     (port,) = free_tcp_ports(1)
-    rrd = Path(tempfile.mkdtemp(prefix="triscan-faults-")) / "faults.rrd"
     command = [sys.executable, "-m", "services.cli", "up", "--headless", "--rrd", str(rrd)]
     command += ["--listen", f"tcp/127.0.0.1:{port}", "--max-restarts", "10"]
     launcher = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
