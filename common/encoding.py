@@ -189,17 +189,30 @@ def stack_rasters(oldest: np.ndarray, middle: np.ndarray, newest: np.ndarray) ->
     return np.stack([oldest, middle, newest], axis=-1)
 
 
-def to_model_input(tensor: np.ndarray) -> np.ndarray:
+def to_model_input(tensor: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """HWC ``uint8`` tensor → ``float32[1, 3, 64, 384]`` in [0, 1], channel order unchanged.
 
     Ultralytics trains on the same layout: it reads PNGs as BGR and flips them to RGB, so a PNG whose
     red plane holds scan t−2 reaches the network with t−2 in channel 0, exactly like this tensor.
+
+    The result is C-contiguous: ONNX Runtime copies a transposed, non-contiguous input once more
+    inside ``run`` (bench/README.md, "The model input"). ``out``, when given, is where it is written
+    and what is returned: a C-contiguous ``float32[1, 3, 64, 384]``, such as a slice of a batch, so
+    a batch needs no concatenation. Values are bit-identical to ``tensor.astype(float32) / 255``.
     """
     if tensor.shape != (RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH) or tensor.dtype != np.uint8:
         raise ScanError(
             f"tensor must be uint8{(RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH)}, got {tensor.dtype}{tensor.shape}"
         )
-    return (tensor.transpose(2, 0, 1)[None].astype(np.float32)) / np.float32(255.0)
+    channels_first = tensor.transpose(2, 0, 1)[None]
+    if out is None:
+        out = np.empty(channels_first.shape, np.float32)
+    elif out.shape != channels_first.shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(
+            f"out must be a C-contiguous float32{list(channels_first.shape)}, "
+            f"got {out.dtype}{list(out.shape)}"
+        )
+    return np.divide(channels_first, np.float32(255.0), out=out, dtype=np.float32)
 
 
 def padded_hits(

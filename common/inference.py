@@ -683,10 +683,10 @@ class OnnxDetector:
         model, batch or not)."""
         return self._run(self._model_input(tensor))[0]
 
-    def _model_input(self, tensor: np.ndarray) -> np.ndarray:
+    def _model_input(self, tensor: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         if not isinstance(tensor, np.ndarray):
             raise ValueError(f"detector input must be a numpy uint8 array, got {type(tensor).__name__}")
-        return to_model_input(tensor)  # the exact conversion training used; raises a ValueError
+        return to_model_input(tensor, out)  # the exact conversion training used; raises a ValueError
 
     def _run(self, model_input: np.ndarray) -> tuple[np.ndarray, float]:
         """Raw output for a model input, and the ``session.run`` time in ms."""
@@ -700,20 +700,22 @@ class OnnxDetector:
         """The one frame pipeline behind every ``detect*`` method: convert, run, post-process.
 
         Every tensor is converted (and so checked) before anything runs. A batch model runs several
-        frames in one ``session.run``, whose whole time each of them reports as ``inference_ms``.
+        frames in one ``session.run``, whose whole time each of them reports as ``inference_ms``; their
+        frames are converted straight into one batch array, not concatenated afterwards.
         """
+        batch = np.empty((len(tensors), *INPUT_SHAPE[1:]), np.float32) if self.batched else None
         inputs, encode_ms = [], []
         for index, tensor in enumerate(tensors):
             started = time.perf_counter_ns()
             try:
-                inputs.append(self._model_input(tensor))
+                inputs.append(self._model_input(tensor, None if batch is None else batch[index : index + 1]))
             except ValueError as exc:
                 if len(tensors) == 1:
                     raise
                 raise ValueError(f"tensor {index} of {len(tensors)}: {exc}") from exc
             encode_ms.append((time.perf_counter_ns() - started) / _NS_PER_MS)
-        if self.batched and len(inputs) > 1:
-            batch_output, inference_ms = self._run(np.concatenate(inputs))
+        if batch is not None and len(inputs) > 1:
+            batch_output, inference_ms = self._run(batch)
             outputs = [(batch_output[i : i + 1], inference_ms) for i in range(len(inputs))]
         else:
             outputs = [self._run(model_input) for model_input in inputs]

@@ -391,3 +391,16 @@ def test_paced_timing_paces_frames_with_a_sleeping_or_a_spinning_thread(
         assert time.monotonic() - started >= 0.06  # three frames, each 20 ms apart
         # The spinning thread keeps its vCPU busy through the waits; the sleeping one idles.
         assert len(sleeps) == (0 if spin else 3)
+
+
+def test_model_input_times_both_conversions_on_both_models(tmp_path: Path) -> None:
+    from bench import model_input
+
+    out = tmp_path / "model_input.json"
+    assert model_input.main(["--calls", "4", "--paced-calls", "2", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert [(case["batch"], case["outputs_equal"]) for case in report["cases"]] == [(1, True), (4, True)]
+    for case in report["cases"]:
+        for regime in ("warm_p50_us", "paced_p50_us"):
+            assert set(case[regime]) == {"transposed", "contiguous"} and min(case[regime].values()) > 0
+        assert set(case["saved_us_median_of_pairs"]) == {"warm", "paced"}

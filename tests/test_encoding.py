@@ -226,6 +226,30 @@ def test_model_input_keeps_channel_order_and_scales() -> None:
         to_model_input(np.zeros((64, 360, 3), dtype=np.uint8))
 
 
+def test_model_input_is_contiguous_and_bit_identical_to_the_training_conversion() -> None:
+    # Every byte value in every channel, so a rounding difference anywhere would show.
+    tensor = np.random.default_rng(3).integers(0, 256, (64, 384, 3), dtype=np.uint8)
+    tensor[0, :256, 1] = np.arange(256, dtype=np.uint8)
+    model_input = to_model_input(tensor)
+    training = tensor.transpose(2, 0, 1)[None].astype(np.float32) / np.float32(255.0)
+    assert model_input.flags.c_contiguous
+    assert model_input.tobytes() == np.ascontiguousarray(training).tobytes()
+
+
+def test_model_input_writes_into_a_batch_slot() -> None:
+    frames = [np.full((64, 384, 3), value, dtype=np.uint8) for value in (0, 51, 255)]
+    batch = np.full((3, 3, 64, 384), -1.0, np.float32)
+    for index, frame in enumerate(frames):
+        slot = batch[index : index + 1]
+        assert to_model_input(frame, slot) is slot
+    assert [float(batch[i].min()) for i in range(3)] == [0.0, pytest.approx(0.2), 1.0]
+    assert batch.tobytes() == np.concatenate([to_model_input(f) for f in frames]).tobytes()
+    with pytest.raises(ValueError, match="C-contiguous float32"):
+        to_model_input(frames[0], np.zeros((1, 64, 384, 3), np.float32))
+    with pytest.raises(ValueError, match="C-contiguous float32"):
+        to_model_input(frames[0], np.zeros((1, 3, 64, 768), np.float32)[..., ::2])
+
+
 def test_invalid_rule_empty_leaves_invalid_beams_dark() -> None:
     from common.encoding import SENTINEL_ROW
 
