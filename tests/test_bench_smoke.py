@@ -393,14 +393,17 @@ def test_paced_timing_paces_frames_with_a_sleeping_or_a_spinning_thread(
         assert len(sleeps) == (0 if spin else 3)
 
 
-def test_model_input_times_both_conversions_on_both_models(tmp_path: Path) -> None:
+def test_model_input_times_every_way_on_both_models(tmp_path: Path) -> None:
     from bench import model_input
 
     out = tmp_path / "model_input.json"
     assert model_input.main(["--calls", "4", "--paced-calls", "2", "--out", str(out)]) == 0
     report = json.loads(out.read_text())
     assert [(case["batch"], case["outputs_equal"]) for case in report["cases"]] == [(1, True), (4, True)]
+    ways = {"transposed", "contiguous", "uint8_graph"}
     for case in report["cases"]:
         for regime in ("warm_p50_us", "paced_p50_us"):
-            assert set(case[regime]) == {"transposed", "contiguous"} and min(case[regime].values()) > 0
-        assert set(case["saved_us_median_of_pairs"]) == {"warm", "paced"}
+            assert set(case[regime]) == ways and min(case[regime].values()) > 0
+        assert case["saved_us_median_of_pairs"].keys() == {"warm", "paced"}
+        for saved in case["saved_us_median_of_pairs"].values():
+            assert set(saved) == {"transposed-contiguous", "contiguous-uint8_graph"}
