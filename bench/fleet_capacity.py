@@ -34,6 +34,7 @@ import numpy as np
 
 from bench.harness import (
     add_detector_model_argument,
+    pin_named_threads,
     proc_cpu_s,
     proc_status_mb,
     recorded_scans,
@@ -46,6 +47,7 @@ from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wil
 from common.messages import Detections, Scan, decode_message, encode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.detector.core import INFERENCE_THREAD_PREFIX
 from services.launcher import free_tcp_ports, stop_processes
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -76,6 +78,8 @@ class FleetStep:
     # The detector's cores by thread name: its inference threads, Zenoh's threads, "python" (main and
     # Zenoh's callback thread).
     detector_thread_cores: dict[str, float] = field(default_factory=dict)
+    # --pin-inference-threads: the CPU each inference thread was pinned to for the window.
+    pinned_threads: dict[str, int] = field(default_factory=dict)
     passed: bool = False
     why_not: str = ""
 
@@ -192,6 +196,8 @@ def _publish_fleet(
             with lock:
                 answered = {rid for rid, _ in received}
             if len(answered) == robots:
+                if args.pin_inference_threads:
+                    step.pinned_threads = pin_named_threads(children["detector"].pid, INFERENCE_THREAD_PREFIX)
                 measure_from = time.monotonic()
                 step.rss_mb_start = _rss_mb(children)
                 cpu_start = _cpu_s(children)
@@ -302,6 +308,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--from-scans",
         action="store_true",
         help="one detector --from-scans process instead of encoder + detector",
+    )
+    parser.add_argument(
+        "--pin-inference-threads",
+        action="store_true",
+        help="diagnostic: pin the detector's inference-N threads to CPU N for the measured window",
     )
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)

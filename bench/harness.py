@@ -113,6 +113,28 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return totals
 
 
+def pin_named_threads(pid: int, prefix: str) -> dict[str, int]:
+    """Pin each thread of ``pid`` named ``<prefix><N>`` to the N-th CPU this process may use (modulo
+    their count), from outside the process; returns the CPU each got.
+
+    A diagnostic for ``bench.fleet_capacity --pin-inference-threads``: does the scheduler putting both
+    of the detector's inference threads on one vCPU now and then (while the other runs the encoder or
+    the robots) cost the fleet its tail latency? Linux only (``sched_setaffinity`` on a thread id).
+    """
+    cpus = sorted(os.sched_getaffinity(0))
+    pinned: dict[str, int] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            if name.startswith(prefix) and name[len(prefix) :].isdigit():
+                cpu = cpus[int(name[len(prefix) :]) % len(cpus)]
+                os.sched_setaffinity(int(task.name), {cpu})
+                pinned[name] = cpu
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # the thread ended between the listing and the read
+    return pinned
+
+
 def _voluntary_switches(task: Path) -> int:
     for line in (task / "status").read_text().splitlines():
         if line.startswith("voluntary_ctxt_switches:"):

@@ -6,21 +6,22 @@ import os
 import threading
 import time
 
-from bench.harness import thread_cpu_s, thread_wakeups
+from bench.harness import pin_named_threads, thread_cpu_s, thread_wakeups
 from services.detector.core import name_os_thread
 
 SLEEPS = 5
 
 
 class _Probe(threading.Thread):
-    """A thread named ``wake-probe`` in the OS that blocks ``SLEEPS`` times when told to."""
+    """A thread named ``os_name`` in the OS that blocks ``SLEEPS`` times when told to."""
 
-    def __init__(self) -> None:
+    def __init__(self, os_name: str = "wake-probe") -> None:
         super().__init__(daemon=True)
+        self.os_name = os_name
         self.named, self.go, self.slept, self.release = (threading.Event() for _ in range(4))
 
     def run(self) -> None:
-        name_os_thread("wake-probe")
+        name_os_thread(self.os_name)
         self.named.set()
         self.go.wait()
         for _ in range(SLEEPS):
@@ -53,3 +54,16 @@ def test_thread_cpu_s_names_the_threads_that_used_it() -> None:
     with _Probe():
         seconds = thread_cpu_s(os.getpid())
     assert "wake-probe" in seconds and all(value >= 0.0 for value in seconds.values())
+
+
+def test_pin_named_threads_pins_only_the_numbered_threads_of_that_name() -> None:
+    cpus = sorted(os.sched_getaffinity(0))
+    with _Probe("pin-probe-1") as probe, _Probe("pin-probe-x") as unnumbered:
+        pinned = pin_named_threads(os.getpid(), "pin-probe-")
+        assert probe.native_id is not None and unnumbered.native_id is not None
+        probe_cpus = os.sched_getaffinity(probe.native_id)
+        unnumbered_cpus = os.sched_getaffinity(unnumbered.native_id)
+    expected = cpus[1 % len(cpus)]
+    assert pinned == {"pin-probe-1": expected}
+    assert probe_cpus == {expected}
+    assert unnumbered_cpus == set(cpus) and os.sched_getaffinity(0) == set(cpus)

@@ -47,8 +47,11 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("extra", "processes"),
-    [((), {"encoder", "detector"}), (("--batch", "4", "--from-scans"), {"detector"})],
-    ids=["encoder+detector", "from-scans-batched"],
+    [
+        ((), {"encoder", "detector"}),
+        (("--batch", "4", "--from-scans", "--pin-inference-threads"), {"detector"}),
+    ],
+    ids=["encoder+detector", "from-scans-batched-pinned"],
 )
 def test_fleet_capacity_runs_a_step_and_writes_json(
     tmp_path: Path, extra: tuple[str, ...], processes: set[str]
@@ -77,6 +80,8 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     assert step["detector_mean_batch"] >= 1.0  # read from the detector's own stats
     # The detector's CPU split by thread: its one inference thread by name, and Zenoh's threads.
     assert "inference-0" in step["detector_thread_cores"] and "rx-0" in step["detector_thread_cores"]
+    pinned = "--pin-inference-threads" in extra
+    assert step["pinned_threads"] == ({"inference-0": min(os.sched_getaffinity(0))} if pinned else {})
 
 
 def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:

@@ -55,6 +55,8 @@ class Pending(NamedTuple):
 
 
 TAKE_TIMEOUT_S = 0.5  # how often an idle inference thread looks at the stop flag
+# Inference threads are named <prefix><N> in the OS (``name_os_thread``), which the benches read.
+INFERENCE_THREAD_PREFIX = "inference-"
 
 
 class LatestPerRobot(Generic[T]):
@@ -330,7 +332,7 @@ class InferencePipeline:
         for detector in self.detectors:
             detector.warmup(self.batch)
         self._workers = [
-            threading.Thread(target=self._serve, args=(d,), name=f"inference-{i}", daemon=True)
+            threading.Thread(target=self._serve, args=(d,), name=f"{INFERENCE_THREAD_PREFIX}{i}", daemon=True)
             for i, d in enumerate(self.detectors)
         ]
         for worker in self._workers:
