@@ -123,15 +123,16 @@ def pin_named_threads(pid: int, prefix: str) -> dict[str, int]:
     """
     cpus = sorted(os.sched_getaffinity(0))
     pinned: dict[str, int] = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
+    for name, thread_id in _per_thread(pid, lambda task: int(task.name)):
+        number = name[len(prefix) :]
+        if not name.startswith(prefix) or not number.isdigit():
+            continue
+        cpu = cpus[int(number) % len(cpus)]
         try:
-            name = (task / "comm").read_text().strip()
-            if name.startswith(prefix) and name[len(prefix) :].isdigit():
-                cpu = cpus[int(name[len(prefix) :]) % len(cpus)]
-                os.sched_setaffinity(int(task.name), {cpu})
-                pinned[name] = cpu
-        except (FileNotFoundError, ProcessLookupError):
-            continue  # the thread ended between the listing and the read
+            os.sched_setaffinity(thread_id, {cpu})
+        except ProcessLookupError:
+            continue  # the thread ended between the listing and the pinning
+        pinned[name] = cpu
     return pinned
 
 

@@ -153,10 +153,10 @@ def time_case(model: Path, batch: int, tensors: list[np.ndarray], calls: int, pa
         for i in range(count):
             # Every way on the same frames, one right after the other, the order rotated every call:
             # a pair's difference cancels whatever the VM was doing at that moment.
+            frames = frames_of(i)
             for name in names[i % 3 :] + names[: i % 3]:
                 if period_s:
                     time.sleep(period_s)
-                frames = frames_of(i)
                 started = time.perf_counter_ns()
                 ways[name](frames)
                 times[name].append((time.perf_counter_ns() - started) / 1e3)
