@@ -412,3 +412,33 @@ def test_model_input_times_every_way_on_both_models(tmp_path: Path) -> None:
         assert case["saved_us_median_of_pairs"].keys() == {"warm", "paced"}
         for saved in case["saved_us_median_of_pairs"].values():
             assert set(saved) == {"transposed-contiguous", "contiguous-uint8_graph"}
+
+
+@pytest.mark.parametrize("batch", [1, 4])
+def test_detector_path_prices_every_stage_at_full_load(tmp_path: Path, batch: int) -> None:
+    from bench import detector_path
+
+    out = tmp_path / "detector_path.json"
+    argv = ["--batch", str(batch), "--seconds", "0.3", "--rounds", "2", "--piece-calls", "4"]
+    assert detector_path.main([*argv, "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["batch"] == batch and report["workers"] == (os.cpu_count() or 1)
+    stages = list(detector_path.STAGES)
+    assert [(run["round"], run["stage"]) for run in report["runs"][:5]] == [(0, stage) for stage in stages]
+    assert report["runs"][5]["stage"] == stages[1]  # the second round starts one stage later
+    assert all(run["frames"] % batch == 0 and run["frames"] > 0 for run in report["runs"])
+    assert list(report["frames_per_s"]) == stages and min(report["cpu_ms_per_frame"].values()) > 0
+    assert list(report["added_cpu_ms_per_frame"]) == stages[1:]
+    assert report["path_over_network_cpu"] > 0 and report["path_share_of_network_frames_per_s"] > 0
+    pieces = {"model_input", "postprocess", "detections", "payload_decode", "payload_encode"}
+    for regime in ("back_to_back", "after_session_run"):
+        assert set(report["piece_p50_us"][regime]) == pieces
+        assert min(report["piece_p50_us"][regime].values()) > 0
+
+
+def test_detector_path_refuses_a_batch_the_model_cannot_take() -> None:
+    from bench import detector_path
+    from common.model_spec import default_model_path
+
+    with pytest.raises(ValueError, match="batch"):
+        detector_path.DetectorPath(default_model_path(), workers=1, batch=2)
