@@ -16,6 +16,14 @@ default), stage by stage, each stage adding one piece of the detector's path to 
   ``Detections`` payload that leaves (``DetectorCore.decode`` … ``encode_message``): all the detector
   does per frame except Zenoh's receive and send.
 
+One more stage is a lever measured, not taken: ``postprocess_in_graph``, the ``postprocess`` stage
+with the class choice and the NMS moved into the model's graph (ONNX ``NonMaxSuppression`` after the
+network, :func:`with_nms_in_graph`) and only the gather, clipping, snapping and seam merge left in
+Python (:func:`boxes_from_selected`). Its boxes are compared with the Python post-processing's on
+every recorded frame (``nms_in_graph_frames_equal``). ONNX Runtime's kernel orders boxes of equal
+score in no defined order, where the detector keeps the earlier one as torchvision does, so two
+candidates of one class with the same score could be resolved differently.
+
 Every round runs each stage for ``--seconds``, the order rotated from round to round; the process's
 CPU time over a stage's frames gives its CPU per frame, and the median over rounds of the difference
 between a stage and the one before is what that piece costs at full load. A last pass times each
@@ -32,6 +40,7 @@ import argparse
 import itertools
 import logging
 import os
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +49,7 @@ from pathlib import Path
 from typing import Final
 
 import numpy as np
+import onnxruntime as ort
 
 from bench.harness import add_detector_model_argument, recorded_scans
 from bench.machine import MachineInfo, machine_info
@@ -50,7 +60,10 @@ from common.inference import (
     check_batch,
     detections_from_boxes,
     detector_model_and_batch,
+    finish_kept_boxes,
     postprocess,
+    session_options,
+    xywh_rows_to_xyxy,
 )
 from common.messages import StackedTensor, decode_message, encode_message
 from common.model_spec import INPUT_SHAPE
@@ -62,6 +75,9 @@ log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import p
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "detector_path.json"
 SCANS: Final[int] = 60  # recorded scans: 58 distinct tensors, cycled through
 STAGES: Final[tuple[str, ...]] = ("network", "model_input", "postprocess", "detections", "payload")
+# Measured beside the chain: the postprocess stage with the NMS inside the graph.
+NMS_IN_GRAPH: Final[str] = "postprocess_in_graph"
+SELECTED_OUTPUT: Final[str] = "selected"
 
 Call = Callable[[int], object]  # call index → one call of a stage's work, on ``batch`` frames
 
@@ -93,11 +109,85 @@ class DetectorPathReport:
     # The whole path's CPU per frame over the network's, and its frames/s as a share of the network's.
     path_over_network_cpu: float = 0.0
     path_share_of_network_frames_per_s: float = 0.0
+    # The lever: median over rounds of (postprocess − postprocess_in_graph) CPU per frame, in ms, and on
+    # how many recorded frames the two gave the same boxes, scores and classes.
+    nms_in_graph_saved_cpu_ms_per_frame: float = 0.0
+    nms_in_graph_frames_equal: list[int] = field(default_factory=list)  # [equal, frames]
     # p50 µs of each piece alone on one thread: "back_to_back" (caches hot, as bench.hot_path's warm
     # figure) and "after_session_run" (each call right after a session.run of another frame, as in
     # the detector).
     piece_p50_us: dict[str, dict[str, float]] = field(default_factory=dict)
     machine: MachineInfo = field(default_factory=machine_info)
+
+
+def with_nms_in_graph(model: Path, out: Path, detector: OnnxDetector) -> Path:
+    """``model`` with the class choice and the NMS after its raw output, written to ``out``.
+
+    A second output, ``selected`` (``int64[M, 3]``: frame, class, anchor), holds the boxes ONNX
+    Runtime's ``NonMaxSuppression`` keeps, class by class, among each anchor's best class (the first
+    of equal scores, as ``numpy.argmax``) with ``detector``'s thresholds. The lever measured here, not
+    a shipped format (bench/README.md, "The detector's own path at full load").
+    """
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    graph_model = onnx.load(str(model))
+    graph = graph_model.graph
+    raw = graph.output[0]
+    classes = raw.type.tensor_type.shape.dim[1].dim_value - 4
+    constants = {
+        "nms_0": np.array([0], np.int64),
+        "nms_4": np.array([4], np.int64),
+        "nms_end": np.array([4 + classes], np.int64),
+        "nms_axis1": np.array([1], np.int64),
+        "nms_class_ids": np.arange(classes, dtype=np.int64).reshape(1, classes, 1),
+        "nms_zero": np.array(0.0, np.float32),
+        "nms_max": np.array([detector.max_detections], np.int64),
+        "nms_iou": np.array([detector.iou_threshold], np.float32),
+        "nms_conf": np.array([detector.conf_threshold], np.float32),
+    }
+    graph.initializer.extend(numpy_helper.from_array(value, name) for name, value in constants.items())
+    graph.node.extend(
+        [
+            helper.make_node("Slice", [raw.name, "nms_0", "nms_4", "nms_axis1"], ["nms_xywh_rows"]),
+            helper.make_node("Transpose", ["nms_xywh_rows"], ["nms_xywh"], perm=[0, 2, 1]),
+            helper.make_node("Slice", [raw.name, "nms_4", "nms_end", "nms_axis1"], ["nms_scores"]),
+            helper.make_node("ArgMax", ["nms_scores"], ["nms_best"], axis=1, keepdims=1),
+            helper.make_node("Equal", ["nms_class_ids", "nms_best"], ["nms_is_best"]),
+            helper.make_node("Where", ["nms_is_best", "nms_scores", "nms_zero"], ["nms_best_scores"]),
+            helper.make_node(
+                "NonMaxSuppression",
+                ["nms_xywh", "nms_best_scores", "nms_max", "nms_iou", "nms_conf"],
+                [SELECTED_OUTPUT],
+                center_point_box=1,
+            ),
+        ]
+    )
+    graph.output.append(helper.make_tensor_value_info(SELECTED_OUTPUT, TensorProto.INT64, ["selected", 3]))
+    onnx.save(graph_model, str(out))
+    return out
+
+
+def boxes_from_selected(
+    raw: np.ndarray, selected: np.ndarray, frame: int, detector: OnnxDetector
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What ``postprocess`` returns, from the graph's ``selected`` rows of one frame: gather, order by
+    score (then anchor, as the Python NMS keeps them), cap, clip, snap and merge seam copies."""
+    rows = selected[selected[:, 0] == frame]
+    class_ids, anchors = rows[:, 1], rows[:, 2]
+    output = raw[frame]
+    scores = output[4 + class_ids, anchors]
+    order = np.lexsort((anchors, -scores))[: detector.max_detections]
+    class_ids, anchors, scores = class_ids[order], anchors[order], scores[order]
+    boxes = xywh_rows_to_xyxy(output[:4, anchors])
+    finite = np.isfinite(boxes).all(axis=1)
+    return finish_kept_boxes(
+        boxes[finite],
+        scores[finite],
+        class_ids[finite].astype(np.int64),
+        padding=detector.padding,
+        box_grid=detector.box_grid,
+    )
 
 
 class DetectorPath:
@@ -114,6 +204,28 @@ class DetectorPath:
         self.tensors: list[StackedTensor] = [decode_message(p, StackedTensor) for p in self.payloads]
         for detector in self.detectors:
             detector.warmup(batch)
+        with tempfile.TemporaryDirectory(prefix="triscan-detector-path-") as scratch:
+            nms_model = with_nms_in_graph(model, Path(scratch) / "nms.onnx", self.core.detector)
+            self.nms_sessions = [
+                ort.InferenceSession(str(nms_model), session_options(1), providers=["CPUExecutionProvider"])
+                for _ in range(workers)
+            ]
+        self.nms_input = self.nms_sessions[0].get_inputs()[0].name
+
+    def nms_in_graph_boxes(self, worker: int, frames: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+        """The in-graph lever's boxes for a batch of model inputs, one tuple per frame."""
+        raw, selected = self.nms_sessions[worker].run(None, {self.nms_input: frames})
+        detector = self.detectors[worker]
+        return [boxes_from_selected(raw, selected, frame, detector) for frame in range(len(frames))]
+
+    def frames_equal_with_nms_in_graph(self) -> list[int]:
+        """[frames whose boxes, scores and classes the lever reproduces bit for bit, frames]."""
+        detector, equal = self.detectors[0], 0
+        for stacked in self.tensors:
+            expected = detector.detect_boxes(stacked.tensor)[:3]
+            got = self.nms_in_graph_boxes(0, to_model_input(stacked.tensor))[0]
+            equal += all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
+        return [equal, len(self.tensors)]
 
     def call(self, stage: str, worker: int) -> Call:
         """``stage``'s work on ``batch`` frames, the ``i``-th call of ``worker``."""
@@ -141,6 +253,12 @@ class DetectorPath:
         def with_postprocess(i: int) -> object:
             return detector._boxes_many([self.tensors[k].tensor for k in picks(i)])
 
+        def with_postprocess_in_graph(i: int) -> object:
+            frames = np.empty((batch, *INPUT_SHAPE[1:]), np.float32)
+            for j, k in enumerate(picks(i)):
+                to_model_input(self.tensors[k].tensor, frames[j : j + 1])
+            return self.nms_in_graph_boxes(worker, frames)
+
         def with_detections(i: int) -> object:
             return core.detect_many([self.tensors[k] for k in picks(i)], detector)
 
@@ -159,6 +277,7 @@ class DetectorPath:
             "postprocess": with_postprocess,
             "detections": with_detections,
             "payload": with_payload,
+            NMS_IN_GRAPH: with_postprocess_in_graph,
         }
         return calls[stage]
 
@@ -243,13 +362,14 @@ def run(
     seconds: float,
     rounds: int,
     piece_calls: int,
-    stages: tuple[str, ...] = STAGES,
 ) -> DetectorPathReport:
     path = DetectorPath(model, workers, batch)
     report = DetectorPathReport(model.name, workers, batch, seconds, rounds)
+    report.nms_in_graph_frames_equal = path.frames_equal_with_nms_in_graph()
+    schedule = (*STAGES, NMS_IN_GRAPH)
     for round_index in range(rounds):
-        shift = round_index % len(stages)
-        for stage in stages[shift:] + stages[:shift]:  # rotated: no stage always follows the same one
+        shift = round_index % len(schedule)
+        for stage in schedule[shift:] + schedule[:shift]:  # rotated: no stage always follows the same one
             frames, wall, cpu = run_stage(path, stage, seconds)
             if frames == 0:
                 raise RuntimeError(f"stage {stage} finished no frame in {seconds} s")
@@ -263,30 +383,32 @@ def run(
                 frames / wall,
                 cpu / frames * 1e3,
             )
-    summarise(report, stages)
+    summarise(report)
     if piece_calls:
         report.piece_p50_us = path.piece_p50_us(piece_calls)
     return report
 
 
-def summarise(report: DetectorPathReport, stages: tuple[str, ...]) -> None:
+def summarise(report: DetectorPathReport) -> None:
     def per_round(stage: str, metric: str) -> np.ndarray:
         runs = sorted((r for r in report.runs if r.stage == stage), key=lambda r: r.round)
         return np.array([getattr(r, metric) for r in runs], dtype=np.float64)
 
-    for stage in stages:
+    for stage in (*STAGES, NMS_IN_GRAPH):
         report.frames_per_s[stage] = round(float(np.median(per_round(stage, "frames_per_s"))), 1)
         report.cpu_ms_per_frame[stage] = round(float(np.median(per_round(stage, "cpu_ms_per_frame"))), 3)
-    for before, stage in itertools.pairwise(stages):
+    for before, stage in itertools.pairwise(STAGES):
         added = per_round(stage, "cpu_ms_per_frame") - per_round(before, "cpu_ms_per_frame")
         report.added_cpu_ms_per_frame[stage] = round(float(np.median(added)), 3)
-    first, last = stages[0], stages[-1]
+    first, last = STAGES[0], STAGES[-1]
     report.path_over_network_cpu = round(
         float(np.median(per_round(last, "cpu_ms_per_frame") / per_round(first, "cpu_ms_per_frame"))), 3
     )
     report.path_share_of_network_frames_per_s = round(
         float(np.median(per_round(last, "frames_per_s") / per_round(first, "frames_per_s"))), 3
     )
+    saved = per_round("postprocess", "cpu_ms_per_frame") - per_round(NMS_IN_GRAPH, "cpu_ms_per_frame")
+    report.nms_in_graph_saved_cpu_ms_per_frame = round(float(np.median(saved)), 3)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -122,16 +122,22 @@ def decode_yolov8(
         return _empty_result()
     scores = best[candidates].astype(np.float32, copy=False)
     class_ids = class_scores[:, candidates].argmax(axis=0).astype(np.int64)
-    xywh = pred[:4, candidates].astype(np.float32, copy=False)
-    half_wh = xywh[2:] / np.float32(2.0)  # same float32 steps as Ultralytics' xywh2xyxy
-    boxes = np.empty((candidates.size, 4), np.float32)
-    boxes[:, :2] = (xywh[:2] - half_wh).T
-    boxes[:, 2:] = (xywh[:2] + half_wh).T
+    boxes = xywh_rows_to_xyxy(pred[:4, candidates].astype(np.float32, copy=False))
     finite = np.isfinite(boxes).all(axis=1)
     if not finite.all():
         log.warning("dropped %d candidate boxes with non-finite coordinates", int((~finite).sum()))
         boxes, scores, class_ids = boxes[finite], scores[finite], class_ids[finite]
     return boxes, scores, class_ids
+
+
+def xywh_rows_to_xyxy(xywh: np.ndarray) -> np.ndarray:
+    """``float32[K, 4]`` xyxy boxes of the raw output's ``[4, K]`` centre/size rows, in the same float32
+    steps as Ultralytics' ``xywh2xyxy``, so the boxes equal the ones it scores."""
+    half_wh = xywh[2:] / np.float32(2.0)
+    boxes = np.empty((xywh.shape[1], 4), np.float32)
+    boxes[:, :2] = (xywh[:2] - half_wh).T
+    boxes[:, 2:] = (xywh[:2] + half_wh).T
+    return boxes
 
 
 # --------------------------------------------------------------------------------------------------
@@ -393,7 +399,15 @@ def postprocess(
     """
     boxes, scores, class_ids = decode_yolov8(output, conf_threshold, num_classes=num_classes)
     keep = nms(boxes, scores, class_ids, iou_threshold, max_detections)
-    boxes, scores, class_ids = clip_boxes_to_image(boxes[keep]), scores[keep], class_ids[keep]
+    return finish_kept_boxes(boxes[keep], scores[keep], class_ids[keep], padding=padding, box_grid=box_grid)
+
+
+def finish_kept_boxes(
+    boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray, *, padding: Padding, box_grid: BoxGrid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The NMS's kept boxes (highest score first) → final boxes: clip to the image, snap to the pixel
+    grid (``box_grid`` ``pixel``), merge seam duplicates (``padding`` ``wrap``)."""
+    boxes = clip_boxes_to_image(boxes)
     if box_grid == "pixel" and len(boxes):
         boxes = snap_boxes_to_pixels(boxes)
     if padding != "zero":
