@@ -16,13 +16,16 @@ default), stage by stage, each stage adding one piece of the detector's path to 
   ``Detections`` payload that leaves (``DetectorCore.decode`` … ``encode_message``): all the detector
   does per frame except Zenoh's receive and send.
 
-One more stage is a lever measured, not taken: ``postprocess_in_graph``, the ``postprocess`` stage
-with the class choice and the NMS moved into the model's graph (ONNX ``NonMaxSuppression`` after the
-network, :func:`with_nms_in_graph`) and only the gather, clipping, snapping and seam merge left in
-Python (:func:`boxes_from_selected`). Its boxes are compared with the Python post-processing's on
-every recorded frame (``nms_in_graph_frames_equal``). ONNX Runtime's kernel orders boxes of equal
-score in no defined order, where the detector keeps the earlier one as torchvision does, so two
-candidates of one class with the same score could be resolved differently.
+Two more stages are a lever measured, not taken: the ``postprocess`` stage with the class choice
+and the NMS moved into the model's graph (ONNX ``NonMaxSuppression`` after the network,
+:func:`with_nms_in_graph`) and only the gather, clipping, snapping and seam merge left in Python
+(:func:`boxes_from_selected`). The ONNX spec leaves open in which order the NMS takes boxes of equal
+score, where the detector takes the earlier anchor first as torchvision does:
+``postprocess_in_graph_ranked`` ranks each class's candidates with ``TopK`` first, whose spec does
+order equal values by index, so the result is torchvision's whatever the runtime;
+``postprocess_in_graph`` feeds the NMS the scores and relies on ONNX Runtime's own order (the
+anchor's, in every tie ``tests/test_bench_detector_path.py`` builds). Each variant's boxes are
+compared with the Python post-processing's on every recorded frame (``nms_in_graph_frames_equal``).
 
 Every round runs each stage for ``--seconds``, the order rotated from round to round; the process's
 CPU time over a stage's frames gives its CPU per frame, and the median over rounds of the difference
@@ -44,7 +47,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Final
 
@@ -54,7 +57,7 @@ import onnxruntime as ort
 from bench.harness import add_detector_model_argument, recorded_scans
 from bench.machine import MachineInfo, machine_info
 from bench.report import write_report
-from common.encoding import to_model_input
+from common.encoding import Padding, to_model_input
 from common.inference import (
     OnnxDetector,
     check_batch,
@@ -66,7 +69,7 @@ from common.inference import (
     xywh_rows_to_xyxy,
 )
 from common.messages import StackedTensor, decode_message, encode_message
-from common.model_spec import INPUT_SHAPE
+from common.model_spec import INPUT_SHAPE, BoxGrid
 from services.detector.core import DetectorCore, default_workers
 from services.encoder.core import EncoderCore
 
@@ -77,6 +80,8 @@ SCANS: Final[int] = 60  # recorded scans: 58 distinct tensors, cycled through
 STAGES: Final[tuple[str, ...]] = ("network", "model_input", "postprocess", "detections", "payload")
 # Measured beside the chain: the postprocess stage with the NMS inside the graph.
 NMS_IN_GRAPH: Final[str] = "postprocess_in_graph"
+NMS_IN_GRAPH_RANKED: Final[str] = "postprocess_in_graph_ranked"
+NMS_IN_GRAPH_STAGES: Final[dict[str, bool]] = {NMS_IN_GRAPH: False, NMS_IN_GRAPH_RANKED: True}  # → rank_ties
 SELECTED_OUTPUT: Final[str] = "selected"
 
 Call = Callable[[int], object]  # call index → one call of a stage's work, on ``batch`` frames
@@ -111,8 +116,8 @@ class DetectorPathReport:
     path_share_of_network_frames_per_s: float = 0.0
     # The lever: median over rounds of (postprocess − postprocess_in_graph) CPU per frame, in ms, and on
     # how many recorded frames the two gave the same boxes, scores and classes.
-    nms_in_graph_saved_cpu_ms_per_frame: float = 0.0
-    nms_in_graph_frames_equal: list[int] = field(default_factory=list)  # [equal, frames]
+    nms_in_graph_saved_cpu_ms_per_frame: dict[str, float] = field(default_factory=dict)
+    nms_in_graph_frames_equal: dict[str, list[int]] = field(default_factory=dict)  # stage → [equal, frames]
     # p50 µs of each piece alone on one thread: "back_to_back" (caches hot, as bench.hot_path's warm
     # figure) and "after_session_run" (each call right after a session.run of another frame, as in
     # the detector).
@@ -120,48 +125,118 @@ class DetectorPathReport:
     machine: MachineInfo = field(default_factory=machine_info)
 
 
-def with_nms_in_graph(model: Path, out: Path, detector: OnnxDetector) -> Path:
-    """``model`` with the class choice and the NMS after its raw output, written to ``out``.
+@dataclass(frozen=True)
+class PostprocessSettings:
+    """What ``common.inference.postprocess`` takes besides the raw output: a detector's settings."""
 
-    A second output, ``selected`` (``int64[M, 3]``: frame, class, anchor), holds the boxes ONNX
-    Runtime's ``NonMaxSuppression`` keeps, class by class, among each anchor's best class (the first
-    of equal scores, as ``numpy.argmax``) with ``detector``'s thresholds. The lever measured here, not
-    a shipped format (bench/README.md, "The detector's own path at full load").
+    conf_threshold: float
+    iou_threshold: float
+    max_detections: int
+    padding: Padding
+    num_classes: int | None
+    box_grid: BoxGrid
+
+    @classmethod
+    def of(cls, detector: OnnxDetector) -> PostprocessSettings:
+        return cls(
+            detector.conf_threshold,
+            detector.iou_threshold,
+            detector.max_detections,
+            detector.padding,
+            detector.num_classes,
+            detector.box_grid,
+        )
+
+    def postprocess(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return postprocess(raw, **asdict(self))
+
+
+def float32_at_most(value: float) -> np.float32:
+    """The float32 ``f`` for which ``iou > f`` (float32) holds exactly when ``iou > value`` (double).
+
+    ONNX Runtime compares its float32 IoU with a float32 threshold, torchvision and the detector with a
+    double one: ``float32(0.3)`` lies above 0.3, so an IoU of exactly ``float32(0.3)`` is above 0.3 for
+    them but not above ``float32(0.3)``. The float32 just below fixes that; ``float32(0.45)`` already
+    lies below 0.45 and stays.
     """
+    nearest = np.float32(value)
+    return nearest if float(nearest) <= value else np.nextafter(nearest, np.float32(-np.inf))
+
+
+def with_nms_in_graph(model: Path, out: Path, settings: PostprocessSettings, *, rank_ties: bool) -> Path:
+    """``model`` with the class choice and the NMS after its raw output ``[N, 4 + nc, A]``, to ``out``.
+
+    A second output, ``selected`` (``int64[M, 3]``: frame, class, anchor), holds the anchors ONNX
+    Runtime's ``NonMaxSuppression`` keeps, class by class, among each anchor's best class (the first of
+    equal scores, as ``numpy.argmax``) scoring above ``conf_threshold``. The spec does not say in which
+    order the NMS takes boxes of equal score; with ``rank_ties`` it is not fed the scores but each
+    class's candidates ranked by ``TopK``, whose spec puts the lower index first among equal values:
+    distinct ranks in torchvision's order (score, then anchor). No cap here: the detector caps after
+    dropping non-finite boxes. The lever measured here, not a shipped format (bench/README.md, "The
+    NMS inside the graph").
+    """
+
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
     graph_model = onnx.load(str(model))
     graph = graph_model.graph
     raw = graph.output[0]
-    classes = raw.type.tensor_type.shape.dim[1].dim_value - 4
+    dims = raw.type.tensor_type.shape.dim
+    classes, anchors = dims[1].dim_value - 4, dims[2].dim_value
     constants = {
         "nms_0": np.array([0], np.int64),
         "nms_4": np.array([4], np.int64),
         "nms_end": np.array([4 + classes], np.int64),
         "nms_axis1": np.array([1], np.int64),
+        "nms_anchors": np.array([anchors], np.int64),
         "nms_class_ids": np.arange(classes, dtype=np.int64).reshape(1, classes, 1),
         "nms_zero": np.array(0.0, np.float32),
-        "nms_max": np.array([detector.max_detections], np.int64),
-        "nms_iou": np.array([detector.iou_threshold], np.float32),
-        "nms_conf": np.array([detector.conf_threshold], np.float32),
+        "nms_iou": np.array([float32_at_most(settings.iou_threshold)], np.float32),
     }
+    if rank_ties:
+        constants |= {
+            "nms_conf": np.array(settings.conf_threshold, np.float32),  # compared as decode_yolov8 does
+            # Rank A for a class's best candidate down to 1: exact in float32, all above the 0 threshold.
+            "nms_ranks": np.arange(anchors, 0, -1, dtype=np.float32).reshape(1, 1, anchors),
+            "nms_no_score_threshold": np.array([0.0], np.float32),
+        }
+    else:
+        constants["nms_conf_threshold"] = np.array([settings.conf_threshold], np.float32)  # > conf
     graph.initializer.extend(numpy_helper.from_array(value, name) for name, value in constants.items())
+    node = helper.make_node
     graph.node.extend(
         [
-            helper.make_node("Slice", [raw.name, "nms_0", "nms_4", "nms_axis1"], ["nms_xywh_rows"]),
-            helper.make_node("Transpose", ["nms_xywh_rows"], ["nms_xywh"], perm=[0, 2, 1]),
-            helper.make_node("Slice", [raw.name, "nms_4", "nms_end", "nms_axis1"], ["nms_scores"]),
-            helper.make_node("ArgMax", ["nms_scores"], ["nms_best"], axis=1, keepdims=1),
-            helper.make_node("Equal", ["nms_class_ids", "nms_best"], ["nms_is_best"]),
-            helper.make_node("Where", ["nms_is_best", "nms_scores", "nms_zero"], ["nms_best_scores"]),
-            helper.make_node(
-                "NonMaxSuppression",
-                ["nms_xywh", "nms_best_scores", "nms_max", "nms_iou", "nms_conf"],
-                [SELECTED_OUTPUT],
-                center_point_box=1,
-            ),
+            node("Slice", [raw.name, "nms_0", "nms_4", "nms_axis1"], ["nms_xywh_rows"]),
+            node("Transpose", ["nms_xywh_rows"], ["nms_xywh"], perm=[0, 2, 1]),
+            node("Slice", [raw.name, "nms_4", "nms_end", "nms_axis1"], ["nms_scores"]),
+            node("ArgMax", ["nms_scores"], ["nms_best"], axis=1, keepdims=1),
+            node("Equal", ["nms_class_ids", "nms_best"], ["nms_is_best"]),
+            node("Where", ["nms_is_best", "nms_scores", "nms_zero"], ["nms_best_scores"]),
         ]
+    )
+    if rank_ties:
+        graph.node.extend(
+            [
+                node("Greater", ["nms_best_scores", "nms_conf"], ["nms_candidate"]),
+                node("TopK", ["nms_best_scores", "nms_anchors"], ["nms_sorted", "nms_order"], axis=2),
+                node("Shape", ["nms_best_scores"], ["nms_shape"]),
+                node("Expand", ["nms_ranks", "nms_shape"], ["nms_rank_rows"]),
+                node("ConstantOfShape", ["nms_shape"], ["nms_unranked"]),
+                node("ScatterElements", ["nms_unranked", "nms_order", "nms_rank_rows"], ["nms_rank"], axis=2),
+                node("Where", ["nms_candidate", "nms_rank", "nms_zero"], ["nms_candidate_rank"]),
+            ]
+        )
+        nms_scores, score_threshold = "nms_candidate_rank", "nms_no_score_threshold"
+    else:
+        nms_scores, score_threshold = "nms_best_scores", "nms_conf_threshold"
+    graph.node.append(
+        node(
+            "NonMaxSuppression",
+            ["nms_xywh", nms_scores, "nms_anchors", "nms_iou", score_threshold],
+            [SELECTED_OUTPUT],
+            center_point_box=1,
+        )
     )
     graph.output.append(helper.make_tensor_value_info(SELECTED_OUTPUT, TensorProto.INT64, ["selected", 3]))
     onnx.save(graph_model, str(out))
@@ -169,24 +244,29 @@ def with_nms_in_graph(model: Path, out: Path, detector: OnnxDetector) -> Path:
 
 
 def boxes_from_selected(
-    raw: np.ndarray, selected: np.ndarray, frame: int, detector: OnnxDetector
+    raw: np.ndarray, selected: np.ndarray, frame: int, settings: PostprocessSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What ``postprocess`` returns, from the graph's ``selected`` rows of one frame: gather, order by
-    score (then anchor, as the Python NMS keeps them), cap, clip, snap and merge seam copies."""
+    """What ``postprocess`` returns for ``raw[frame]``, from the graph's ``selected`` rows: gather,
+    order by score then anchor (the Python NMS's order), drop non-finite boxes, cap, clip, snap and
+    merge seam copies. A frame with NaN or infinity in its raw output, which only a broken model gives,
+    goes through the Python post-processing, whose decode drops such anchors before its NMS."""
+    output = raw[frame]
+    if not np.isfinite(output).all():
+        return settings.postprocess(raw[frame : frame + 1])
     rows = selected[selected[:, 0] == frame]
     class_ids, anchors = rows[:, 1], rows[:, 2]
-    output = raw[frame]
     scores = output[4 + class_ids, anchors]
-    order = np.lexsort((anchors, -scores))[: detector.max_detections]
+    order = np.lexsort((anchors, -scores))
     class_ids, anchors, scores = class_ids[order], anchors[order], scores[order]
     boxes = xywh_rows_to_xyxy(output[:4, anchors])
-    finite = np.isfinite(boxes).all(axis=1)
+    finite = np.isfinite(boxes).all(axis=1)  # x ± w/2 can still overflow
+    keep = np.flatnonzero(finite)[: settings.max_detections]
     return finish_kept_boxes(
-        boxes[finite],
-        scores[finite],
-        class_ids[finite].astype(np.int64),
-        padding=detector.padding,
-        box_grid=detector.box_grid,
+        boxes[keep],
+        scores[keep],
+        class_ids[keep].astype(np.int64),
+        padding=settings.padding,
+        box_grid=settings.box_grid,
     )
 
 
@@ -198,32 +278,39 @@ class DetectorPath:
         self.core = DetectorCore(self.detectors[0])
         check_batch(batch, self.core.detector.batched, model)
         self.batch = batch
+        self.settings = PostprocessSettings.of(self.core.detector)
         encoder = EncoderCore(self.core.detector.padding, invalid=self.core.detector.invalid)
         tensors = [t for scan in recorded_scans(SCANS) if (t := encoder.push(scan)) is not None]
         self.payloads = [encode_message(t) for t in tensors]
         self.tensors: list[StackedTensor] = [decode_message(p, StackedTensor) for p in self.payloads]
         for detector in self.detectors:
             detector.warmup(batch)
+        # Per in-graph stage, one session per worker.
+        self.nms_sessions: dict[str, list[ort.InferenceSession]] = {}
         with tempfile.TemporaryDirectory(prefix="triscan-detector-path-") as scratch:
-            nms_model = with_nms_in_graph(model, Path(scratch) / "nms.onnx", self.core.detector)
-            self.nms_sessions = [
-                ort.InferenceSession(str(nms_model), session_options(1), providers=["CPUExecutionProvider"])
-                for _ in range(workers)
-            ]
-        self.nms_input = self.nms_sessions[0].get_inputs()[0].name
+            for stage, rank_ties in NMS_IN_GRAPH_STAGES.items():
+                nms_model = with_nms_in_graph(
+                    model, Path(scratch) / f"{stage}.onnx", self.settings, rank_ties=rank_ties
+                )
+                self.nms_sessions[stage] = [
+                    ort.InferenceSession(
+                        str(nms_model), session_options(1), providers=["CPUExecutionProvider"]
+                    )
+                    for _ in range(workers)
+                ]
+        self.nms_input = self.nms_sessions[NMS_IN_GRAPH][0].get_inputs()[0].name
 
-    def nms_in_graph_boxes(self, worker: int, frames: np.ndarray) -> list[tuple[np.ndarray, ...]]:
-        """The in-graph lever's boxes for a batch of model inputs, one tuple per frame."""
-        raw, selected = self.nms_sessions[worker].run(None, {self.nms_input: frames})
-        detector = self.detectors[worker]
-        return [boxes_from_selected(raw, selected, frame, detector) for frame in range(len(frames))]
+    def nms_in_graph_boxes(self, stage: str, worker: int, frames: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+        """An in-graph ``stage``'s boxes for a batch of model inputs, one tuple per frame."""
+        raw, selected = self.nms_sessions[stage][worker].run(None, {self.nms_input: frames})
+        return [boxes_from_selected(raw, selected, frame, self.settings) for frame in range(len(frames))]
 
-    def frames_equal_with_nms_in_graph(self) -> list[int]:
-        """[frames whose boxes, scores and classes the lever reproduces bit for bit, frames]."""
+    def frames_equal_with_nms_in_graph(self, stage: str) -> list[int]:
+        """[frames whose boxes, scores and classes ``stage`` reproduces bit for bit, frames]."""
         detector, equal = self.detectors[0], 0
         for stacked in self.tensors:
             expected = detector.detect_boxes(stacked.tensor)[:3]
-            got = self.nms_in_graph_boxes(0, to_model_input(stacked.tensor))[0]
+            got = self.nms_in_graph_boxes(stage, 0, to_model_input(stacked.tensor))[0]
             equal += all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
         return [equal, len(self.tensors)]
 
@@ -257,7 +344,7 @@ class DetectorPath:
             frames = np.empty((batch, *INPUT_SHAPE[1:]), np.float32)
             for j, k in enumerate(picks(i)):
                 to_model_input(self.tensors[k].tensor, frames[j : j + 1])
-            return self.nms_in_graph_boxes(worker, frames)
+            return self.nms_in_graph_boxes(stage, worker, frames)
 
         def with_detections(i: int) -> object:
             return core.detect_many([self.tensors[k] for k in picks(i)], detector)
@@ -277,7 +364,7 @@ class DetectorPath:
             "postprocess": with_postprocess,
             "detections": with_detections,
             "payload": with_payload,
-            NMS_IN_GRAPH: with_postprocess_in_graph,
+            **{in_graph: with_postprocess_in_graph for in_graph in NMS_IN_GRAPH_STAGES},
         }
         return calls[stage]
 
@@ -287,19 +374,11 @@ class DetectorPath:
         detector, core, count = self.detectors[0], self.core, len(self.tensors)
         inputs = [to_model_input(t.tensor) for t in self.tensors]
         outputs = [detector._run(model_input)[0] for model_input in inputs]
-        settings = {
-            "conf_threshold": detector.conf_threshold,
-            "iou_threshold": detector.iou_threshold,
-            "max_detections": detector.max_detections,
-            "padding": detector.padding,
-            "num_classes": detector.num_classes,
-            "box_grid": detector.box_grid,
-        }
-        boxes = [postprocess(output, **settings) for output in outputs]
+        boxes = [self.settings.postprocess(output) for output in outputs]
         messages = [core.detect_many([tensor], detector)[0] for tensor in self.tensors]
         pieces: dict[str, Call] = {
             "model_input": lambda k: to_model_input(self.tensors[k].tensor),
-            "postprocess": lambda k: postprocess(outputs[k], **settings),
+            "postprocess": lambda k: self.settings.postprocess(outputs[k]),
             "detections": lambda k: detections_from_boxes(*boxes[k]),
             "payload_decode": lambda k: core.decode(self.payloads[k], self.tensors[k].robot_id),
             "payload_encode": lambda k: encode_message(messages[k]),
@@ -365,8 +444,10 @@ def run(
 ) -> DetectorPathReport:
     path = DetectorPath(model, workers, batch)
     report = DetectorPathReport(model.name, workers, batch, seconds, rounds)
-    report.nms_in_graph_frames_equal = path.frames_equal_with_nms_in_graph()
-    schedule = (*STAGES, NMS_IN_GRAPH)
+    report.nms_in_graph_frames_equal = {
+        stage: path.frames_equal_with_nms_in_graph(stage) for stage in NMS_IN_GRAPH_STAGES
+    }
+    schedule = (*STAGES, *NMS_IN_GRAPH_STAGES)
     for round_index in range(rounds):
         shift = round_index % len(schedule)
         for stage in schedule[shift:] + schedule[:shift]:  # rotated: no stage always follows the same one
@@ -394,7 +475,7 @@ def summarise(report: DetectorPathReport) -> None:
         runs = sorted((r for r in report.runs if r.stage == stage), key=lambda r: r.round)
         return np.array([getattr(r, metric) for r in runs], dtype=np.float64)
 
-    for stage in (*STAGES, NMS_IN_GRAPH):
+    for stage in (*STAGES, *NMS_IN_GRAPH_STAGES):
         report.frames_per_s[stage] = round(float(np.median(per_round(stage, "frames_per_s"))), 1)
         report.cpu_ms_per_frame[stage] = round(float(np.median(per_round(stage, "cpu_ms_per_frame"))), 3)
     for before, stage in itertools.pairwise(STAGES):
@@ -407,8 +488,9 @@ def summarise(report: DetectorPathReport) -> None:
     report.path_share_of_network_frames_per_s = round(
         float(np.median(per_round(last, "frames_per_s") / per_round(first, "frames_per_s"))), 3
     )
-    saved = per_round("postprocess", "cpu_ms_per_frame") - per_round(NMS_IN_GRAPH, "cpu_ms_per_frame")
-    report.nms_in_graph_saved_cpu_ms_per_frame = round(float(np.median(saved)), 3)
+    for in_graph in NMS_IN_GRAPH_STAGES:
+        saved = per_round("postprocess", "cpu_ms_per_frame") - per_round(in_graph, "cpu_ms_per_frame")
+        report.nms_in_graph_saved_cpu_ms_per_frame[in_graph] = round(float(np.median(saved)), 3)
 
 
 def main(argv: list[str] | None = None) -> int:
