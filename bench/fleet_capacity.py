@@ -143,6 +143,7 @@ def _start_services(
     )
     detector_args = (
         *tuning,
+        *(("--batch-window-ms", str(args.batch_window_ms)) if args.batch_window_ms is not None else ()),
         *(("--no-spin",) if args.no_spin else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
@@ -310,6 +311,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="one detector --from-scans process instead of encoder + detector",
     )
     parser.add_argument(
+        "--batch-window-ms",
+        type=float,
+        default=None,
+        help="detector --batch-window-ms (default: the detector's own)",
+    )
+    parser.add_argument(
         "--pin-inference-threads",
         action="store_true",
         help="diagnostic: pin the detector's inference-N threads to CPU N for the measured window",
@@ -359,6 +366,7 @@ def main(argv: list[str] | None = None) -> int:
         "workers": "detector default" if args.detector_defaults else args.workers,
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
+        "batch_window_ms": "detector default" if args.batch_window_ms is None else args.batch_window_ms,
         "from_scans": args.from_scans,
         "model": str(args.model or default_model_path(batched=args.detector_defaults or args.batch > 1).name),
         "seconds_per_step": args.seconds,

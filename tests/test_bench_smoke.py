@@ -49,7 +49,7 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
     ("extra", "processes"),
     [
         ((), {"encoder", "detector"}),
-        (("--batch", "4", "--from-scans", "--pin-inference-threads"), {"detector"}),
+        (("--batch", "4", "--from-scans", "--pin-inference-threads", "--batch-window-ms", "5"), {"detector"}),
     ],
     ids=["encoder+detector", "from-scans-batched-pinned"],
 )
@@ -82,6 +82,7 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     assert "inference-0" in step["detector_thread_cores"] and "rx-0" in step["detector_thread_cores"]
     pinned = "--pin-inference-threads" in extra
     assert step["pinned_threads"] == ({"inference-0": min(os.sched_getaffinity(0))} if pinned else {})
+    assert report["batch_window_ms"] == (5.0 if "--batch-window-ms" in extra else "detector default")
 
 
 def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:

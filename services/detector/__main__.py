@@ -28,6 +28,7 @@ from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, settings_from_args
 from services.detector.core import (
+    DEFAULT_BATCH_WINDOW_MS,
     DetectorCore,
     InferencePipeline,
     default_intra_op_threads,
@@ -48,6 +49,7 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     batch: int = 1,
+    batch_window_ms: float = DEFAULT_BATCH_WINDOW_MS,
 ) -> DetectorCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
     with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
@@ -57,7 +59,12 @@ def run(
             publishers.put(detections.robot_id, encode_message(detections))
 
         pipeline = InferencePipeline(
-            detectors, publish, batch=batch, from_scans=from_scans, forget_after_s=forget_after_s
+            detectors,
+            publish,
+            batch=batch,
+            batch_window_ms=batch_window_ms,
+            from_scans=from_scans,
+            forget_after_s=forget_after_s,
         )
 
         def housekeeping() -> dict[str, object]:
@@ -105,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{SHIPPED_BATCH_MODEL.name} when no --model is given; 1 with a fixed model)",
     )
     parser.add_argument(
+        "--batch-window-ms",
+        type=float,
+        default=DEFAULT_BATCH_WINDOW_MS,
+        help="how long a worker may wait for a batch to fill while tensors arrive fast enough to fill it "
+        f"(default: {DEFAULT_BATCH_WINDOW_MS:g}; 0 takes only what is ready)",
+    )
+    parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
     )
     parser.add_argument(
@@ -127,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     workers = args.workers or default_workers()
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
+    if args.batch_window_ms < 0:
+        parser.error(f"--batch-window-ms must be >= 0, got {args.batch_window_ms}")
     threads = args.threads or default_intra_op_threads(workers, args.from_scans)
     try:
         model, batch = detector_model_and_batch(args.model, args.batch)
@@ -152,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         forget_after_s=args.forget_after,
         duration_s=args.duration,
         batch=batch,
+        batch_window_ms=args.batch_window_ms,
     )
     return 0
 

@@ -18,7 +18,7 @@ import os
 import sys
 import threading
 import time
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
@@ -55,8 +55,17 @@ class Pending(NamedTuple):
 
 
 TAKE_TIMEOUT_S = 0.5  # how often an idle inference thread looks at the stop flag
+# How long a worker may hold a batch open for more robots' tensors when they arrive fast enough to fill
+# it (``LatestPerRobot.take_many``). Off by default: measured with ``bench.fleet_ab``, a 5 ms window
+# cut the detector's CPU a scan by about 5 % below the fleet's knee, at 6 ms more p50, and held no more
+# robots, because past the knee the workers find full batches waiting anyway (bench/README.md,
+# "A batch window").
+DEFAULT_BATCH_WINDOW_MS = 0.0
 # Inference threads are named <prefix><N> in the OS (``name_os_thread``), which the benches read.
 INFERENCE_THREAD_PREFIX = "inference-"
+
+
+ARRIVAL_RATE_WINDOW_S = 1.0  # how far back ``LatestPerRobot`` counts puts to know the arrival rate
 
 
 class LatestPerRobot(Generic[T]):
@@ -72,6 +81,9 @@ class LatestPerRobot(Generic[T]):
         self._busy: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
+        self._arrivals: deque[float] = deque()  # monotonic times of the last second's puts
+        self._last_put: dict[str, float] = {}  # robot → monotonic time of its last put
+        self._filling = 0  # takers waiting for a batch to fill: the others leave the new items to them
         self.dropped = 0
 
     def __len__(self) -> int:
@@ -85,26 +97,79 @@ class LatestPerRobot(Generic[T]):
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
                 self.dropped += 1
-            self._cond.notify()
+            now = time.monotonic()
+            self._arrivals.append(now)
+            self._last_put[robot_id] = now
+            # A taker filling a batch waits on a predicate of its own: wake everyone, or the one
+            # notify could go to a taker that must leave the item to it.
+            if self._filling:
+                self._cond.notify_all()
+            else:
+                self._cond.notify()
             return replaced
+
+    def arrivals_per_s(self) -> float:
+        """Puts over the last :data:`ARRIVAL_RATE_WINDOW_S`, per second."""
+        with self._cond:
+            return self._arrivals_per_s(time.monotonic())
+
+    def _arrivals_per_s(self, now: float) -> float:
+        while self._arrivals and now - self._arrivals[0] > ARRIVAL_RATE_WINDOW_S:
+            self._arrivals.popleft()
+        return len(self._arrivals) / ARRIVAL_RATE_WINDOW_S
+
+    def _robots_that_may_send(self, now: float) -> int:
+        """Robots heard from in the last :data:`ARRIVAL_RATE_WINDOW_S` with nothing waiting or being
+        processed: the ones whose next tensor would add to a batch rather than replace one in it."""
+        recent = {robot_id: t for robot_id, t in self._last_put.items() if now - t <= ARRIVAL_RATE_WINDOW_S}
+        self._last_put = recent  # robots gone quiet are forgotten
+        return sum(1 for robot_id in recent if robot_id not in self._slots and robot_id not in self._busy)
 
     def _first_ready(self) -> str | None:
         return next((robot_id for robot_id in self._slots if robot_id not in self._busy), None)
 
-    def take_many(self, limit: int, timeout: float | None = None) -> list[tuple[str, T]]:
+    def _ready_count(self) -> int:
+        return sum(1 for robot_id in self._slots if robot_id not in self._busy)
+
+    def take_many(
+        self, limit: int, timeout: float | None = None, *, fill_window_s: float = 0.0
+    ) -> list[tuple[str, T]]:
         """Up to ``limit`` free robots' newest items, longest-waiting first; empty after ``timeout``
         or once closed.
 
-        Waits only for the first item and takes whatever else is ready then: a batch grows with the
-        load instead of holding a lone robot's frame back until others arrive. Each robot stays busy
-        until :meth:`release`.
+        Waits for the first item and takes whatever else is ready then, so a lone robot's frame is
+        never held back for others. With ``fill_window_s`` it may then wait up to that long for the
+        batch to fill, but only while the items missing can come: at least as many other robots heard
+        from in the last :data:`ARRIVAL_RATE_WINDOW_S`, and an arrival rate that brings that many
+        within the window. Several frames in one model call cost less CPU each than one call each
+        (bench/README.md, "The detector's own path at full load"). Other takers leave new items to a
+        filling one. Each robot stays busy until :meth:`release`.
         """
         if limit < 1:
             raise ValueError(f"limit must be >= 1, got {limit}")
         with self._cond:
-            self._cond.wait_for(lambda: self._closed or self._first_ready() is not None, timeout)
-            if self._closed:
+            self._cond.wait_for(
+                lambda: self._closed or (self._filling == 0 and self._first_ready() is not None), timeout
+            )
+            if self._closed or self._first_ready() is None:
                 return []
+            missing = limit - self._ready_count()
+            if fill_window_s > 0 and missing > 0:
+                now = time.monotonic()
+                if (
+                    self._robots_that_may_send(now) >= missing
+                    and self._arrivals_per_s(now) * fill_window_s >= missing
+                ):
+                    self._filling += 1
+                    try:
+                        self._cond.wait_for(
+                            lambda: self._closed or self._ready_count() >= limit, fill_window_s
+                        )
+                    finally:
+                        self._filling -= 1
+                        self._cond.notify_all()  # takers left waiting for it may take now
+                    if self._closed:
+                        return []
             ready = [robot_id for robot_id in self._slots if robot_id not in self._busy][:limit]
             self._busy.update(ready)
             return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
@@ -306,6 +371,7 @@ class InferencePipeline:
         publish: Callable[[Detections], None],
         *,
         batch: int = 1,
+        batch_window_ms: float = DEFAULT_BATCH_WINDOW_MS,
         from_scans: bool = False,
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     ) -> None:
@@ -321,7 +387,10 @@ class InferencePipeline:
             if from_scans
             else None
         )
+        if batch_window_ms < 0:
+            raise ValueError(f"batch window must be >= 0 ms, got {batch_window_ms}")
         self.batch = batch
+        self._fill_window_s = batch_window_ms / 1e3 if batch > 1 else 0.0
         self._publish = publish
         self._mailbox: LatestPerRobot[Pending] = LatestPerRobot()
         self._stop = threading.Event()
@@ -376,7 +445,7 @@ class InferencePipeline:
     def _serve(self, detector: OnnxDetector) -> None:
         name_os_thread(threading.current_thread().name)
         while not self._stop.is_set():
-            taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S)
+            taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S, fill_window_s=self._fill_window_s)
             if not taken:
                 continue
             try:
