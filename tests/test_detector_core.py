@@ -182,6 +182,21 @@ def test_mailbox_close_wakes_a_taker_filling_a_batch() -> None:
     assert not filler.is_alive() and taken == [[]]
 
 
+def test_mailbox_arrival_records_stay_bounded_as_time_passes_and_robots_change() -> None:
+    """Without a fill window nothing reads the arrival records: put itself must keep them to the last
+    second, whatever the number of robots that ever sent."""
+    clock = [1000.0]
+    box: LatestPerRobot[int] = LatestPerRobot(clock=lambda: clock[0])
+    for i in range(20_000):
+        clock[0] += 0.01  # 100 puts a second, each from a robot never seen before
+        box.put(f"r{i}", i)
+        for robot_id, _ in box.take_many(1, 0):
+            box.release(robot_id)
+    assert len(box._arrivals) <= 101  # one second's worth
+    assert len(box._last_put) <= 2 * 101 + 64
+    assert 99.0 <= box.arrivals_per_s() <= 101.0  # 100 a second, give or take the boundary
+
+
 def test_mailbox_stays_bounded_under_a_flood() -> None:
     box: LatestPerRobot[int] = LatestPerRobot()
     for i in range(10_000):

@@ -76,13 +76,15 @@ class LatestPerRobot(Generic[T]):
     inference workers one robot's detections still come out in order.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock  # seconds, for the arrival rate; tests pass their own
         self._slots: OrderedDict[str, T] = OrderedDict()
         self._busy: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
         self._arrivals: deque[float] = deque()  # monotonic times of the last second's puts
         self._last_put: dict[str, float] = {}  # robot → monotonic time of its last put
+        self._last_put_cap = 64  # when _last_put grows past this, robots gone quiet are forgotten
         self._filling = 0  # takers waiting for a batch to fill: the others leave the new items to them
         self.dropped = 0
 
@@ -97,9 +99,10 @@ class LatestPerRobot(Generic[T]):
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
                 self.dropped += 1
-            now = time.monotonic()
+            now = self._clock()
             self._arrivals.append(now)
             self._last_put[robot_id] = now
+            self._forget_old_arrivals(now)
             # A taker filling a batch waits on a predicate of its own: wake everyone, or the one
             # notify could go to a taker that must leave the item to it.
             if self._filling:
@@ -111,18 +114,28 @@ class LatestPerRobot(Generic[T]):
     def arrivals_per_s(self) -> float:
         """Puts over the last :data:`ARRIVAL_RATE_WINDOW_S`, per second."""
         with self._cond:
-            return self._arrivals_per_s(time.monotonic())
+            return self._arrivals_per_s(self._clock())
 
-    def _arrivals_per_s(self, now: float) -> float:
+    def _forget_old_arrivals(self, now: float) -> None:
+        """Keep the arrival records to the last :data:`ARRIVAL_RATE_WINDOW_S`, amortised O(1) a put,
+        so a detector that never fills batches does not grow them for ever."""
         while self._arrivals and now - self._arrivals[0] > ARRIVAL_RATE_WINDOW_S:
             self._arrivals.popleft()
+        if len(self._last_put) > self._last_put_cap:
+            self._last_put = self._recent_robots(now)
+            self._last_put_cap = max(64, 2 * len(self._last_put))
+
+    def _recent_robots(self, now: float) -> dict[str, float]:
+        return {robot_id: t for robot_id, t in self._last_put.items() if now - t <= ARRIVAL_RATE_WINDOW_S}
+
+    def _arrivals_per_s(self, now: float) -> float:
+        self._forget_old_arrivals(now)
         return len(self._arrivals) / ARRIVAL_RATE_WINDOW_S
 
     def _robots_that_may_send(self, now: float) -> int:
         """Robots heard from in the last :data:`ARRIVAL_RATE_WINDOW_S` with nothing waiting or being
         processed: the ones whose next tensor would add to a batch rather than replace one in it."""
-        recent = {robot_id: t for robot_id, t in self._last_put.items() if now - t <= ARRIVAL_RATE_WINDOW_S}
-        self._last_put = recent  # robots gone quiet are forgotten
+        recent = self._recent_robots(now)
         return sum(1 for robot_id in recent if robot_id not in self._slots and robot_id not in self._busy)
 
     def _first_ready(self) -> str | None:
@@ -151,11 +164,11 @@ class LatestPerRobot(Generic[T]):
             self._cond.wait_for(
                 lambda: self._closed or (self._filling == 0 and self._first_ready() is not None), timeout
             )
-            if self._closed or self._first_ready() is None:
-                return []
+            if self._closed or self._filling or self._first_ready() is None:
+                return []  # closed, timed out, or timed out while another taker fills its batch
             missing = limit - self._ready_count()
             if fill_window_s > 0 and missing > 0:
-                now = time.monotonic()
+                now = self._clock()
                 if (
                     self._robots_that_may_send(now) >= missing
                     and self._arrivals_per_s(now) * fill_window_s >= missing
