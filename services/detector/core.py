@@ -73,10 +73,14 @@ class LatestPerRobot(Generic[T]):
 
     Thread-safe: Zenoh callbacks ``put``, inference threads ``take`` and ``release``. A robot whose
     previous item is still being processed is not handed out again until ``release``, so with several
-    inference workers one robot's detections still come out in order.
+    inference workers one robot's detections still come out in order. ``fill_window_s``: see
+    :meth:`take_many`; only a mailbox with a window keeps the arrival records it needs.
     """
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, fill_window_s: float = 0.0, clock: Callable[[], float] = time.monotonic) -> None:
+        if fill_window_s < 0:
+            raise ValueError(f"fill window must be >= 0 s, got {fill_window_s}")
+        self._fill_window_s = fill_window_s
         self._clock = clock  # seconds, for the arrival rate; tests pass their own
         self._slots: OrderedDict[str, T] = OrderedDict()
         self._busy: set[str] = set()
@@ -99,10 +103,11 @@ class LatestPerRobot(Generic[T]):
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
                 self.dropped += 1
-            now = self._clock()
-            self._arrivals.append(now)
-            self._last_put[robot_id] = now
-            self._forget_old_arrivals(now)
+            if self._fill_window_s > 0:
+                now = self._clock()
+                self._arrivals.append(now)
+                self._last_put[robot_id] = now
+                self._forget_old_arrivals(now)
             # A taker filling a batch waits on a predicate of its own: wake everyone, or the one
             # notify could go to a taker that must leave the item to it.
             if self._filling:
@@ -118,7 +123,7 @@ class LatestPerRobot(Generic[T]):
 
     def _forget_old_arrivals(self, now: float) -> None:
         """Keep the arrival records to the last :data:`ARRIVAL_RATE_WINDOW_S`, amortised O(1) a put,
-        so a detector that never fills batches does not grow them for ever."""
+        so they do not grow for ever while batches fill without waiting."""
         while self._arrivals and now - self._arrivals[0] > ARRIVAL_RATE_WINDOW_S:
             self._arrivals.popleft()
         if len(self._last_put) > self._last_put_cap:
@@ -141,17 +146,16 @@ class LatestPerRobot(Generic[T]):
     def _first_ready(self) -> str | None:
         return next((robot_id for robot_id in self._slots if robot_id not in self._busy), None)
 
-    def _ready_count(self) -> int:
-        return sum(1 for robot_id in self._slots if robot_id not in self._busy)
+    def _ready(self) -> list[str]:
+        """Robots with an item waiting and none being processed, longest-waiting first."""
+        return [robot_id for robot_id in self._slots if robot_id not in self._busy]
 
-    def take_many(
-        self, limit: int, timeout: float | None = None, *, fill_window_s: float = 0.0
-    ) -> list[tuple[str, T]]:
+    def take_many(self, limit: int, timeout: float | None = None) -> list[tuple[str, T]]:
         """Up to ``limit`` free robots' newest items, longest-waiting first; empty after ``timeout``
         or once closed.
 
         Waits for the first item and takes whatever else is ready then, so a lone robot's frame is
-        never held back for others. With ``fill_window_s`` it may then wait up to that long for the
+        never held back for others. With a ``fill_window_s`` it may then wait up to that long for the
         batch to fill, but only while the items missing can come: at least as many other robots heard
         from in the last :data:`ARRIVAL_RATE_WINDOW_S`, and an arrival rate that brings that many
         within the window. Several frames in one model call cost less CPU each than one call each
@@ -166,24 +170,24 @@ class LatestPerRobot(Generic[T]):
             )
             if self._closed or self._filling or self._first_ready() is None:
                 return []  # closed, timed out, or timed out while another taker fills its batch
-            missing = limit - self._ready_count()
-            if fill_window_s > 0 and missing > 0:
+            missing = limit - len(self._ready())
+            if self._fill_window_s > 0 and missing > 0:
                 now = self._clock()
                 if (
                     self._robots_that_may_send(now) >= missing
-                    and self._arrivals_per_s(now) * fill_window_s >= missing
+                    and self._arrivals_per_s(now) * self._fill_window_s >= missing
                 ):
                     self._filling += 1
                     try:
                         self._cond.wait_for(
-                            lambda: self._closed or self._ready_count() >= limit, fill_window_s
+                            lambda: self._closed or len(self._ready()) >= limit, self._fill_window_s
                         )
                     finally:
                         self._filling -= 1
                         self._cond.notify_all()  # takers left waiting for it may take now
                     if self._closed:
                         return []
-            ready = [robot_id for robot_id in self._slots if robot_id not in self._busy][:limit]
+            ready = self._ready()[:limit]
             self._busy.update(ready)
             return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
 
@@ -403,9 +407,8 @@ class InferencePipeline:
         if batch_window_ms < 0:
             raise ValueError(f"batch window must be >= 0 ms, got {batch_window_ms}")
         self.batch = batch
-        self._fill_window_s = batch_window_ms / 1e3 if batch > 1 else 0.0
         self._publish = publish
-        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot()
+        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot(batch_window_ms / 1e3 if batch > 1 else 0.0)
         self._stop = threading.Event()
         self._workers: list[threading.Thread] = []
 
@@ -458,7 +461,7 @@ class InferencePipeline:
     def _serve(self, detector: OnnxDetector) -> None:
         name_os_thread(threading.current_thread().name)
         while not self._stop.is_set():
-            taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S, fill_window_s=self._fill_window_s)
+            taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S)
             if not taken:
                 continue
             try:
