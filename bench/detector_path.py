@@ -56,6 +56,7 @@ import onnxruntime as ort
 
 from bench.harness import add_detector_model_argument, recorded_scans
 from bench.machine import MachineInfo, machine_info
+from bench.model_input import contiguous_input
 from bench.report import write_report
 from common.encoding import Padding, to_model_input
 from common.inference import (
@@ -69,7 +70,7 @@ from common.inference import (
     xywh_rows_to_xyxy,
 )
 from common.messages import StackedTensor, decode_message, encode_message
-from common.model_spec import INPUT_SHAPE, BoxGrid
+from common.model_spec import BoxGrid
 from services.detector.core import DetectorCore, default_workers
 from services.encoder.core import EncoderCore
 
@@ -323,28 +324,23 @@ class DetectorPath:
         def picks(i: int) -> list[int]:
             return [(i * batch + k + offset) % count for k in range(batch)]
 
-        # The network's input, converted once per call pattern beforehand: only session.run is timed.
-        inputs = [
-            np.concatenate([to_model_input(self.tensors[k].tensor) for k in picks(i)]) for i in range(count)
-        ]
+        def model_input(i: int) -> np.ndarray:
+            return contiguous_input([self.tensors[k].tensor for k in picks(i)])  # as the detector does
+
+        # The network stage's inputs, converted beforehand: only session.run is timed.
+        inputs = [model_input(i) for i in range(count)] if stage == "network" else []
 
         def network(i: int) -> object:
             return detector._run(inputs[i % count])
 
         def with_model_input(i: int) -> object:
-            frames = np.empty((batch, *INPUT_SHAPE[1:]), np.float32)
-            for j, k in enumerate(picks(i)):
-                to_model_input(self.tensors[k].tensor, frames[j : j + 1])
-            return detector._run(frames)
+            return detector._run(model_input(i))
 
         def with_postprocess(i: int) -> object:
             return detector._boxes_many([self.tensors[k].tensor for k in picks(i)])
 
         def with_postprocess_in_graph(i: int) -> object:
-            frames = np.empty((batch, *INPUT_SHAPE[1:]), np.float32)
-            for j, k in enumerate(picks(i)):
-                to_model_input(self.tensors[k].tensor, frames[j : j + 1])
-            return self.nms_in_graph_boxes(stage, worker, frames)
+            return self.nms_in_graph_boxes(stage, worker, model_input(i))
 
         def with_detections(i: int) -> object:
             return core.detect_many([self.tensors[k] for k in picks(i)], detector)
