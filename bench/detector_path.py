@@ -47,7 +47,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Final
 
@@ -58,19 +58,18 @@ from bench.harness import add_detector_model_argument, recorded_scans
 from bench.machine import MachineInfo, machine_info
 from bench.model_input import contiguous_input
 from bench.report import write_report
-from common.encoding import Padding, to_model_input
+from common.encoding import to_model_input
 from common.inference import (
     OnnxDetector,
+    PostprocessSettings,
     check_batch,
     detections_from_boxes,
     detector_model_and_batch,
     finish_kept_boxes,
-    postprocess,
     session_options,
     xywh_rows_to_xyxy,
 )
 from common.messages import StackedTensor, decode_message, encode_message
-from common.model_spec import BoxGrid
 from services.detector.core import DetectorCore, default_workers
 from services.encoder.core import EncoderCore
 
@@ -124,32 +123,6 @@ class DetectorPathReport:
     # the detector).
     piece_p50_us: dict[str, dict[str, float]] = field(default_factory=dict)
     machine: MachineInfo = field(default_factory=machine_info)
-
-
-@dataclass(frozen=True)
-class PostprocessSettings:
-    """What ``common.inference.postprocess`` takes besides the raw output: a detector's settings."""
-
-    conf_threshold: float
-    iou_threshold: float
-    max_detections: int
-    padding: Padding
-    num_classes: int | None
-    box_grid: BoxGrid
-
-    @classmethod
-    def of(cls, detector: OnnxDetector) -> PostprocessSettings:
-        return cls(
-            detector.conf_threshold,
-            detector.iou_threshold,
-            detector.max_detections,
-            detector.padding,
-            detector.num_classes,
-            detector.box_grid,
-        )
-
-    def postprocess(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return postprocess(raw, **asdict(self))
 
 
 def float32_at_most(value: float) -> np.float32:
@@ -279,7 +252,7 @@ class DetectorPath:
         self.core = DetectorCore(self.detectors[0])
         check_batch(batch, self.core.detector.batched, model)
         self.batch = batch
-        self.settings = PostprocessSettings.of(self.core.detector)
+        self.settings = self.core.detector.postprocessing
         encoder = EncoderCore(self.core.detector.padding, invalid=self.core.detector.invalid)
         tensors = [t for scan in recorded_scans(SCANS) if (t := encoder.push(scan)) is not None]
         self.payloads = [encode_message(t) for t in tensors]

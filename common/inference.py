@@ -28,6 +28,7 @@ import json
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, NamedTuple
 
@@ -402,6 +403,32 @@ def postprocess(
     return finish_kept_boxes(boxes[keep], scores[keep], class_ids[keep], padding=padding, box_grid=box_grid)
 
 
+@dataclass(frozen=True)
+class PostprocessSettings:
+    """Everything :func:`postprocess` takes besides the raw output: one detector's settings, kept
+    together so that whatever post-processes that detector's outputs another way (a benchmark, an
+    evaluation) does it with the detector's own values."""
+
+    conf_threshold: float = DEFAULT_CONF
+    iou_threshold: float = DEFAULT_IOU
+    max_detections: int = MAX_DETECTIONS
+    padding: Padding = "zero"
+    num_classes: int | None = None
+    box_grid: BoxGrid = DEFAULT_BOX_GRID
+
+    def postprocess(self, output: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`postprocess` with these settings."""
+        return postprocess(
+            output,
+            conf_threshold=self.conf_threshold,
+            iou_threshold=self.iou_threshold,
+            max_detections=self.max_detections,
+            padding=self.padding,
+            num_classes=self.num_classes,
+            box_grid=self.box_grid,
+        )
+
+
 def finish_kept_boxes(
     boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray, *, padding: Padding, box_grid: BoxGrid
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -596,9 +623,6 @@ class OnnxDetector:
         if intra_op_threads is not None and intra_op_threads < 1:
             raise ValueError(f"intra_op_threads must be >= 1, got {intra_op_threads}")
         self.model_path = path
-        self.conf_threshold = conf_threshold
-        self.iou_threshold = iou_threshold
-        self.max_detections = max_detections
         self.model_id = file_model_id(path)
 
         try:
@@ -610,14 +634,19 @@ class OnnxDetector:
         except Exception as exc:  # onnxruntime raises its own exception zoo for unreadable models
             raise ValueError(f"{path} is not a loadable ONNX model: {exc}") from exc
         self.providers: list[str] = self._session.get_providers()
-        self._input_name, self._output_names, self.num_classes, self.num_anchors, batched = self._check_model(
-            path
-        )
+        self._input_name, self._output_names, num_classes, self.num_anchors, batched = self._check_model(path)
         # A free batch axis (the ``-batch`` model files): ``detect_many`` runs several frames per call.
         self.batched: bool = batched
-        self.padding: Padding = self._padding_of_model(path, padding)
         self.invalid: InvalidRule = _declared_invalid_rule(self._session, path)
-        self.box_grid: BoxGrid = box_grid or _declared_box_grid(self._session, path)
+        # The one home of this detector's thresholds, padding, class count and box grid.
+        self.postprocessing = PostprocessSettings(
+            conf_threshold,
+            iou_threshold,
+            max_detections,
+            self._padding_of_model(path, padding),
+            num_classes,
+            box_grid or _declared_box_grid(self._session, path),
+        )
         log.info(
             "loaded %s (%d classes, %d anchors, %s) on %s, padding=%s box grid=%s conf=%.3g iou=%.3g",
             self.model_id,
@@ -630,6 +659,21 @@ class OnnxDetector:
             conf_threshold,
             iou_threshold,
         )
+
+    @property
+    def padding(self) -> Padding:
+        """The padding this detector's model was trained with: what its input tensors must use."""
+        return self.postprocessing.padding
+
+    @property
+    def box_grid(self) -> BoxGrid:
+        """Whether box edges are snapped to whole pixels after the NMS (the model's metadata by default)."""
+        return self.postprocessing.box_grid
+
+    @property
+    def num_classes(self) -> int:
+        """Classes the model predicts; loading checked it against the project's class list."""
+        return self.postprocessing.num_classes or NUM_CLASSES  # None would mean "read it off the output"
 
     def _padding_of_model(self, path: Path, requested: Padding | None) -> Padding:
         trained = _declared_padding(self._session, path)
@@ -736,15 +780,7 @@ class OnnxDetector:
         results = []
         for frame_encode_ms, (output, inference_ms) in zip(encode_ms, outputs, strict=True):
             started = time.perf_counter_ns()
-            boxes, scores, class_ids = postprocess(
-                output,
-                conf_threshold=self.conf_threshold,
-                iou_threshold=self.iou_threshold,
-                max_detections=self.max_detections,
-                padding=self.padding,
-                num_classes=self.num_classes,
-                box_grid=self.box_grid,
-            )
+            boxes, scores, class_ids = self.postprocessing.postprocess(output)
             nms_ms = (time.perf_counter_ns() - started) / _NS_PER_MS
             results.append((boxes, scores, class_ids, FrameTimings(frame_encode_ms, inference_ms, nms_ms)))
         return results

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.detector_path import PostprocessSettings, boxes_from_selected, float32_at_most, with_nms_in_graph
+from bench.detector_path import boxes_from_selected, float32_at_most, with_nms_in_graph
+from common.inference import PostprocessSettings
 from common.model_spec import NUM_CLASSES
 
 onnx = pytest.importorskip("onnx")

@@ -408,7 +408,8 @@ def test_detector_wiring_on_constant_graph(tmp_path: Path) -> None:
     path = constant_model(tmp_path / "const.onnx", known_output())
     detector = OnnxDetector(path, providers=["CPUExecutionProvider"], intra_op_threads=1)
     assert (detector.num_classes, detector.num_anchors) == (4, 504)
-    assert (detector.conf_threshold, detector.iou_threshold, detector.max_detections) == (
+    settings = detector.postprocessing
+    assert (settings.conf_threshold, settings.iou_threshold, settings.max_detections) == (
         DEFAULT_CONF,
         DEFAULT_IOU,
         MAX_DETECTIONS,
