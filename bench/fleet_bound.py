@@ -12,6 +12,9 @@ answered scan, process by process, says how far the whole pipeline's cost per sc
 network's own (:func:`cpu_per_scan`).
 
     python -m bench.fleet_bound --seconds 15 --out bench/results/fleet_bound.json
+
+``--encode-on-robots`` runs the fleet as a fleet server sees it: the robots encode on board and send
+tensors, and this host runs the detector alone (``bench.fleet_capacity --encode-on-robots``).
 """
 
 from __future__ import annotations
@@ -97,6 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     parser.add_argument("--bound-seconds", type=float, default=3.0, help="seconds per batch/thread setting")
     parser.add_argument("--seconds", type=float, default=15.0, help="measured seconds per fleet step")
+    parser.add_argument(
+        "--encode-on-robots",
+        action="store_true",
+        help="the robots send tensors (their own encoder on board): the detector alone on this host",
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_bound.json"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -112,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             [
                 "--ladder", ",".join(map(str, ladder)), "--seconds", str(args.seconds),
                 "--rate", str(args.rate), "--detector-defaults", "--out", str(fleet_json),
+                *(("--encode-on-robots",) if args.encode_on_robots else ()),
             ]
         )  # fmt: skip
         fleet = json.loads(fleet_json.read_text())

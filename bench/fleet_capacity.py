@@ -13,6 +13,11 @@ on loopback. A step passes when, over its measured window:
 
 The capacity is the largest passing N. Every step's figures are printed and written as JSON.
 
+``--encode-on-robots`` measures a fleet server instead: the robots encode their own scans on board (a
+Pi 5 running ``services.encoder`` next to its LiDAR, the design card's robot) and send stacked tensors,
+so this host runs the detector alone. This process then publishes recorded tensors (the encoder's
+output for the recorded scans, re-stamped per robot and tick) straight onto the tensor keys.
+
     python -m bench.fleet_capacity --ladder 10,20,30,40,50 --seconds 20 --workers 2
     python -m bench.fleet_capacity --ladder 10,15,20,25 --workers 1 --threads 2 --batch 8
 """
@@ -43,11 +48,13 @@ from bench.harness import (
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
+from common.inference import model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
-from common.messages import Detections, Scan, decode_message, encode_message
+from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.detector.core import INFERENCE_THREAD_PREFIX
+from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -84,7 +91,35 @@ class FleetStep:
     why_not: str = ""
 
 
-def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetStep:
+def recorded_frames(args: argparse.Namespace) -> list[Scan] | list[StackedTensor]:
+    """What the robots publish: recorded scans, or with ``--encode-on-robots`` the tensors the encoder
+    makes of them for the detector's model (its padding and invalid-return rule)."""
+    scans = recorded_scans(RECORDED_SCANS, seed=7)
+    if not args.encode_on_robots:
+        return scans
+    facts = model_facts(args.model or default_model_path(batched=args.detector_defaults or args.batch > 1))
+    encoder = EncoderCore(facts.padding, invalid=facts.invalid)
+    return [tensor for scan in scans if (tensor := encoder.push(scan)) is not None]
+
+
+def frame_seq(frame: Scan | StackedTensor, tick: int) -> int:
+    """The seq of the frame sent at ``tick``, which its detections come back with. A tensor's seq is its
+    newest scan's, and its three scans' seqs are consecutive: ``tick`` shifted by 2, so none is negative."""
+    return tick if isinstance(frame, Scan) else tick + 2
+
+
+def stamped(frame: Scan | StackedTensor, robot_id: str, tick: int, stamp_ns: int, period_ns: int) -> bytes:
+    """The payload robot ``robot_id`` sends at ``tick``: a recorded frame with its id, seq and stamps
+    (a tensor's three scans ``period_ns`` apart, the newest at ``stamp_ns``)."""
+    seq = frame_seq(frame, tick)
+    update: dict[str, object] = {"robot_id": robot_id, "seq": seq, "stamp_ns": stamp_ns}
+    if isinstance(frame, StackedTensor):
+        update["scan_seqs"] = (seq - 2, seq - 1, seq)
+        update["scan_stamps_ns"] = (stamp_ns - 2 * period_ns, stamp_ns - period_ns, stamp_ns)
+    return encode_message(frame.model_copy(update=update))
+
+
+def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argparse.Namespace) -> FleetStep:
     """One step of the ladder: start the services, drive ``robots`` robots through them, judge it."""
     step = FleetStep(robots)
     bench_port, encoder_port, detector_port = free_tcp_ports(3)
@@ -109,11 +144,12 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
         with open_session(ZenohSettings.loopback(bench_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
             stats_sub = session.declare_subscriber(service_stats_key("detector"), on_detector_stats)
-            publishers = [session.declare_publisher(scan_key(rid)) for rid in robot_ids]
-            wait_for_subscriber(session, scan_key(robot_ids[0]))
-            if not args.from_scans:
+            key = tensor_key if args.encode_on_robots else scan_key
+            publishers = [session.declare_publisher(key(rid)) for rid in robot_ids]
+            wait_for_subscriber(session, key(robot_ids[0]))
+            if not (args.from_scans or args.encode_on_robots):
                 wait_for_subscriber(session, tensor_key(robot_ids[0]))
-            published = _publish_fleet(step, robot_ids, publishers, scans, args, children, received, lock)
+            published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
             step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
@@ -132,7 +168,8 @@ def run_step(robots: int, scans: list[Scan], args: argparse.Namespace) -> FleetS
 def _start_services(
     args: argparse.Namespace, bench_port: int, encoder_port: int, detector_port: int
 ) -> dict[str, subprocess.Popen[bytes]]:
-    """The encoder (unless ``--from-scans``) and the detector, each connected to this bench process."""
+    """The encoder (unless ``--from-scans`` or ``--encode-on-robots``) and the detector, each connected to
+    this bench process."""
     tuning = (
         ()
         if args.detector_defaults
@@ -149,14 +186,15 @@ def _start_services(
         *(("--from-scans",) if args.from_scans else ()),
     )
     children = {}
-    if not args.from_scans:
+    with_encoder = not (args.from_scans or args.encode_on_robots)
+    if with_encoder:
         children["encoder"] = start_loopback_service(
             "services.encoder", encoder_port, [bench_port, detector_port]
         )
     children["detector"] = start_loopback_service(
         "services.detector",
         detector_port,
-        [bench_port] if args.from_scans else [bench_port, encoder_port],
+        [bench_port, encoder_port] if with_encoder else [bench_port],
         *detector_args,
     )
     return children
@@ -171,13 +209,13 @@ def _publish_fleet(
     step: FleetStep,
     robot_ids: list[str],
     publishers: list[Any],
-    scans: list[Scan],
+    frames: list[Scan] | list[StackedTensor],
     args: argparse.Namespace,
     children: dict[str, subprocess.Popen[bytes]],
     received: dict[tuple[str, int], int],
     lock: threading.Lock,
 ) -> dict[tuple[str, int], int]:
-    """Publish every robot's scans at ``--rate`` through warm-up and the measured window.
+    """Publish every robot's frames at ``--rate`` through warm-up and the measured window.
 
     Returns the publish stamp of each (robot, seq) sent in the measured window, which starts once
     warm-up is over and every robot has been answered; records RSS and publish lag into ``step``.
@@ -186,6 +224,7 @@ def _publish_fleet(
     published: dict[tuple[str, int], int] = {}
     next_rss_sample = 0.0
     period = 1.0 / args.rate
+    period_ns = round(1e9 * period)
     start = time.monotonic()
     tick = 0
     measure_from: float | None = None  # once every robot has been answered and warm-up is over
@@ -212,14 +251,14 @@ def _publish_fleet(
                 step.rss_mb_timeline.append({"t_s": round(elapsed, 1), **_rss_mb(children)})
                 next_rss_sample += args.rss_every
         measuring = measure_from is not None
-        base = scans[tick % len(scans)]
+        base = frames[tick % len(frames)]
+        seq = frame_seq(base, tick)
         # Robots publish spread over the tick, as independent robots would, not in one burst.
         for index, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
             stamp = time.time_ns()
-            scan = base.model_copy(update={"robot_id": rid, "seq": tick, "stamp_ns": stamp})
-            publisher.put(encode_message(scan))
+            publisher.put(stamped(base, rid, tick, stamp, period_ns))
             if measuring:
-                published[(rid, tick)] = stamp
+                published[(rid, seq)] = stamp
             slot = due + (index + 1) * period / robots
             if (wait := slot - time.monotonic()) > 0:
                 time.sleep(wait)
@@ -311,6 +350,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="one detector --from-scans process instead of encoder + detector",
     )
     parser.add_argument(
+        "--encode-on-robots",
+        action="store_true",
+        help="the robots send tensors (their own encoder on board): this host runs the detector alone",
+    )
+    parser.add_argument(
         "--batch-window-ms",
         type=float,
         default=None,
@@ -331,13 +375,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.from_scans and args.encode_on_robots:
+        parser.error("--from-scans and --encode-on-robots are two different fleets: choose one")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     ladder = [int(n) for n in args.ladder.split(",")]
-    scans = recorded_scans(RECORDED_SCANS, seed=7)
+    frames = recorded_frames(args)
     steps: list[FleetStep] = []
     for robots in ladder:
-        step = run_step(robots, scans, args)
+        step = run_step(robots, frames, args)
         steps.append(step)
         log.info(
             "%3d robots: p99 %s ms, answered %.1f %%, RSS %s → %s MB: %s",
@@ -368,6 +415,7 @@ def main(argv: list[str] | None = None) -> int:
         "threads": "detector default" if args.detector_defaults else args.threads,
         "batch_window_ms": "detector default" if args.batch_window_ms is None else args.batch_window_ms,
         "from_scans": args.from_scans,
+        "encode_on_robots": args.encode_on_robots,
         "model": str(args.model or default_model_path(batched=args.detector_defaults or args.batch > 1).name),
         "seconds_per_step": args.seconds,
         "machine": asdict(machine_info()),

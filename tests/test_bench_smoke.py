@@ -50,8 +50,9 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
     [
         ((), {"encoder", "detector"}),
         (("--batch", "4", "--from-scans", "--pin-inference-threads", "--batch-window-ms", "5"), {"detector"}),
+        (("--encode-on-robots",), {"detector"}),
     ],
-    ids=["encoder+detector", "from-scans-batched-pinned"],
+    ids=["encoder+detector", "from-scans-batched-pinned", "encode-on-robots"],
 )
 def test_fleet_capacity_runs_a_step_and_writes_json(
     tmp_path: Path, extra: tuple[str, ...], processes: set[str]
@@ -83,6 +84,7 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     pinned = "--pin-inference-threads" in extra
     assert step["pinned_threads"] == ({"inference-0": min(os.sched_getaffinity(0))} if pinned else {})
     assert report["batch_window_ms"] == (5.0 if "--batch-window-ms" in extra else "detector default")
+    assert report["encode_on_robots"] == ("--encode-on-robots" in extra)
 
 
 def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:

@@ -1,0 +1,57 @@
+"""What ``bench.fleet_capacity``'s robots send: every re-stamped payload must pass the receiver's own
+validation, or a fleet step would measure rejections instead of detections (no services, no timing)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench import fleet_capacity
+from bench.fleet_capacity import frame_seq, stamped
+from common.inference import OnnxDetector
+from common.messages import Scan, StackedTensor, decode_message
+from common.model_spec import default_model_path
+from services.detector.core import DetectorCore
+from services.encoder.core import EncoderCore
+from tests.scan_replay import replay_scans
+
+PERIOD_NS = 100_000_000
+STAMP_NS = 1_700_000_000_000_000_000
+
+
+def recorded_tensor() -> StackedTensor:
+    encoder = EncoderCore("zero")
+    tensors = [t for r in replay_scans("r1", 3) if (t := encoder.push(r.scan)) is not None]
+    return tensors[-1]
+
+
+def test_a_restamped_tensor_passes_the_detectors_validation_as_the_robots_own() -> None:
+    recorded = recorded_tensor()
+    core = DetectorCore(OnnxDetector(default_model_path(batched=True), intra_op_threads=1))
+    for tick in (0, 1, 57):
+        stamp = STAMP_NS + tick * PERIOD_NS
+        tensor = core.decode(stamped(recorded, "fleet007", tick, stamp, PERIOD_NS), key_robot_id="fleet007")
+        assert tensor is not None, core.counters.to_dict()
+        seq = frame_seq(recorded, tick)
+        assert (tensor.robot_id, tensor.seq, tensor.stamp_ns) == ("fleet007", seq, stamp)
+        assert tensor.scan_seqs == (seq - 2, seq - 1, seq)
+        assert np.diff(tensor.scan_stamps_ns).tolist() == [PERIOD_NS, PERIOD_NS]
+        assert tensor.scan_stamps_ns[2] == tensor.stamp_ns
+        np.testing.assert_array_equal(tensor.tensor, recorded.tensor)  # the recorded content, untouched
+    assert not core.counters.rejected
+
+
+def test_a_restamped_scan_keeps_the_tick_as_its_seq() -> None:
+    recorded = replay_scans("r1", 1)[0].scan
+    payload = stamped(recorded, "fleet001", 12, STAMP_NS, PERIOD_NS)
+    scan = decode_message(payload, Scan)
+    assert (scan.robot_id, scan.seq, scan.stamp_ns) == ("fleet001", frame_seq(recorded, 12), STAMP_NS)
+    assert scan.seq == 12
+    np.testing.assert_array_equal(scan.ranges, recorded.ranges)
+
+
+def test_the_two_one_process_fleets_are_refused_together(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        fleet_capacity.main(["--from-scans", "--encode-on-robots", "--ladder", "1"])
+    assert exit_info.value.code == 2
+    assert "--from-scans and --encode-on-robots" in capsys.readouterr().err
