@@ -91,13 +91,18 @@ class FleetStep:
     why_not: str = ""
 
 
+def detector_model(args: argparse.Namespace) -> Path:
+    """The model file the detector of these flags runs."""
+    return args.model or default_model_path(batched=args.detector_defaults or args.batch > 1)
+
+
 def recorded_frames(args: argparse.Namespace) -> list[Scan] | list[StackedTensor]:
     """What the robots publish: recorded scans, or with ``--encode-on-robots`` the tensors the encoder
     makes of them for the detector's model (its padding and invalid-return rule)."""
     scans = recorded_scans(RECORDED_SCANS, seed=7)
     if not args.encode_on_robots:
         return scans
-    facts = model_facts(args.model or default_model_path(batched=args.detector_defaults or args.batch > 1))
+    facts = model_facts(detector_model(args))
     encoder = EncoderCore(facts.padding, invalid=facts.invalid)
     return [tensor for scan in scans if (tensor := encoder.push(scan)) is not None]
 
@@ -416,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
         "batch_window_ms": "detector default" if args.batch_window_ms is None else args.batch_window_ms,
         "from_scans": args.from_scans,
         "encode_on_robots": args.encode_on_robots,
-        "model": str(args.model or default_model_path(batched=args.detector_defaults or args.batch > 1).name),
+        "model": detector_model(args).name,
         "seconds_per_step": args.seconds,
         "machine": asdict(machine_info()),
         "steps": [asdict(s) for s in steps],

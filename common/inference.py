@@ -406,8 +406,8 @@ def postprocess(
 @dataclass(frozen=True)
 class PostprocessSettings:
     """Everything :func:`postprocess` takes besides the raw output: one detector's settings, kept
-    together so that whatever post-processes that detector's outputs another way (a benchmark, an
-    evaluation) does it with the detector's own values."""
+    together so that whatever post-processes that detector's outputs another way (``bench.detector_path``'s
+    levers) does it with the detector's own values."""
 
     conf_threshold: float = DEFAULT_CONF
     iou_threshold: float = DEFAULT_IOU
