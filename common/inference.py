@@ -409,12 +409,12 @@ class PostprocessSettings:
     together so that whatever post-processes that detector's outputs another way (``bench.detector_path``'s
     levers) does it with the detector's own values."""
 
-    conf_threshold: float = DEFAULT_CONF
-    iou_threshold: float = DEFAULT_IOU
-    max_detections: int = MAX_DETECTIONS
-    padding: Padding = "zero"
-    num_classes: int | None = None
-    box_grid: BoxGrid = DEFAULT_BOX_GRID
+    conf_threshold: float
+    iou_threshold: float
+    max_detections: int
+    padding: Padding
+    num_classes: int | None
+    box_grid: BoxGrid
 
     def postprocess(self, output: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`postprocess` with these settings."""
