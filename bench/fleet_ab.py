@@ -52,13 +52,14 @@ def run_rounds(
 ) -> dict[str, dict[int, list[fleet_capacity.FleetStep]]]:
     """Every size under every setting, ``rounds`` times, the settings taking turns within a round."""
     scans = recorded_scans(fleet_capacity.RECORDED_SCANS, seed=7)
+    frames = {name: fleet_capacity.frames_to_send(scans, step_args) for name, step_args in settings.items()}
     steps: dict[str, dict[int, list[fleet_capacity.FleetStep]]] = {
         n: {r: [] for r in sizes} for n in settings
     }
     for round_index in range(rounds):
         for robots in sizes:
             for name, step_args in settings.items():
-                step = fleet_capacity.run_step(robots, scans, step_args)
+                step = fleet_capacity.run_step(robots, frames[name], step_args)
                 steps[name][robots].append(step)
                 log.info(
                     "round %d, %d robots, %s: %s, p99 %s ms, answered %.1f %%, mean batch %.2f",
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give at least two --setting, --rounds >= 1 and robot counts >= 1")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     settings = {
-        name: fleet_capacity.build_parser().parse_args(["--seconds", str(args.seconds), *flags])
+        name: fleet_capacity.parse_step_args(["--seconds", str(args.seconds), *flags])
         for name, flags in args.setting
     }
     steps = run_rounds(sizes, settings, args.rounds)

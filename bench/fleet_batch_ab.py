@@ -50,8 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     fixed_model, batch_model = MODELS[args.precision]
     common = ["--seconds", str(args.seconds), *(["--from-scans"] if args.from_scans else [])]
     settings = {
-        "batch_1": fleet_capacity.build_parser().parse_args([*common, "--model", str(fixed_model)]),
-        f"batch_{args.batch}": fleet_capacity.build_parser().parse_args(
+        "batch_1": fleet_capacity.parse_step_args([*common, "--model", str(fixed_model)]),
+        f"batch_{args.batch}": fleet_capacity.parse_step_args(
             [*common, "--model", str(batch_model), "--batch", str(args.batch)]
         ),
     }

@@ -48,10 +48,9 @@ from bench.harness import (
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
-from common.inference import model_facts
+from common.inference import detector_model_and_batch, model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
-from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.detector.core import INFERENCE_THREAD_PREFIX
 from services.encoder.core import EncoderCore
@@ -92,14 +91,19 @@ class FleetStep:
 
 
 def detector_model(args: argparse.Namespace) -> Path:
-    """The model file the detector of these flags runs."""
-    return args.model or default_model_path(batched=args.detector_defaults or args.batch > 1)
+    """The model file the detector of these flags runs, by the detector's own rule."""
+    return detector_model_and_batch(args.model, None if args.detector_defaults else args.batch)[0]
 
 
-def recorded_frames(args: argparse.Namespace) -> list[Scan] | list[StackedTensor]:
-    """What the robots publish: recorded scans, or with ``--encode-on-robots`` the tensors the encoder
-    makes of them for the detector's model (its padding and invalid-return rule)."""
-    scans = recorded_scans(RECORDED_SCANS, seed=7)
+def runs_encoder(args: argparse.Namespace) -> bool:
+    """Whether the fleet has an encoder process: not when the detector encodes (``--from-scans``) or
+    the robots do (``--encode-on-robots``)."""
+    return not (args.from_scans or args.encode_on_robots)
+
+
+def frames_to_send(scans: list[Scan], args: argparse.Namespace) -> list[Scan] | list[StackedTensor]:
+    """What the robots publish: the recorded ``scans``, or with ``--encode-on-robots`` the tensors the
+    encoder makes of them for the detector's model (its padding and invalid-return rule)."""
     if not args.encode_on_robots:
         return scans
     facts = model_facts(detector_model(args))
@@ -152,7 +156,7 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
             key = tensor_key if args.encode_on_robots else scan_key
             publishers = [session.declare_publisher(key(rid)) for rid in robot_ids]
             wait_for_subscriber(session, key(robot_ids[0]))
-            if not (args.from_scans or args.encode_on_robots):
+            if runs_encoder(args):
                 wait_for_subscriber(session, tensor_key(robot_ids[0]))
             published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
             time.sleep(1.0)
@@ -191,7 +195,7 @@ def _start_services(
         *(("--from-scans",) if args.from_scans else ()),
     )
     children = {}
-    with_encoder = not (args.from_scans or args.encode_on_robots)
+    with_encoder = runs_encoder(args)
     if with_encoder:
         children["encoder"] = start_loopback_service(
             "services.encoder", encoder_port, [bench_port, detector_port]
@@ -330,7 +334,7 @@ def _judge_step(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The bench's flags; ``bench.fleet_batch_ab`` builds its step settings with it too."""
+    """The bench's flags; :func:`parse_step_args` parses and checks them."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ladder", default="5,10,20,30,40,50,60", help="robot counts to try, ascending")
     parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per step")
@@ -379,14 +383,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_step_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """This bench's flags, parsed and checked together, before any process starts; ``bench.fleet_ab``
+    and ``bench.fleet_batch_ab`` build their step settings with it too."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.from_scans and args.encode_on_robots:
         parser.error("--from-scans and --encode-on-robots are two different fleets: choose one")
+    try:
+        detector_model(args)
+    except ValueError as exc:  # a --batch the model cannot take: the detector would refuse it too
+        parser.error(str(exc))
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_step_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     ladder = [int(n) for n in args.ladder.split(",")]
-    frames = recorded_frames(args)
+    frames = frames_to_send(recorded_scans(RECORDED_SCANS, seed=7), args)
     steps: list[FleetStep] = []
     for robots in ladder:
         step = run_step(robots, frames, args)

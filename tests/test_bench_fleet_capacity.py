@@ -10,7 +10,7 @@ from bench import fleet_capacity
 from bench.fleet_capacity import frame_seq, stamped
 from common.inference import OnnxDetector
 from common.messages import Scan, StackedTensor, decode_message
-from common.model_spec import default_model_path
+from common.model_spec import SHIPPED_INT8_MODEL, default_model_path
 from services.detector.core import DetectorCore
 from services.encoder.core import EncoderCore
 from tests.scan_replay import replay_scans
@@ -55,3 +55,12 @@ def test_the_two_one_process_fleets_are_refused_together(capsys: pytest.CaptureF
         fleet_capacity.main(["--from-scans", "--encode-on-robots", "--ladder", "1"])
     assert exit_info.value.code == 2
     assert "--from-scans and --encode-on-robots" in capsys.readouterr().err
+
+
+def test_a_batch_the_model_cannot_take_is_refused_before_any_process_starts(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        fleet_capacity.parse_step_args(["--model", str(SHIPPED_INT8_MODEL), "--batch", "4"])
+    assert exit_info.value.code == 2
+    assert "free batch axis" in capsys.readouterr().err
