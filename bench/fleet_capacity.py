@@ -18,6 +18,9 @@ Pi 5 running ``services.encoder`` next to its LiDAR, the design card's robot) an
 so this host runs the detector alone. This process then publishes recorded tensors (the encoder's
 output for the recorded scans, re-stamped per robot and tick) straight onto the tensor keys.
 
+``--profile-detector`` also samples the detector's threads with py-spy over each measured window and
+reports which piece of its code the samples fell in (``bench.sampling_profile``).
+
     python -m bench.fleet_capacity --ladder 10,20,30,40,50 --seconds 20 --workers 2
     python -m bench.fleet_capacity --ladder 10,15,20,25 --workers 1 --threads 2 --batch 8
 """
@@ -29,6 +32,7 @@ import json
 import logging
 import os
 import subprocess
+import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -48,6 +52,14 @@ from bench.harness import (
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
+from bench.sampling_profile import (
+    PROFILE_RATE_HZ,
+    Recording,
+    detector_profile,
+    finish_recording,
+    py_spy_path,
+    start_recording,
+)
 from common.inference import detector_model_and_batch, model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
@@ -86,6 +98,8 @@ class FleetStep:
     detector_thread_cores: dict[str, float] = field(default_factory=dict)
     # --pin-inference-threads: the CPU each inference thread was pinned to for the window.
     pinned_threads: dict[str, int] = field(default_factory=dict)
+    # --profile-detector: where the detector's threads spent the window (bench.sampling_profile).
+    detector_profile: dict[str, Any] = field(default_factory=dict)
     passed: bool = False
     why_not: str = ""
 
@@ -136,6 +150,7 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
     robot_ids = [f"fleet{i:03d}" for i in range(robots)]
     published: dict[tuple[str, int], int] = {}
     received: dict[tuple[str, int], int] = {}
+    recording: Recording | None = None
     lock = threading.Lock()
 
     def on_detections(sample: Any) -> None:
@@ -158,7 +173,11 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
             wait_for_subscriber(session, key(robot_ids[0]))
             if runs_encoder(args):
                 wait_for_subscriber(session, tensor_key(robot_ids[0]))
-            published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
+            with tempfile.TemporaryDirectory(prefix="triscan-fleet-profile-") as scratch:
+                profile_out = Path(scratch) / "detector.txt" if args.profile_detector else None
+                published, recording = _publish_fleet(
+                    step, robot_ids, publishers, frames, args, children, received, lock, profile_out
+                )
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
             step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
@@ -171,6 +190,10 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
     finally:
         stop_processes(children, grace_s=30)
     _judge_step(step, published, received, args)
+    if recording is not None:
+        step.detector_profile = detector_profile(
+            recording, step.scans_answered, PROFILE_RATE_HZ, args.seconds
+        )
     return step
 
 
@@ -223,11 +246,13 @@ def _publish_fleet(
     children: dict[str, subprocess.Popen[bytes]],
     received: dict[tuple[str, int], int],
     lock: threading.Lock,
-) -> dict[tuple[str, int], int]:
+    profile_out: Path | None = None,
+) -> tuple[dict[tuple[str, int], int], Recording | None]:
     """Publish every robot's frames at ``--rate`` through warm-up and the measured window.
 
     Returns the publish stamp of each (robot, seq) sent in the measured window, which starts once
-    warm-up is over and every robot has been answered; records RSS and publish lag into ``step``.
+    warm-up is over and every robot has been answered, and with ``profile_out`` the detector's
+    samples over that window; records RSS and publish lag into ``step``.
     """
     robots = len(robot_ids)
     published: dict[tuple[str, int], int] = {}
@@ -237,6 +262,7 @@ def _publish_fleet(
     start = time.monotonic()
     tick = 0
     measure_from: float | None = None  # once every robot has been answered and warm-up is over
+    recorder: subprocess.Popen[bytes] | None = None
     while measure_from is None or time.monotonic() - measure_from < args.seconds:
         due = start + tick * period
         if (now := time.monotonic()) < due:
@@ -251,6 +277,8 @@ def _publish_fleet(
                 step.rss_mb_start = _rss_mb(children)
                 cpu_start = _cpu_s(children)
                 threads_start = thread_cpu_s(children["detector"].pid)
+                if profile_out is not None:
+                    recorder = start_recording(children["detector"].pid, args.seconds, profile_out)
             elif time.monotonic() - start > MAX_WARM_UP_S:
                 step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
                 break
@@ -284,7 +312,8 @@ def _publish_fleet(
         step.detector_thread_cores = {
             name: round(cores, 3) for name, cores in sorted(used.items(), key=lambda item: -item[1])
         }
-    return published
+    recording = finish_recording(recorder, profile_out) if recorder is not None and profile_out else None
+    return published, recording
 
 
 def _cpu_s(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
@@ -374,6 +403,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="diagnostic: pin the detector's inference-N threads to CPU N for the measured window",
     )
+    parser.add_argument(
+        "--profile-detector",
+        action="store_true",
+        help="sample the detector's threads with py-spy over each measured window (bench.sampling_profile)",
+    )
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)
     parser.add_argument("--rss-growth-mb", type=float, default=20.0)
@@ -394,6 +428,11 @@ def parse_step_args(argv: list[str] | None = None) -> argparse.Namespace:
         detector_model(args)
     except ValueError as exc:  # a --batch the model cannot take: the detector would refuse it too
         parser.error(str(exc))
+    if args.profile_detector:
+        try:
+            py_spy_path()
+        except FileNotFoundError as exc:
+            parser.error(str(exc))
     return args
 
 

@@ -50,9 +50,9 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
     [
         ((), {"encoder", "detector"}),
         (("--batch", "4", "--from-scans", "--pin-inference-threads", "--batch-window-ms", "5"), {"detector"}),
-        (("--encode-on-robots",), {"detector"}),
+        (("--encode-on-robots", "--profile-detector"), {"detector"}),
     ],
-    ids=["encoder+detector", "from-scans-batched-pinned", "encode-on-robots"],
+    ids=["encoder+detector", "from-scans-batched-pinned", "encode-on-robots-profiled"],
 )
 def test_fleet_capacity_runs_a_step_and_writes_json(
     tmp_path: Path, extra: tuple[str, ...], processes: set[str]
@@ -85,6 +85,23 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     assert step["pinned_threads"] == ({"inference-0": min(os.sched_getaffinity(0))} if pinned else {})
     assert report["batch_window_ms"] == (5.0 if "--batch-window-ms" in extra else "detector default")
     assert report["encode_on_robots"] == ("--encode-on-robots" in extra)
+    profile = step["detector_profile"]
+    if "--profile-detector" in extra:
+        # py-spy sampled the detector. Two robots leave its thread idle most of the time, so which
+        # pieces got samples is chance here; tests/test_bench_sampling_profile.py checks the sampling.
+        assert profile["rate_hz"] == 50 and profile["profiler_cpu_cores"] > 0
+        assert set(profile) == {
+            "rate_hz",
+            "profiler_cpu_cores",
+            "samples_per_thread",
+            "inference_threads_busy_share",
+            "inference_threads_ms_per_scan",
+            "other_threads_samples",
+        }
+        shares = profile["inference_threads_busy_share"]
+        assert not shares or sum(shares.values()) == pytest.approx(1.0, abs=1e-3)
+    else:
+        assert profile == {}
 
 
 def test_fleet_batch_ab_alternates_the_two_settings(tmp_path: Path) -> None:
