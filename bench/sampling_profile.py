@@ -25,6 +25,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -124,10 +125,22 @@ class Recording(NamedTuple):
     cpu_s: float  # py-spy's own CPU time: what sampling took from the machine
 
 
-def finish_recording(recorder: subprocess.Popen[bytes], out: Path) -> Recording:
+def finish_recording(recorder: subprocess.Popen[bytes], out: Path, timeout_s: float = 60.0) -> Recording:
     """Wait for a recording (it ends after its ``--duration``) and read its samples; py-spy's own
-    message if it failed (no permission to trace the process, say)."""
-    _, status, usage = os.wait4(recorder.pid, 0)  # reaped here, with its CPU time
+    message if it failed (no permission to trace the process, say). One still running ``timeout_s``
+    after this call is killed: a bench must not hang on its profiler."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        pid, status, usage = os.wait4(recorder.pid, os.WNOHANG)  # reaped here, with its CPU time
+        if pid:
+            break
+        if time.monotonic() > deadline:
+            recorder.kill()
+            recorder.wait()
+            raise RuntimeError(
+                f"py-spy was still running {timeout_s:g} s after its recording should have ended"
+            )
+        time.sleep(0.05)
     recorder.returncode = os.waitstatus_to_exitcode(status)
     stderr = recorder.stderr.read() if recorder.stderr is not None else b""
     if recorder.returncode != 0 or not out.exists():

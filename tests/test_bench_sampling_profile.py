@@ -118,6 +118,22 @@ def test_output_without_threads_is_refused_with_the_line(line: str) -> None:
         parse_raw(line)
 
 
+def test_a_recorder_that_does_not_end_is_killed_with_a_clear_error(tmp_path: Path) -> None:
+    stuck = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], stderr=subprocess.PIPE)
+    with pytest.raises(RuntimeError, match=r"py-spy was still running 0\.2 s after"):
+        finish_recording(stuck, tmp_path / "never.txt", timeout_s=0.2)
+    assert stuck.returncode is not None  # killed and reaped, not left behind
+
+
+def test_a_failed_recording_reports_its_own_message(tmp_path: Path) -> None:
+    failed = subprocess.Popen(
+        [sys.executable, "-c", "import sys; sys.exit('Permission denied: try running again with sudo')"],
+        stderr=subprocess.PIPE,
+    )
+    with pytest.raises(RuntimeError, match="py-spy failed \\(exit 1\\): Permission denied"):
+        finish_recording(failed, tmp_path / "none.txt")
+
+
 @pytest.mark.slow
 def test_a_live_process_is_sampled_in_its_busy_piece(tmp_path: Path) -> None:
     """py-spy against a real process whose one named thread runs the post-processing in a loop."""
