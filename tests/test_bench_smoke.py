@@ -18,6 +18,7 @@ from bench import (
     pipeline_latency,
     robot_footprint,
 )
+from bench.sampling_profile import PROFILE_RATE_HZ
 from common.model_spec import MODELS_DIR, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
@@ -89,7 +90,7 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     if "--profile-detector" in extra:
         # py-spy sampled the detector. Two robots leave its thread idle most of the time, so which
         # pieces got samples is chance here; tests/test_bench_sampling_profile.py checks the sampling.
-        assert profile["rate_hz"] == 50 and profile["profiler_cpu_cores"] > 0
+        assert profile["rate_hz"] == PROFILE_RATE_HZ and profile["profiler_cpu_cores"] > 0
         assert set(profile) == {
             "rate_hz",
             "profiler_cpu_cores",
