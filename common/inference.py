@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, NamedTuple
@@ -554,11 +554,30 @@ def check_batch(batch: int, takes_batches: bool, model_path: Path | str) -> None
         )
 
 
-AUTO_BATCH: Final[int] = 4
-"""The detector's batch cap when none is given and its model takes batches. A worker never waits to fill
-a batch, so a lone robot is served at batch 1 (same outputs, same speed); several waiting robots share
-one model call, which on a CPU costs less per frame. 4, not 8: at 8 fp32 frames one call lasts long
-enough to push p99 past 100 ms (bench/README.md, "Does `--batch` raise it?")."""
+AUTO_BATCH: Final[int] = 8
+"""The largest batch cap the detector picks by itself when none is given and its model takes batches
+(:func:`timed_batch_cap` keeps the largest power of two up to this whose model call fits
+:data:`AUTO_BATCH_CALL_BUDGET_MS` on the machine it runs on). A worker never waits to fill a batch, so a
+lone robot is served at batch 1 (same outputs, same speed); several waiting robots share one model call,
+which on a CPU costs less per frame, and past a fleet's knee a larger batch keeps more scans answered
+(bench/README.md, "The batch cap picked by timing")."""
+
+AUTO_BATCH_CALL_BUDGET_MS: Final[float] = 30.0
+"""The longest model call :func:`timed_batch_cap` accepts. A frame that just misses a call waits for it
+and rides the next: two calls, 60 ms, leave 40 of the fleet's 100 ms p99 for transport, encoding and
+the mailbox. On the slower 2-vCPU EPYC VM the default INT8 model runs 8 frames in about 12 ms (cap 8);
+YOLOv8n's fp32 file took about 27 ms for 4 and 50 for 8, which pushed p99 past 100 ms (cap 4)."""
+
+
+def batch_cap_within(call_ms: Mapping[int, float], budget_ms: float) -> int:
+    """The largest batch size whose call, and every smaller size's, took at most ``budget_ms``; 1 when
+    none did (a lone frame is served whatever it costs)."""
+    cap = 1
+    for size in sorted(call_ms):
+        if call_ms[size] > budget_ms:
+            break
+        cap = size
+    return cap
 
 
 def detector_model_and_batch(model: Path | None, batch: int | None) -> tuple[Path, int]:
@@ -817,6 +836,19 @@ class OnnxDetector:
             results.append((detections, timings._replace(nms_ms=timings.nms_ms + convert_ms).to_message()))
         return results
 
+    def call_ms_by_batch(self, sizes: Sequence[int], repeats: int = 2) -> dict[int, float]:
+        """The fastest of ``repeats`` ``session.run`` calls on blank frames at each batch size, in ms,
+        each size run once untimed first (ONNX Runtime plans the memory of a new shape on its first run).
+        A network's cost does not depend on what the frames hold."""
+        if not self.batched and any(size != 1 for size in sizes):
+            raise ValueError(f"{self.model_id} is fixed at batch 1: cannot time batches {list(sizes)}")
+        timings = {}
+        for size in sizes:
+            blank = np.zeros((size, *INPUT_SHAPE[1:]), np.float32)
+            self._run(blank)
+            timings[size] = min(self._run(blank)[1] for _ in range(repeats))
+        return timings
+
     def warmup(self, max_batch: int = 1) -> None:
         """Run blank frames through the whole path, so the first real frame's timing is honest.
 
@@ -829,3 +861,16 @@ class OnnxDetector:
         blank = np.zeros((RANGE_ROWS, IMAGE_WIDTH, STACK_DEPTH), dtype=np.uint8)
         for size in range(1, (max_batch if self.batched else 1) + 1):
             self.detect_many([blank] * size)
+
+
+def timed_batch_cap(
+    detector: OnnxDetector, largest: int = AUTO_BATCH, budget_ms: float = AUTO_BATCH_CALL_BUDGET_MS
+) -> tuple[int, dict[int, float]]:
+    """The batch cap a detector picks by itself on this machine: the largest power of two up to
+    ``largest`` whose model call fits ``budget_ms`` (:func:`batch_cap_within`), and the call times it
+    measured. A heavier network, or a slower computer, gets a smaller cap without a tuning table."""
+    if largest < 1:
+        raise ValueError(f"largest must be >= 1, got {largest}")
+    sizes = [1 << k for k in range(largest.bit_length()) if 1 << k <= largest]
+    call_ms = detector.call_ms_by_batch(sizes)
+    return batch_cap_within(call_ms, budget_ms), call_ms

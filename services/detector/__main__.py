@@ -5,7 +5,9 @@ The robot's perception process (base dependencies only: numpy, onnxruntime, zeno
 saving one hop and one serialisation on a Raspberry Pi. Zenoh callbacks only decode and drop the
 tensor into a newest-per-robot mailbox; inference threads drain it, so the detector never falls
 behind (see :mod:`services.detector.core`). With ``--batch N`` and a ``-batch`` model, a thread runs
-up to N waiting robots' tensors in one model call, which a CPU does for less per frame.
+up to N waiting robots' tensors in one model call, which a CPU does for less per frame; without
+``--batch`` the detector times its model at start and picks the cap itself
+(:func:`common.inference.timed_batch_cap`).
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ from pathlib import Path
 
 from common.inference import (
     AUTO_BATCH,
+    AUTO_BATCH_CALL_BUDGET_MS,
     DEFAULT_CONF,
     DEFAULT_IOU,
     OnnxDetector,
     detector_model_and_batch,
+    timed_batch_cap,
 )
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
@@ -108,8 +112,9 @@ def main(argv: list[str] | None = None) -> int:
         "--batch",
         type=int,
         default=None,
-        help=f"most robots' tensors per model call, each worker (default: {AUTO_BATCH} with a -batch model, "
-        f"{SHIPPED_BATCH_MODEL.name} when no --model is given; 1 with a fixed model)",
+        help="most robots' tensors per model call, each worker (default with a -batch model, "
+        f"{SHIPPED_BATCH_MODEL.name} when no --model is given: the largest of 1, 2, 4 ... {AUTO_BATCH} "
+        f"whose call takes at most {AUTO_BATCH_CALL_BUDGET_MS:g} ms on this machine; 1 with a fixed model)",
     )
     parser.add_argument(
         "--batch-window-ms",
@@ -160,6 +165,15 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as exc:
         log.error("cannot load the model: %s", exc)
         return 2
+    if args.batch is None and batch > 1:  # no --batch: the cap this machine runs within budget
+        batch, call_ms = timed_batch_cap(detectors[0], batch)
+        log.info(
+            "batch cap %d: model calls of %s frames took %s ms here (budget %g ms a call)",
+            batch,
+            "/".join(str(size) for size in call_ms),
+            "/".join(f"{ms:.1f}" for ms in call_ms.values()),
+            AUTO_BATCH_CALL_BUDGET_MS,
+        )
     run(
         settings_from_args(args),
         stop_event_on_signals(),
