@@ -584,7 +584,8 @@ def detector_model_and_batch(model: Path | None, batch: int | None) -> tuple[Pat
     """The model and batch cap a detector runs when the user may have chosen neither.
 
     ``batch`` None picks by itself: the shipped ``-batch`` model (or ``model``) with :data:`AUTO_BATCH`
-    when the model takes batches, batch 1 when it does not. An explicit ``batch`` is checked against
+    when the model takes batches (the largest cap: the detector then keeps what its own timing allows,
+    :func:`timed_batch_cap`), batch 1 when it does not. An explicit ``batch`` is checked against
     the model (:func:`check_batch`); with ``batch`` 1 and no model, the fixed batch-1 file is used.
     """
     if batch is None:
