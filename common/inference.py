@@ -872,6 +872,6 @@ def timed_batch_cap(
     measured. A heavier network, or a slower computer, gets a smaller cap without a tuning table."""
     if largest < 1:
         raise ValueError(f"largest must be >= 1, got {largest}")
-    sizes = [1 << k for k in range(largest.bit_length()) if 1 << k <= largest]
+    sizes = [1 << k for k in range(largest.bit_length())]  # 1, 2, 4, … up to largest
     call_ms = detector.call_ms_by_batch(sizes)
     return batch_cap_within(call_ms, budget_ms), call_ms

@@ -17,6 +17,7 @@ from bench.sampling_profile import (
     Recording,
     detector_profile,
     finish_recording,
+    is_inference_thread,
     parse_raw,
     samples_by_piece,
     start_recording,
@@ -76,7 +77,7 @@ def test_raw_stacks_are_read_with_their_thread_and_frames() -> None:
 
 def test_each_sample_lands_in_the_innermost_piece() -> None:
     stacks = parse_raw(RAW)
-    inference = samples_by_piece(stacks, DETECTOR_PIECES, lambda name: name.startswith("inference-"))
+    inference = samples_by_piece(stacks, DETECTOR_PIECES, is_inference_thread)
     assert inference == {
         "network (session.run)": 100,
         "post-processing": 20,
@@ -85,7 +86,7 @@ def test_each_sample_lands_in_the_innermost_piece() -> None:
         "waiting for a tensor": 30,
         OTHER: 5,
     }
-    others = samples_by_piece(stacks, DETECTOR_PIECES, lambda name: not name.startswith("inference-"))
+    others = samples_by_piece(stacks, DETECTOR_PIECES, lambda name: not is_inference_thread(name))
     assert others == {"tensor decode": 7, OTHER: 50}
 
 
