@@ -11,6 +11,10 @@ TCP ping-pong between the same two kinds of process. Round trip = two hops. Peer
 multicast off. Each case also counts, per round trip, how often each kind of thread in either process
 slept and was woken (``wakeups_per_round_trip``, from /proc): the hand-offs a message costs.
 
+:func:`cpu_per_message` prices the other half of a hop, the CPU it takes from each end at a fleet's
+rate: one process puts messages at a steady rate without waiting, a counting sink process takes them,
+and each end's CPU over the window, less its idle rate, is divided by the messages that arrived.
+
     python -m bench.zenoh_rtt --rounds 3          # → bench/results/zenoh_rtt.json
     python -m bench.zenoh_rtt --delivery          # → bench/results/zenoh_delivery.json
 """
@@ -34,7 +38,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from bench.harness import cpu_spinners, thread_wakeups
+from bench.harness import cpu_spinners, proc_cpu_s, thread_wakeups
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
 from services.launcher import free_tcp_ports
@@ -60,6 +64,9 @@ DELIVERY_SIZES: Final[tuple[int, ...]] = (1_000, 60_000, 73_728)
 DELIVERY_VARIANTS: Final[tuple[str, ...]] = ("default", "noshm", "lowlatency", "lowlatency+noshm")
 DELIVERY_OUT: Final[Path] = DEFAULT_OUT.with_name("zenoh_delivery.json")
 DEFAULT_IDLE_S: Final[float] = 3.0  # the idle window each case's wake-up count subtracts
+WARM_UP_MESSAGES: Final[int] = 20  # sent before each CPU window, not counted
+SINK_TALLY_KEY: Final[str] = "rtt/tally"  # a put here asks the sink for its count, answered on ..._ANSWER
+SINK_TALLY_ANSWER_KEY: Final[str] = "rtt/tally/answer"
 
 
 class WakeupCount:
@@ -157,7 +164,11 @@ def subscriber_callback(variant: str, callback: Callable[[Any], Any]) -> Any:
 
 
 def echo(kind: str, variant: str, port: int, stop_after_s: float) -> None:
-    """The far end: send back whatever arrives, until ``stop_after_s``."""
+    """The far end: send back whatever arrives, until ``stop_after_s``; or (``sink``, ``tcp-sink``)
+    only count it, answering the count when asked (:func:`cpu_per_message`)."""
+    if kind in ("sink", "tcp-sink"):
+        count_messages(kind, variant, port, stop_after_s)
+        return
     if kind == "tcp":
         server = socket.create_server(("127.0.0.1", port))
         conn, _ = server.accept()
@@ -174,6 +185,172 @@ def echo(kind: str, variant: str, port: int, stop_after_s: float) -> None:
         )
         time.sleep(stop_after_s)
         sub.undeclare()
+
+
+def count_messages(kind: str, variant: str, port: int, stop_after_s: float) -> None:
+    """The sink of :func:`cpu_per_message`: take every message and count it, nothing else.
+
+    Zenoh's sink answers its count on :data:`SINK_TALLY_ANSWER_KEY` whenever a put arrives on
+    :data:`SINK_TALLY_KEY`; the TCP sink reads length-prefixed frames and writes its count back when
+    the sender closes its side.
+    """
+    received = 0
+    if kind == "tcp-sink":
+        server = socket.create_server(("127.0.0.1", port))
+        conn, _ = server.accept()
+        stream = conn.makefile("rb")
+        while header := stream.read(4):
+            stream.read(int.from_bytes(header, "little"))
+            received += 1
+        conn.sendall(received.to_bytes(8, "little"))
+        return
+    import zenoh
+
+    def on_message(_sample: Any) -> None:
+        nonlocal received
+        received += 1
+
+    with zenoh.open(zenoh_config(variant, port, None)) as session:
+        answer = session.declare_publisher(SINK_TALLY_ANSWER_KEY)
+        sub = session.declare_subscriber("rtt/ping", subscriber_callback(variant, on_message))
+        asked = session.declare_subscriber(SINK_TALLY_KEY, lambda _sample: answer.put(str(received)))
+        time.sleep(stop_after_s)
+        asked.undeclare()
+        sub.undeclare()
+
+
+def _paced(count: int, rate_hz: float, send: Callable[[], None]) -> None:
+    """Call ``send`` ``count`` times at a steady ``rate_hz`` (deadlines, not sleeps that drift)."""
+    started = time.monotonic()
+    for index in range(count):
+        if (wait := started + index / rate_hz - time.monotonic()) > 0:
+            time.sleep(wait)
+        send()
+
+
+def _cpu_window(far_pid: int, seconds: float) -> tuple[float, float]:
+    """CPU seconds this process and the far one used while idle for ``seconds``."""
+    near, far = time.process_time(), proc_cpu_s(far_pid)
+    time.sleep(seconds)
+    return time.process_time() - near, proc_cpu_s(far_pid) - far
+
+
+def cpu_per_message(
+    kind: str,
+    size: int,
+    rate_hz: float,
+    seconds: float,
+    idle_s: float = DEFAULT_IDLE_S,
+    variant: str = "default",
+) -> dict[str, Any]:
+    """CPU each end of a hop spends per message of ``size`` bytes at ``rate_hz`` messages a second.
+
+    This process puts messages at the rate without waiting for anything (as a fleet's encoder or
+    robots do); a sink process (this module, ``--echo sink``) counts them. Each end's CPU over the
+    window (every thread: Zenoh's runtime and the Python callback thread included), less the same
+    end's CPU over an idle window of ``idle_s`` with both connected (Zenoh's timers), is divided by
+    the messages that arrived. ``kind`` ``tcp`` prices the same messages over a bare loopback socket
+    with a 4-byte length prefix, the floor any transport between two Python processes pays.
+    """
+    (port,) = free_tcp_ports(1)
+    count = max(1, round(rate_hz * seconds))
+    far = start_echo("tcp-sink" if kind == "tcp" else "sink", variant, port, idle_s + seconds + 30)
+    window = _tcp_cpu_window if kind == "tcp" else _zenoh_cpu_window
+    try:
+        near_cpu, far_cpu, idle_near, idle_far, elapsed, received = window(
+            variant, port, bytes(size), count, rate_hz, idle_s, far.pid
+        )
+    finally:
+        far.kill()
+        far.wait()
+    idle_scale = elapsed / idle_s if idle_s > 0 else 0.0
+    per_message = {
+        side: round(1e3 * max(cpu - idle * idle_scale, 0.0) / max(received, 1), 4)
+        for side, cpu, idle in (("sender", near_cpu, idle_near), ("receiver", far_cpu, idle_far))
+    }
+    return {"kind": kind, "variant": variant if kind == "zenoh" else "-", "bytes": size, "rate_hz": rate_hz,
+            "sent": count, "received": received, "seconds": round(elapsed, 2),
+            "cpu_ms_per_message": per_message,
+            "cpu_ms_per_message_both_ends": round(sum(per_message.values()), 4)}  # fmt: skip
+
+
+def _zenoh_cpu_window(
+    variant: str, port: int, payload: bytes, count: int, rate_hz: float, idle_s: float, far_pid: int
+) -> tuple[float, float, float, float, float, int]:
+    """The Zenoh side of :func:`cpu_per_message`: CPU seconds near and far over the window, the same
+    over the idle window, the window's seconds and the messages that arrived in it."""
+    import queue
+
+    import zenoh
+
+    tallies: queue.SimpleQueue[int] = queue.SimpleQueue()
+    with zenoh.open(zenoh_config(variant, None, port)) as session:
+        sub = session.declare_subscriber(
+            SINK_TALLY_ANSWER_KEY, lambda sample: tallies.put(int(sample.payload.to_bytes()))
+        )
+        pub = session.declare_publisher("rtt/ping")
+        asker = session.declare_publisher(SINK_TALLY_KEY)
+
+        def tally(timeout_s: float) -> int | None:
+            asker.put(b"")
+            try:
+                return tallies.get(timeout=timeout_s)
+            except queue.Empty:
+                return None
+
+        deadline = time.monotonic() + 10.0
+        while tally(0.2) is None:  # until the sink answers: peers connect on retry
+            if time.monotonic() > deadline:
+                raise TimeoutError("the sink never answered")
+        _paced(WARM_UP_MESSAGES, rate_hz, lambda: pub.put(payload))
+        idle_near, idle_far = _cpu_window(far_pid, idle_s)
+        while not tallies.empty():  # late answers to the probes: the idle window gave them time
+            tallies.get()
+        if (before := tally(2.0)) is None:
+            raise TimeoutError("the sink did not answer its count before the window")
+        started, near_before, far_before = time.monotonic(), time.process_time(), proc_cpu_s(far_pid)
+        _paced(count, rate_hz, lambda: pub.put(payload))
+        time.sleep(0.2)  # the last messages reach the sink before the tally is asked for
+        near_cpu, far_cpu = time.process_time() - near_before, proc_cpu_s(far_pid) - far_before
+        elapsed = time.monotonic() - started
+        after = tally(2.0)
+        sub.undeclare()
+    if after is None:
+        raise TimeoutError("the sink did not answer its count after the window")
+    return near_cpu, far_cpu, idle_near, idle_far, elapsed, after - before
+
+
+def _tcp_cpu_window(
+    variant: str, port: int, payload: bytes, count: int, rate_hz: float, idle_s: float, far_pid: int
+) -> tuple[float, float, float, float, float, int]:
+    """The TCP side of :func:`cpu_per_message` (``variant`` unused), returning what the Zenoh side does."""
+    del variant
+    conn = _connect_tcp(port)
+    framed = len(payload).to_bytes(4, "little") + payload
+    _paced(WARM_UP_MESSAGES, rate_hz, lambda: conn.sendall(framed))
+    idle_near, idle_far = _cpu_window(far_pid, idle_s)
+    started, near_before, far_before = time.monotonic(), time.process_time(), proc_cpu_s(far_pid)
+    _paced(count, rate_hz, lambda: conn.sendall(framed))
+    conn.shutdown(socket.SHUT_WR)  # the sink answers its count once it has read everything
+    tally = int.from_bytes(conn.makefile("rb").read(8), "little")
+    near_cpu, far_cpu = time.process_time() - near_before, proc_cpu_s(far_pid) - far_before
+    conn.close()
+    return near_cpu, far_cpu, idle_near, idle_far, time.monotonic() - started, tally - WARM_UP_MESSAGES
+
+
+def _connect_tcp(port: int) -> socket.socket:
+    """A loopback TCP connection to ``port`` once the far end listens (it starts in parallel)."""
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            conn = socket.create_connection(("127.0.0.1", port))
+            break
+        except ConnectionRefusedError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return conn
 
 
 def ping_zenoh(
@@ -211,16 +388,7 @@ def ping_zenoh(
 def ping_tcp(
     port: int, size: int, count: int, rate_hz: float, wakeups: WakeupCount | None = None
 ) -> list[float]:
-    deadline = time.monotonic() + 10.0
-    while True:
-        try:
-            conn = socket.create_connection(("127.0.0.1", port))
-            break
-        except ConnectionRefusedError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.05)
-    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    conn = _connect_tcp(port)
     payload, rtts = bytes(size), []
     if wakeups:
         wakeups.start()
