@@ -36,6 +36,7 @@ from common.inference import detector_model_and_batch
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 FRACTIONS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)  # from low: a VM minute can fail 50 %
+FLEET_GOAL_SHARE = 0.8  # the pipeline-overhead issue's goal: the fleet held ÷ the compute bound
 
 
 def compute_bound(model: Path, seconds: float) -> dict[str, object]:
@@ -62,6 +63,12 @@ def compute_bound(model: Path, seconds: float) -> dict[str, object]:
     }
 
 
+def network_cpu_ms_per_frame(bound: dict[str, Any], cores: int) -> float:
+    """CPU one frame costs at the bound: the cores its best setting kept busy ÷ its frames/s."""
+    used = min(cores, int(bound["best_workers"]) * int(bound["best_threads"]))
+    return 1e3 * used / float(bound["best_frames_per_s"])
+
+
 def cpu_per_scan(
     fleet: dict[str, Any], bound: dict[str, Any], rate_hz: float, cores: int | None = None
 ) -> list[dict[str, Any]]:
@@ -73,8 +80,7 @@ def cpu_per_scan(
     ceiling that no scheduling can lift.
     """
     cores = cores or os.cpu_count() or 1
-    used = min(cores, int(bound["best_workers"]) * int(bound["best_threads"]))
-    network_ms = 1e3 * used / float(bound["best_frames_per_s"])
+    network_ms = network_cpu_ms_per_frame(bound, cores)
     seconds = float(fleet["seconds_per_step"])
     rows = []
     for step in fleet["steps"]:
@@ -142,10 +148,11 @@ def main(argv: list[str] | None = None) -> int:
                  row["cpu_ms_per_scan"], row["network_ms_per_frame_at_bound"],
                  row["ceiling_robots_at_full_cpu"])  # fmt: skip
     log.info(
-        "held %d robots of a %.1f-robot bound: %.0f %% (goal >= 80 %%); written to %s",
+        "held %d robots of a %.1f-robot bound: %.0f %% (goal >= %.0f %%); written to %s",
         capacity,
         bound_robots,
         100 * report["share_of_bound"],
+        100 * FLEET_GOAL_SHARE,
         args.out,
     )
     return 0

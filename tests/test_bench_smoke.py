@@ -18,6 +18,7 @@ from bench import (
     pipeline_latency,
     robot_footprint,
 )
+from bench.fleet_bound import FLEET_GOAL_SHARE
 from bench.sampling_profile import PROFILE_RATE_HZ
 from common.model_spec import MODELS_DIR, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, batch_variant_path
 
@@ -471,3 +472,30 @@ def test_detector_path_refuses_a_batch_the_model_cannot_take() -> None:
 
     with pytest.raises(ValueError, match="batch"):
         detector_path.DetectorPath(default_model_path(), workers=1, batch=2)
+
+
+def test_cpu_per_message_counts_every_message_and_prices_both_ends() -> None:
+    from bench.zenoh_rtt import cpu_per_message
+
+    for kind in ("zenoh", "tcp"):
+        result = cpu_per_message(kind, 73_728, rate_hz=500.0, seconds=1.0, idle_s=0.5)
+        assert result["sent"] == result["received"] == 500, result  # the warm-up is not counted
+        assert set(result["cpu_ms_per_message"]) == {"sender", "receiver"}
+        assert result["cpu_ms_per_message"]["sender"] > 0 and result["cpu_ms_per_message_both_ends"] > 0
+
+
+def test_goal_floors_price_every_goal_in_one_run(tmp_path: Path) -> None:
+    from bench import goal_floors
+
+    out = tmp_path / "floors.json"
+    argv = ["--rounds", "1", "--count", "12", "--rate", "100", "--idle", "0.3", "--cpu-seconds", "0.5"]
+    assert goal_floors.main([*argv, "--bound-seconds", "0.2", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert [row["pipeline"] for row in report["latency"]] == ["3 processes", "--from-scans"]
+    assert all(row["zenoh_hops_p50_ms"] > 0 and row["tcp_hops_p50_ms"] > 0 for row in report["latency"])
+    assert [row["layout"] for row in report["fleet"]] == list(goal_floors.FLEET_LAYOUTS)
+    assert all(row["share_of_bound"] > 0 and row["cpu_ms_per_scan"] > 0 for row in report["fleet"])
+    # The messages were priced at the fleet goal's rate, every one of them arrived.
+    goal_rate = FLEET_GOAL_SHARE * report["bound"]["best_frames_per_s"]
+    assert all(m["rate_hz"] == pytest.approx(goal_rate) for m in report["message_cpu"])
+    assert all(m["received"] == m["sent"] for m in report["message_cpu"])
