@@ -37,13 +37,11 @@ from bench.fleet_bound import FLEET_GOAL_SHARE, compute_bound, network_cpu_ms_pe
 from bench.machine import machine_info
 from bench.pipeline_latency import FROM_SCANS_OVERHEAD_GOAL_P50_MS, OVERHEAD_GOAL_P50_MS
 from bench.report import write_report
-from bench.zenoh_rtt import DEFAULT_IDLE_S, cpu_per_message, run_case
+from bench.zenoh_rtt import DEFAULT_IDLE_S, SMALL_BYTES, TENSOR_BYTES, cpu_per_message, run_case
 from common.inference import detector_model_and_batch
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-SMALL_BYTES: Final[int] = 100  # stands in for a scan and a detections message (both larger: a floor)
-TENSOR_BYTES: Final[int] = 3 * 64 * 384  # the stacked uint8 tensor the encoder sends
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "goal_floors.json"
 
 # Which message ends each fleet layout puts on the host, per scan: (message size, end).

@@ -41,11 +41,14 @@ import numpy as np
 from bench.harness import cpu_spinners, proc_cpu_s, thread_wakeups
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
 from services.launcher import free_tcp_ports
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-PAYLOADS: Final[tuple[int, ...]] = (100, 73_728)
+TENSOR_BYTES: Final[int] = RANGE_ROWS * IMAGE_WIDTH * STACK_DEPTH  # the stacked uint8 tensor: 73,728
+SMALL_BYTES: Final[int] = 100  # stands in for a scan or a detections message (both larger)
+PAYLOADS: Final[tuple[int, ...]] = (SMALL_BYTES, TENSOR_BYTES)
 VARIANTS: Final[tuple[str, ...]] = (
     "default",
     "express",
@@ -60,7 +63,7 @@ VARIANTS: Final[tuple[str, ...]] = (
 DEFAULT_OUT: Final[Path] = Path(__file__).resolve().parent / "results" / "zenoh_rtt.json"
 # --delivery: one put of each size, under each transport, with and without shared memory. The
 # low-latency transport does not fragment; the 73 KB tensor is the pipeline's largest message.
-DELIVERY_SIZES: Final[tuple[int, ...]] = (1_000, 60_000, 73_728)
+DELIVERY_SIZES: Final[tuple[int, ...]] = (1_000, 60_000, TENSOR_BYTES)
 DELIVERY_VARIANTS: Final[tuple[str, ...]] = ("default", "noshm", "lowlatency", "lowlatency+noshm")
 DELIVERY_OUT: Final[Path] = DEFAULT_OUT.with_name("zenoh_delivery.json")
 DEFAULT_IDLE_S: Final[float] = 3.0  # the idle window each case's wake-up count subtracts

@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 
 from bench.fleet_bound import FLEET_GOAL_SHARE
-from bench.goal_floors import FLEET_LAYOUTS, SMALL_BYTES, TENSOR_BYTES, fleet_floors, hop_ms, latency_floors
+from bench.goal_floors import FLEET_LAYOUTS, fleet_floors, hop_ms, latency_floors
 from bench.pipeline_latency import FROM_SCANS_OVERHEAD_GOAL_P50_MS, OVERHEAD_GOAL_P50_MS
+from bench.zenoh_rtt import SMALL_BYTES, TENSOR_BYTES
 
 BOUND = {"best_frames_per_s": 1000.0, "best_workers": 2, "best_threads": 1, "best_batch": 8}
 
