@@ -32,7 +32,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Final
 
@@ -231,11 +231,65 @@ def _paced(count: int, rate_hz: float, send: Callable[[], None]) -> None:
         send()
 
 
-def _cpu_window(far_pid: int, seconds: float) -> tuple[float, float]:
-    """CPU seconds this process and the far one used while idle for ``seconds``."""
-    near, far = time.process_time(), proc_cpu_s(far_pid)
-    time.sleep(seconds)
-    return time.process_time() - near, proc_cpu_s(far_pid) - far
+@dataclass
+class CpuWindows:
+    """The CPU seconds :func:`cpu_per_message` reads: each end while idle with both connected, the
+    sender's pacing loop alone (sending nothing), and each end while the messages flow."""
+
+    idle_s: float
+    idle_near_s: float
+    idle_far_s: float
+    pacing_s: float
+    pacing_near_s: float
+    window_s: float
+    near_s: float
+    far_s: float
+    received: int
+
+    def ms_per_message(self) -> dict[str, float]:
+        """Each end's CPU a message: its window less its idle rate, the sender's less its pacing too."""
+        idle_near_rate = self.idle_near_s / self.idle_s if self.idle_s > 0 else 0.0
+        idle_far_rate = self.idle_far_s / self.idle_s if self.idle_s > 0 else 0.0
+        pacing = max(self.pacing_near_s - idle_near_rate * self.pacing_s, 0.0)
+        sender = self.near_s - idle_near_rate * self.window_s - pacing
+        receiver = self.far_s - idle_far_rate * self.window_s
+        return {
+            side: round(1e3 * max(cpu, 0.0) / max(self.received, 1), 4)
+            for side, cpu in (("sender", sender), ("receiver", receiver), ("sender_pacing", pacing))
+        }
+
+
+def _measure_windows(
+    far_pid: int,
+    idle_s: float,
+    count: int,
+    rate_hz: float,
+    send: Callable[[], None],
+    count_before: Callable[[], int],
+    count_after: Callable[[], int],
+) -> CpuWindows:
+    """Read every window of :class:`CpuWindows`. ``count_before`` and ``count_after`` return the
+    sink's count before and after the messages flow, once all sent ones can have arrived (they may
+    wait for them)."""
+    near, far, started = time.process_time(), proc_cpu_s(far_pid), time.monotonic()
+    time.sleep(idle_s)
+    idle_near, idle_far, idle = (
+        time.process_time() - near,
+        proc_cpu_s(far_pid) - far,
+        time.monotonic() - started,
+    )
+    near, started = time.process_time(), time.monotonic()
+    _paced(count, rate_hz, lambda: None)
+    pacing_near, pacing = time.process_time() - near, time.monotonic() - started
+    before = count_before()
+    near, far, started = time.process_time(), proc_cpu_s(far_pid), time.monotonic()
+    _paced(count, rate_hz, send)
+    after = count_after()
+    return CpuWindows(
+        idle_s=idle, idle_near_s=idle_near, idle_far_s=idle_far, pacing_s=pacing, pacing_near_s=pacing_near,
+        window_s=time.monotonic() - started, near_s=time.process_time() - near,
+        far_s=proc_cpu_s(far_pid) - far, received=after - before,
+    )  # fmt: skip
 
 
 def cpu_per_message(
@@ -252,36 +306,33 @@ def cpu_per_message(
     robots do); a sink process (this module, ``--echo sink``) counts them. Each end's CPU over the
     window (every thread: Zenoh's runtime and the Python callback thread included), less the same
     end's CPU over an idle window of ``idle_s`` with both connected (Zenoh's timers), is divided by
-    the messages that arrived. ``kind`` ``tcp`` prices the same messages over a bare loopback socket
-    with a 4-byte length prefix, the floor any transport between two Python processes pays.
+    the messages that arrived; the sender's also less what its pacing loop costs sending nothing
+    (its sleeps and wake-ups, which a service putting from a callback does not pay). ``kind`` ``tcp``
+    prices the same messages over a bare loopback socket with a 4-byte length prefix, the floor any
+    transport between two Python processes pays.
     """
     (port,) = free_tcp_ports(1)
     count = max(1, round(rate_hz * seconds))
-    far = start_echo("tcp-sink" if kind == "tcp" else "sink", variant, port, idle_s + seconds + 30)
-    window = _tcp_cpu_window if kind == "tcp" else _zenoh_cpu_window
+    far = start_echo("tcp-sink" if kind == "tcp" else "sink", variant, port, 2 * (idle_s + seconds) + 30)
+    measure = _tcp_cpu_windows if kind == "tcp" else _zenoh_cpu_windows
     try:
-        near_cpu, far_cpu, idle_near, idle_far, elapsed, received = window(
-            variant, port, bytes(size), count, rate_hz, idle_s, far.pid
-        )
+        windows = measure(variant, port, bytes(size), count, rate_hz, idle_s, far.pid)
     finally:
         far.kill()
         far.wait()
-    idle_scale = elapsed / idle_s if idle_s > 0 else 0.0
-    per_message = {
-        side: round(1e3 * max(cpu - idle * idle_scale, 0.0) / max(received, 1), 4)
-        for side, cpu, idle in (("sender", near_cpu, idle_near), ("receiver", far_cpu, idle_far))
-    }
+    per_message = windows.ms_per_message()
     return {"kind": kind, "variant": variant if kind == "zenoh" else "-", "bytes": size, "rate_hz": rate_hz,
-            "sent": count, "received": received, "seconds": round(elapsed, 2),
-            "cpu_ms_per_message": per_message,
-            "cpu_ms_per_message_both_ends": round(sum(per_message.values()), 4)}  # fmt: skip
+            "sent": count, "received": windows.received, "seconds": round(windows.window_s, 2),
+            "cpu_ms_per_message": {side: per_message[side] for side in ("sender", "receiver")},
+            "sender_pacing_cpu_ms_per_message": per_message["sender_pacing"],
+            "cpu_ms_per_message_both_ends":
+                round(per_message["sender"] + per_message["receiver"], 4)}  # fmt: skip
 
 
-def _zenoh_cpu_window(
+def _zenoh_cpu_windows(
     variant: str, port: int, payload: bytes, count: int, rate_hz: float, idle_s: float, far_pid: int
-) -> tuple[float, float, float, float, float, int]:
-    """The Zenoh side of :func:`cpu_per_message`: CPU seconds near and far over the window, the same
-    over the idle window, the window's seconds and the messages that arrived in it."""
+) -> CpuWindows:
+    """The Zenoh side of :func:`cpu_per_message`."""
     import queue
 
     import zenoh
@@ -294,51 +345,50 @@ def _zenoh_cpu_window(
         pub = session.declare_publisher("rtt/ping")
         asker = session.declare_publisher(SINK_TALLY_KEY)
 
-        def tally(timeout_s: float) -> int | None:
+        def ask(timeout_s: float) -> int | None:
             asker.put(b"")
             try:
                 return tallies.get(timeout=timeout_s)
             except queue.Empty:
                 return None
 
+        def tally() -> int:
+            time.sleep(0.2)  # the last messages reach the sink before its count is asked for
+            while not tallies.empty():  # late answers to earlier probes
+                tallies.get()
+            if (count := ask(2.0)) is None:
+                raise TimeoutError("the sink did not answer its count")
+            return count
+
         deadline = time.monotonic() + 10.0
-        while tally(0.2) is None:  # until the sink answers: peers connect on retry
+        while ask(0.2) is None:  # until the sink answers: peers connect on retry
             if time.monotonic() > deadline:
                 raise TimeoutError("the sink never answered")
         _paced(WARM_UP_MESSAGES, rate_hz, lambda: pub.put(payload))
-        idle_near, idle_far = _cpu_window(far_pid, idle_s)
-        while not tallies.empty():  # late answers to the probes: the idle window gave them time
-            tallies.get()
-        if (before := tally(2.0)) is None:
-            raise TimeoutError("the sink did not answer its count before the window")
-        started, near_before, far_before = time.monotonic(), time.process_time(), proc_cpu_s(far_pid)
-        _paced(count, rate_hz, lambda: pub.put(payload))
-        time.sleep(0.2)  # the last messages reach the sink before the tally is asked for
-        near_cpu, far_cpu = time.process_time() - near_before, proc_cpu_s(far_pid) - far_before
-        elapsed = time.monotonic() - started
-        after = tally(2.0)
+        windows = _measure_windows(far_pid, idle_s, count, rate_hz, lambda: pub.put(payload), tally, tally)
         sub.undeclare()
-    if after is None:
-        raise TimeoutError("the sink did not answer its count after the window")
-    return near_cpu, far_cpu, idle_near, idle_far, elapsed, after - before
+    return windows
 
 
-def _tcp_cpu_window(
+def _tcp_cpu_windows(
     variant: str, port: int, payload: bytes, count: int, rate_hz: float, idle_s: float, far_pid: int
-) -> tuple[float, float, float, float, float, int]:
-    """The TCP side of :func:`cpu_per_message` (``variant`` unused), returning what the Zenoh side does."""
+) -> CpuWindows:
+    """The TCP side of :func:`cpu_per_message` (``variant`` unused: the same signature as Zenoh's)."""
     del variant
     conn = _connect_tcp(port)
     framed = len(payload).to_bytes(4, "little") + payload
     _paced(WARM_UP_MESSAGES, rate_hz, lambda: conn.sendall(framed))
-    idle_near, idle_far = _cpu_window(far_pid, idle_s)
-    started, near_before, far_before = time.monotonic(), time.process_time(), proc_cpu_s(far_pid)
-    _paced(count, rate_hz, lambda: conn.sendall(framed))
-    conn.shutdown(socket.SHUT_WR)  # the sink answers its count once it has read everything
-    tally = int.from_bytes(conn.makefile("rb").read(8), "little")
-    near_cpu, far_cpu = time.process_time() - near_before, proc_cpu_s(far_pid) - far_before
+
+    def final_count() -> int:
+        """The sink answers its count once, when the sender closes its side and it has read all."""
+        conn.shutdown(socket.SHUT_WR)
+        return int.from_bytes(conn.makefile("rb").read(8), "little")
+
+    windows = _measure_windows(  # before the window the sink holds the warm-up: TCP delivers all of it
+        far_pid, idle_s, count, rate_hz, lambda: conn.sendall(framed), lambda: WARM_UP_MESSAGES, final_count
+    )
     conn.close()
-    return near_cpu, far_cpu, idle_near, idle_far, time.monotonic() - started, tally - WARM_UP_MESSAGES
+    return windows
 
 
 def _connect_tcp(port: int) -> socket.socket:

@@ -482,6 +482,7 @@ def test_cpu_per_message_counts_every_message_and_prices_both_ends() -> None:
         assert result["sent"] == result["received"] == 500, result  # the warm-up is not counted
         assert set(result["cpu_ms_per_message"]) == {"sender", "receiver"}
         assert result["cpu_ms_per_message"]["sender"] > 0 and result["cpu_ms_per_message_both_ends"] > 0
+        assert result["sender_pacing_cpu_ms_per_message"] >= 0
 
 
 def test_goal_floors_price_every_goal_in_one_run(tmp_path: Path) -> None:
