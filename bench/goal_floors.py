@@ -31,13 +31,19 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Final
 
-import numpy as np
-
 from bench.fleet_bound import FLEET_GOAL_SHARE, compute_bound, network_cpu_ms_per_frame
 from bench.machine import machine_info
 from bench.pipeline_latency import FROM_SCANS_OVERHEAD_GOAL_P50_MS, OVERHEAD_GOAL_P50_MS
 from bench.report import write_report
-from bench.zenoh_rtt import DEFAULT_IDLE_S, SMALL_BYTES, TENSOR_BYTES, cpu_per_message, run_case
+from bench.zenoh_rtt import (
+    DEFAULT_IDLE_S,
+    PAYLOADS,
+    SMALL_BYTES,
+    TENSOR_BYTES,
+    cpu_per_message,
+    median_p50s,
+    run_cases_in_turns,
+)
 from common.inference import detector_model_and_batch
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -59,18 +65,20 @@ FLEET_LAYOUTS: Final[dict[str, tuple[tuple[int, str], ...]]] = {
 }  # fmt: skip
 
 
-def hop_ms(round_trips: list[dict[str, Any]], kind: str, size: int) -> float:
-    """Half the median over rounds of the p50 round trip of ``kind`` messages of ``size`` bytes."""
-    p50s = [r["rtt_ms"]["p50"] for r in round_trips if r["kind"] == kind and r["bytes"] == size]
-    if not p50s:
+def hop_ms(summary: list[dict[str, Any]], kind: str, size: int) -> float:
+    """Half the median p50 round trip of ``kind`` messages of ``size`` bytes, from the rows of
+    :func:`bench.zenoh_rtt.median_p50s`."""
+    medians = [row["median_p50_ms"] for row in summary if row["kind"] == kind and row["bytes"] == size]
+    if not medians:
         raise ValueError(f"no {kind} round trip of {size} bytes was measured")
-    return round(float(np.median(p50s)) / 2, 3)
+    return round(medians[0] / 2, 3)
 
 
 def latency_floors(round_trips: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Each latency goal's budget against the Zenoh hops its pipeline cannot do without."""
-    small, tensor = hop_ms(round_trips, "zenoh", SMALL_BYTES), hop_ms(round_trips, "zenoh", TENSOR_BYTES)
-    tcp_small, tcp_tensor = hop_ms(round_trips, "tcp", SMALL_BYTES), hop_ms(round_trips, "tcp", TENSOR_BYTES)
+    summary = median_p50s(round_trips)
+    small, tensor = hop_ms(summary, "zenoh", SMALL_BYTES), hop_ms(summary, "zenoh", TENSOR_BYTES)
+    tcp_small, tcp_tensor = hop_ms(summary, "tcp", SMALL_BYTES), hop_ms(summary, "tcp", TENSOR_BYTES)
     goals = (
         ("3 processes", "scan, tensor, detections", OVERHEAD_GOAL_P50_MS,
          2 * small + tensor, 2 * tcp_small + tcp_tensor),
@@ -132,15 +140,10 @@ def main(argv: list[str] | None = None) -> int:
     message_cpu = [
         cpu_per_message(kind, size, goal_rate, args.cpu_seconds, args.idle)
         for kind in ("zenoh", "tcp")
-        for size in (SMALL_BYTES, TENSOR_BYTES)
+        for size in PAYLOADS
     ]
-    round_trips = [
-        run_case(kind, "default" if kind == "zenoh" else "-", size, args.count, args.rate, args.idle)
-        | {"round": round_index}
-        for round_index in range(args.rounds)  # the cases take turns, so a slow minute hits them all
-        for kind in ("zenoh", "tcp")
-        for size in (SMALL_BYTES, TENSOR_BYTES)
-    ]
+    cases = [("zenoh", "default", size) for size in PAYLOADS] + [("tcp", "-", size) for size in PAYLOADS]
+    round_trips = run_cases_in_turns(cases, args.rounds, args.count, args.rate, args.idle)
     report: dict[str, Any] = {
         "latency": latency_floors(round_trips),
         "fleet": fleet_floors(bound, message_cpu, cores),

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import socket
 import subprocess
@@ -41,12 +42,12 @@ import numpy as np
 from bench.harness import cpu_spinners, proc_cpu_s, thread_wakeups
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
-from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH
+from common.model_spec import TENSOR_SHAPE
 from services.launcher import free_tcp_ports
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
-TENSOR_BYTES: Final[int] = RANGE_ROWS * IMAGE_WIDTH * STACK_DEPTH  # the stacked uint8 tensor: 73,728
+TENSOR_BYTES: Final[int] = math.prod(TENSOR_SHAPE)  # the stacked uint8 tensor: 73,728
 SMALL_BYTES: Final[int] = 100  # stands in for a scan or a detections message (both larger)
 PAYLOADS: Final[tuple[int, ...]] = (SMALL_BYTES, TENSOR_BYTES)
 VARIANTS: Final[tuple[str, ...]] = (
@@ -526,6 +527,21 @@ def run_case(
             "wakeups_per_round_trip": wakeups.per_round_trip}  # fmt: skip
 
 
+def run_cases_in_turns(
+    cases: list[tuple[str, str, int]], rounds: int, count: int, rate_hz: float, idle_s: float = DEFAULT_IDLE_S
+) -> list[dict[str, Any]]:
+    """Every (kind, variant, bytes) case ``rounds`` times, the cases taking turns within a round so
+    that a slow minute of the VM hits them all; each result carries its ``round``."""
+    results = []
+    for round_index in range(rounds):
+        for kind, variant, size in cases:
+            result = run_case(kind, variant, size, count, rate_hz, idle_s) | {"round": round_index}
+            log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
+                     result["sent"], result["rtt_ms"])  # fmt: skip
+            results.append(result)
+    return results
+
+
 def median_p50s(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per case: the median over rounds of its p50 round trip and of each side's thread
     wake-ups per round trip (summed over the side's threads)."""
@@ -594,16 +610,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown --variants {sorted(unknown)}; choose from {', '.join(VARIANTS)}")
     cases = [("zenoh", variant, size) for variant in variants for size in PAYLOADS]
     cases += [("tcp", "-", size) for size in PAYLOADS]
-    results = []
     with cpu_spinners(args.busy):  # --busy: tell wake-up costs from work per message
-        for round_index in range(args.rounds):  # the cases take turns, so a slow minute hits them all
-            for kind, variant, size in cases:
-                result = run_case(kind, variant, size, args.count, args.rate, args.idle) | {
-                    "round": round_index
-                }
-                log.info("%-5s %-17s %6d B: answered %d/%d, rtt %s", kind, variant, size, result["answered"],
-                         result["sent"], result["rtt_ms"])  # fmt: skip
-                results.append(result)
+        results = run_cases_in_turns(cases, args.rounds, args.count, args.rate, args.idle)
     summary = median_p50s(results)
     for row in summary:
         log.info("median p50 over %d rounds: %-5s %-17s %6d B: %.2f ms, thread wake-ups a round trip %s",
