@@ -66,9 +66,8 @@ class UpConfig:
     rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
     viewer: str = "spawn"  # spawn | web | none, when not headless
     model: Path | None = None
-    batch: int | None = (
-        None  # the detector's --batch (None: it times its own cap, common.inference.timed_batch_cap)
-    )
+    # The detector's --batch (None: it times its own cap, common.inference.timed_batch_cap).
+    batch: int | None = None
     seed: int = 1  # the shipped model trained on seed 0's worlds: show it unseen ones
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
