@@ -59,9 +59,9 @@ BATCH_SUFFIX: Final[str] = "-batch"
 MODELS_DIR: Final[Path] = Path(__file__).resolve().parents[1] / "models"
 MODEL_ENV: Final[str] = "TRISCAN_MODEL"
 # Each shipped network's files and card (MODEL_CARD.json) share one directory: the paper's YOLOv8n in
-# models/ itself, the pico in models/yolov8p/, the pico with 12 DFL bins in models/yolov8p-dfl12/. The
-# default is the 12-bin pico: it meets every accuracy goal on unseen worlds in fp32 and INT8 and runs
-# faster than the 16-bin pico and YOLOv8n (models/yolov8p-dfl12/MODEL_CARD.md).
+# models/ itself, the pico with 12 DFL bins in models/yolov8p-dfl12/. The default is the 12-bin pico:
+# it meets every accuracy goal on unseen worlds in fp32 and INT8 and runs faster than YOLOv8n
+# (models/yolov8p-dfl12/MODEL_CARD.md).
 SHIPPED_DIR: Final[Path] = MODELS_DIR / "yolov8p-dfl12"
 SHIPPED_STEM: Final[str] = "triscan-yolov8p-dfl12-zero"
 SHIPPED_FP32_MODEL: Final[Path] = SHIPPED_DIR / f"{SHIPPED_STEM}.onnx"

@@ -432,8 +432,8 @@ def _add_card(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--compare-notes", type=Path, default=None, help="markdown: what the comparison shows")
     p.add_argument(
         "--compare-curve", type=_network_and_csv, default=None, metavar="NETWORK=RESULTS_CSV",
-        help="another network's results.csv on the same data, e.g. yolov8n=training/checkpoints/"
-        "n_dr_results.csv: its val curve beside this run's, epoch for epoch",
+        help="another network's results.csv on the same data, e.g. yolov8n=runs/n_dr/results.csv: "
+        "its val curve beside this run's, epoch for epoch",
     )  # fmt: skip
     p.add_argument(
         "--compare-curve-epochs-before", type=int, default=0, metavar="N",

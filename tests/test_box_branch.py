@@ -12,11 +12,10 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("ultralytics")
 
-from common.model_spec import MODELS_DIR  # noqa: E402
+from common.model_spec import PAPER_CHECKPOINT  # noqa: E402
 from training.box_branch import EDGES, bin_rows, kept_channels, narrow_box_branch  # noqa: E402
 
 PICO_NECK = (32, 64, 128)  # the pico's P3, P4, P5 widths: what the head's branches read
-PICO_16_BINS = MODELS_DIR / "yolov8p" / "triscan-yolov8p-zero.pt"  # the 16-bin pico, trained
 
 
 def _detect_head(bins: int, neck: tuple[int, ...] = PICO_NECK) -> Any:
@@ -84,19 +83,20 @@ def test_a_head_over_another_neck_is_refused() -> None:
 
 
 def test_a_fine_tune_to_fewer_bins_starts_from_the_cut_trained_branch(tmp_path: Path) -> None:
-    """``initial_model`` with ``--dfl-bins 12 --init`` the trained 16-bin pico: the requested network,
-    every other tensor the trained one's, the box branch the trained branch cut (not random weights)."""
+    """``initial_model`` with ``--dfl-bins 12 --init`` a trained 16-bin network (the paper's YOLOv8n, whose
+    box branch is as wide as the pico's): the requested network, every other tensor the trained one's,
+    the box branch the trained branch cut (not random weights)."""
     from training.offline import configure_offline
     from training.train import TrainConfig, initial_model
 
     configure_offline()
     model = initial_model(
         TrainConfig(
-            data=tmp_path / "data.yaml", out=tmp_path / "run", arch="p", dfl_bins=12, init=PICO_16_BINS
+            data=tmp_path / "data.yaml", out=tmp_path / "run", arch="n", dfl_bins=12, init=PAPER_CHECKPOINT
         )
     )
     network = model.model
-    source = torch.load(PICO_16_BINS, map_location="cpu", weights_only=False)
+    source = torch.load(PAPER_CHECKPOINT, map_location="cpu", weights_only=False)
     source_network = (source.get("ema") or source["model"]).float()
     head, source_head = network.model[-1], source_network.model[-1]
     assert (head.reg_max, source_head.reg_max, network.yaml["reg_max"]) == (12, 16, 12)

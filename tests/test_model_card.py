@@ -9,12 +9,23 @@ from typing import Any
 
 import pytest
 
-from common.model_spec import SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL, model_stem, network_of_stem
+from common.model_spec import (
+    SHIPPED_DIR,
+    SHIPPED_FP32_MODEL,
+    SHIPPED_INT8_MODEL,
+    SHIPPED_MODEL,
+    model_stem,
+    network_of_stem,
+)
 from training.model_card import (
+    STATUS_MARK,
     CurveComparison,
     GridSection,
     _float_parts_of_int8,
+    card_status,
     checkpoint_epoch,
+    refresh_status,
+    shipped_card_dirs,
     write_card,
 )
 
@@ -289,3 +300,62 @@ def test_compare_curve_takes_network_equals_csv(text: str) -> None:
     assert _network_and_csv("yolov8n=runs/n/results.csv") == ("yolov8n", Path("runs/n/results.csv"))
     with pytest.raises(argparse.ArgumentTypeError, match="NETWORK=RESULTS_CSV"):
         _network_and_csv(text)
+
+
+def test_the_card_takes_its_status_from_the_model_spec(tmp_path: Path) -> None:
+    """A card of files other than the spec's default says it ships beside the default; only the
+    default's fp32 file name makes a card the default."""
+    card = card_of(tmp_path, {"clean": 0.98})
+    text = (tmp_path / "card" / "MODEL_CARD.md").read_text()
+    assert card["status"] == "beside the default" and "the default model" not in text
+    assert f"{STATUS_MARK} shipped beside the default** (`models/{SHIPPED_DIR.name}/`)" in text
+    assert "`--model models/triscan-yolov8p-zero-int8.onnx`" in text  # the card's recommended file
+    assert card_status(SHIPPED_FP32_MODEL.name) == "default"
+    assert card_status(SHIPPED_INT8_MODEL.name) == card_status("triscan-yolov8n-zero.onnx") != "default"
+
+
+def test_a_status_refresh_rewrites_the_status_and_nothing_else(tmp_path: Path) -> None:
+    card_of(tmp_path, {"clean": 0.98})
+    out = tmp_path / "card"
+    before_md, before_json = (
+        (out / "MODEL_CARD.md").read_text(),
+        json.loads((out / "MODEL_CARD.json").read_text()),
+    )
+    claimed = before_json | {"files": before_json["files"] | {"fp32": SHIPPED_FP32_MODEL.name}}
+    (out / "MODEL_CARD.json").write_text(json.dumps(claimed, indent=2) + "\n")
+    refreshed = refresh_status(out)
+    assert refreshed["status"] == "default" and list(refreshed) == list(before_json)
+    text = (out / "MODEL_CARD.md").read_text()
+    assert f"{STATUS_MARK} the default model.**" in text and f"runs `{SHIPPED_MODEL.name}`" in text
+    status = [p for p in before_md.split("\n\n") if p.startswith(STATUS_MARK)]
+    assert len(status) == 1 and text.replace(text.split("\n\n")[2], status[0]) == before_md
+    (out / "MODEL_CARD.md").write_text(text + f"\n{STATUS_MARK} twice**\n")
+    with pytest.raises(ValueError, match="2 status paragraphs"):
+        refresh_status(out)
+
+
+def test_the_shipped_cards_status_is_what_the_spec_writes(tmp_path: Path) -> None:
+    """Refreshing every shipped card from the spec changes none of them (`python -m training.model_card`
+    wrote them), and exactly one, the spec's default directory, says it is the default."""
+    import shutil
+
+    statuses = {}
+    for directory in shipped_card_dirs():
+        copy = tmp_path / directory.name
+        shutil.copytree(directory, copy, ignore=shutil.ignore_patterns("*.onnx", "*.pt"))
+        statuses[directory] = refresh_status(copy)["status"]
+        for name in ("MODEL_CARD.md", "MODEL_CARD.json"):
+            assert (copy / name).read_text() == (directory / name).read_text(), (directory, name)
+    assert [d for d, status in statuses.items() if status == "default"] == [SHIPPED_DIR]
+    assert len(statuses) >= 2
+
+
+def test_each_card_embeds_its_notes_verbatim() -> None:
+    """The notes files are the cards' inputs (`triscan card --notes`, `--compare-notes`): a card and its
+    notes say the same thing, so the notes can regenerate the card."""
+    for directory in shipped_card_dirs():
+        text = (directory / "MODEL_CARD.md").read_text()
+        notes = sorted(directory.glob("*_notes.md"))
+        assert notes, directory
+        for path in notes:
+            assert path.read_text().strip() in text, path

@@ -7,7 +7,8 @@ metric that ships: every recipe (activation-range method × stem quantised or fl
 the same fp32 file and calibration images, then evaluated through
 :class:`common.inference.OnnxDetector` on the same samples of one split, beside the fp32 model.
 
-    python -m training.int8_recipes --fp32 models/yolov8p/triscan-yolov8p-zero.onnx --data data/train_dr
+    python -m training.int8_recipes --fp32 models/yolov8p-dfl12/triscan-yolov8p-dfl12-zero.onnx \\
+        --data data/train_dr
 """
 
 from __future__ import annotations
