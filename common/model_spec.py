@@ -56,7 +56,26 @@ DEFAULT_BOX_GRID: Final[BoxGrid] = "none"
 MODEL_PREFIX: Final[str] = "triscan-"
 INT8_SUFFIX: Final[str] = "-int8"
 BATCH_SUFFIX: Final[str] = "-batch"
-MODELS_DIR: Final[Path] = Path(__file__).resolve().parents[1] / "models"
+MODELS_PACKAGE: Final[str] = "triscan_models"  # models/ once installed (pyproject.toml, docs/packaging.md)
+
+
+def _models_dir() -> Path:
+    """The shipped models: ``models/`` beside the code in a source checkout, else the installed package
+    :data:`MODELS_PACKAGE`, so a non-editable install finds them from any directory. The checkout's own
+    directory wins over an installed copy, so a checkout never runs another install's models."""
+    beside = Path(__file__).resolve().parents[1] / "models"
+    if (beside / "MODEL_CARD.json").is_file():  # the paper's card: triscan's models/, not a namesake
+        return beside
+    from importlib.resources import files
+
+    try:
+        installed = files(MODELS_PACKAGE)
+    except ModuleNotFoundError:
+        return beside  # neither: opening a model names the path it looked for
+    return installed if isinstance(installed, Path) else beside
+
+
+MODELS_DIR: Final[Path] = _models_dir()
 MODEL_ENV: Final[str] = "TRISCAN_MODEL"
 # Each shipped network's files and card (MODEL_CARD.json) share one directory: the paper's YOLOv8n in
 # models/ itself, the pico with 12 DFL bins in models/yolov8p-dfl12/. The default is the 12-bin pico:

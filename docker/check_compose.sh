@@ -5,8 +5,8 @@
 # act as a ROS 2 node on rmw_zenoh inside the ros2_bridge container (docker/check_ros2_bridge.py:
 # LaserScans in, Detection3DArrays back), `podman-compose down`, print a summary. Exits non-zero unless
 # every simulated robot delivered detections to the host, the bridge answered the ROS 2 node, the robot
-# image holds rosbags but no torch/pybullet/rerun, every container is still running, and the web viewer
-# answers.
+# image holds rosbags but no torch/pybullet/rerun, `triscan status` in the detector's container lists the
+# services, every container is still running, and the web viewer answers.
 #   docker/check_compose.sh        env: DURATION=30 ROBOTS=2 BASE_IMAGE=triscan-base:bookworm
 #                                       CA_BUNDLE=/etc/ssl/certs/ca-certificates.crt PIP_INDEX_URL= KEEP_UP=0
 # The podman setup it needs (and was proven with) is in docker/podman-host.sh.
@@ -73,6 +73,10 @@ $PY docker/check_subscriber.py --connect tcp/127.0.0.1:7447 --duration "$DURATIO
 log "ROS 2 node on rmw_zenoh -> ros2_bridge -> encoder -> detector -> Detection3DArray"
 podman exec -i "${PROJECT}_ros2_bridge_1" python - --connect tcp/127.0.0.1:7447 < docker/check_ros2_bridge.py \
     | tee /tmp/triscan-check-ros2.txt || status=1
+
+log "triscan status inside the detector's container (the robot image's installed command)"
+podman exec "${PROJECT}_detector_1" triscan status --connect tcp/127.0.0.1:7447 --no-multicast \
+    | tee /tmp/triscan-check-status.txt || status=1
 
 log "containers after the run"
 for svc in simulator encoder detector ros2_bridge visualizer; do

@@ -49,7 +49,8 @@ build_args() {
 }
 
 # check_robot_image IMAGE: the robot image is slim (no torch, PyBullet, rerun, Ultralytics), holds the
-# `ros2` extra (rosbags) for the ROS 2 bridge, and the bridge starts in it.
+# `ros2` extra (rosbags) for the ROS 2 bridge, the bridge starts in it, and the installed `triscan`
+# command finds its default model in the installed package.
 check_robot_image() {
     local image=$1 pkgs
     pkgs=$(podman run --rm --entrypoint python "$image" -c \
@@ -59,4 +60,9 @@ check_robot_image() {
     if ! grep -qw rosbags <<<"$pkgs"; then echo "FAIL: $image lacks rosbags (the ros2 extra)"; return 1; fi
     podman run --rm --entrypoint python "$image" -m services.ros2_bridge --help >/dev/null \
         || { echo "FAIL: services.ros2_bridge does not start in $image"; return 1; }
+    podman run --rm --entrypoint triscan "$image" --help >/dev/null \
+        || { echo "FAIL: the triscan command does not start in $image"; return 1; }
+    podman run --rm --entrypoint python "$image" -c \
+        'from common.model_spec import default_model_path as d; assert d().is_file() and d(True).is_file(), d()' \
+        || { echo "FAIL: $image lacks the default model"; return 1; }
 }

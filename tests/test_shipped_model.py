@@ -13,6 +13,7 @@ import json
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from fnmatch import fnmatch
 from pathlib import Path
 from typing import Any
 
@@ -168,23 +169,45 @@ def test_every_dockerfile_copy_finds_files_in_the_build_context() -> None:
 
 
 def test_the_robot_image_ships_the_default_model() -> None:
-    """docker/Dockerfile's robot stage copies the files the detector runs when given no model (the
-    default and its -batch variant), wherever common.model_spec puts them, and .dockerignore lets them
-    into the build context (it once kept a new default's directory out, and the build failed)."""
-    from fnmatch import fnmatch
-
+    """docker/Dockerfile's robot stage takes its venv from the stage that installs triscan from a copy of
+    the repository: that copy holds the files the detector runs when given no model (the default and its
+    -batch variant, wherever common.model_spec puts them) and what makes them the installed package, and
+    .dockerignore lets them into the build context (it once kept a new default's directory out, and the
+    build failed)."""
     from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 
-    dockerignore = (MODELS_DIR.parent / ".dockerignore").read_text()
-    stages = (MODELS_DIR.parent / "docker" / "Dockerfile").read_text().split("\nFROM ")
-    robot = next(stage for stage in stages if stage.split("\n", 1)[0].endswith(" AS robot"))
-    sources = [line.split()[1] for line in robot.splitlines() if line.startswith("COPY models/")]
+    root = MODELS_DIR.parent
+    dockerignore = (root / ".dockerignore").read_text()
+    stages = {
+        stage.split("\n", 1)[0].split(" AS ")[-1].strip(): stage
+        for stage in (root / "docker" / "Dockerfile").read_text().split("\nFROM ")
+    }
+    assert "COPY --from=venv-robot /opt/venv /opt/venv" in stages["robot"]
+    installing = stages["venv-robot"]
+    assert "pip-install.sh --project /tmp/triscan" in installing
+    sources = [
+        source
+        for line in installing.splitlines()
+        if line.startswith("COPY ") and "--from=" not in line
+        for source in line.split()[1:-1]
+    ]
 
-    def copied(relative: str) -> bool:  # fnmatch's * crosses "/": a glob matches only its own directory
-        return any(fnmatch(relative, s) and relative.count("/") == s.count("/") for s in sources)
+    def copied(relative: str) -> bool:  # a directory copies what is below it; a glob only its own level
+        return any(
+            relative == s
+            or relative.startswith(f"{s}/")
+            or (fnmatch(relative, s) and relative.count("/") == s.count("/"))
+            for s in sources
+        )
 
-    for model in (SHIPPED_MODEL, SHIPPED_BATCH_MODEL):
-        relative = model.relative_to(MODELS_DIR.parent).as_posix()
+    needed = [
+        SHIPPED_MODEL,
+        SHIPPED_BATCH_MODEL,
+        SHIPPED_MODEL.parent / "MODEL_CARD.json",
+        MODELS_DIR / "__init__.py",
+    ]
+    for path in [*needed, root / "pyproject.toml", root / "README.md"]:
+        relative = path.relative_to(root).as_posix()
         assert copied(relative), (relative, sources)
         assert _in_build_context(relative, dockerignore), f"{relative} is left out by .dockerignore"
 
