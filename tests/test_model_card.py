@@ -359,3 +359,26 @@ def test_each_card_embeds_its_notes_verbatim() -> None:
         assert notes, directory
         for path in notes:
             assert path.read_text().strip() in text, path
+
+
+def test_the_models_readme_states_each_cards_figures() -> None:
+    """models/README.md's table quotes the cards: each shipped card's test-split and clean unseen-world
+    figures and its export latency, in the row that links the card."""
+    import re
+
+    readme = (SHIPPED_DIR.parent / "README.md").read_text()
+    for directory in shipped_card_dirs():
+        card = json.loads((directory / "MODEL_CARD.json").read_text())
+        link = (directory / "MODEL_CARD.md").relative_to(SHIPPED_DIR.parent).as_posix()
+        (row,) = [line for line in readme.splitlines() if f"]({link})" in line]
+
+        def pair(figures: dict[str, float]) -> str:
+            return f"{figures['mAP50']:.3f} / {figures['mAP50-95']:.3f}"
+
+        test, unseen = card["test"], card["unseen_worlds"]
+        assert f"fp32 {pair(test['fp32'])}, INT8 {pair(test['int8'])}" in row, directory
+        clean = f"fp32 {pair(unseen['fp32']['clean'])}, INT8 {pair(unseen['int8']['clean'])}"
+        assert clean in row, directory
+        latency = re.search(r"^fp32 \S+ ms, INT8 \S+ ms", (directory / "MODEL_CARD.md").read_text(), re.M)
+        assert latency and latency.group(0) in row, directory
+        assert (card["status"] == "default") == ("**default**" in row), directory
