@@ -3,7 +3,7 @@
 Runs ``training.dataset.generate_dataset`` (what ``triscan dataset`` runs) on ``--scenarios`` worlds at
 the paper's 90 positions and every window kept (stride 1, as the paper), into a temporary directory,
 and extrapolates the measured rate to the paper's 160 scenarios. ``--scenarios 160`` measures the full
-scale instead of extrapolating (about 10 minutes on 2 cores).
+scale instead of extrapolating.
 
     python -m bench.dataset_rate --scenarios 16
 """

@@ -2,12 +2,12 @@
 
 The bound is what the network alone could do on this machine: the default detector model's best
 throughput (frames/s) over batch sizes and the ways to use every core (one session with one or all
-ONNX Runtime threads, or one single-threaded session per core at once), no Zenoh, no encoder
-(``bench.batch_inference``'s measurements). Divided by the scan rate it is the most robots any
-pipeline could serve here. Then ``bench.fleet_capacity`` climbs a ladder of robot counts at fractions
-of that bound with the detector left to its own defaults (``--detector-defaults``: no ``--workers``,
-``--batch`` or ``--threads``), and the share of the bound it holds (p99 < 100 ms, ≥ 95 % answered,
-flat memory) is the figure the pipeline-overhead issue asks for (goal ≥ 80 %). Each step's CPU per
+ONNX Runtime threads, or one single-threaded session per core at once), no Zenoh, no encoder.
+Divided by the scan rate it is the most robots any pipeline could serve here. Then
+``bench.fleet_capacity`` climbs a ladder of robot counts at fractions of that bound with the detector
+left to its own defaults (``--detector-defaults``: no ``--workers``, ``--batch`` or ``--threads``),
+and the share of the bound it holds (p99 < 100 ms, ≥ 95 % answered, flat memory) is the fleet goal's
+figure (goal ≥ ``FLEET_GOAL_SHARE``). Each step's CPU per
 answered scan, process by process, says how far the whole pipeline's cost per scan is from the
 network's own (:func:`cpu_per_scan`).
 
@@ -25,33 +25,98 @@ import logging
 import math
 import os
 import tempfile
+import threading
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from bench import batch_inference, fleet_capacity
+import numpy as np
+
+from bench import fleet_capacity
+from bench.harness import recorded_scans
 from bench.machine import machine_info
-from common.inference import detector_model_and_batch
+from common.encoding import to_model_input
+from common.inference import detector_model_and_batch, session_options
+from services.encoder.core import EncoderCore
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 FRACTIONS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)  # from low: a VM minute can fail 50 %
-FLEET_GOAL_SHARE = 0.8  # the pipeline-overhead issue's goal: the fleet held ÷ the compute bound
+FLEET_GOAL_SHARE = 0.8  # the fleet goal: the robots held ÷ the compute bound
+BOUND_FRAMES = 64  # distinct real frames the bound's batches are cut from in turn
+BOUND_BATCHES = (1, 2, 4, 8)  # the batch sizes the detector may pick
+
+
+def real_model_inputs(count: int) -> np.ndarray:
+    """``float32[count, 3, 64, 384]``: simulated scans through the encoder and the detector's conversion,
+    so the network sees the sparsity it sees in service."""
+    encoder = EncoderCore("zero")
+    inputs = []
+    for scan in recorded_scans(count + 2, seed=11):
+        tensor = encoder.push(scan)
+        if tensor is not None:
+            inputs.append(to_model_input(tensor.tensor))
+    return np.concatenate(inputs[:count])
+
+
+def frames_per_s(
+    model: Path, sessions: int, threads: int, batch: int, seconds: float, frames: np.ndarray
+) -> float:
+    """Frames/s of ``sessions`` ONNX Runtime sessions of ``threads`` threads each running ``model`` at
+    once, one Python thread each (ONNX Runtime releases the GIL), ``batch`` frames a call: the
+    detector's ``--workers sessions --threads threads`` on the network alone."""
+    import onnxruntime as ort
+
+    runners = [
+        ort.InferenceSession(str(model), session_options(threads), providers=["CPUExecutionProvider"])
+        for _ in range(sessions)
+    ]
+    name = runners[0].get_inputs()[0].name
+    feeds = [
+        {name: np.take(frames, range(i, i + batch), axis=0, mode="wrap")}
+        for i in range(0, len(frames), batch)
+    ]
+    for runner in runners:
+        for feed in feeds[:3]:
+            runner.run(None, feed)
+    counts = [0] * sessions
+    go, stop = threading.Barrier(sessions + 1), threading.Event()
+
+    def serve(index: int) -> None:
+        go.wait()
+        while not stop.is_set():
+            runners[index].run(None, feeds[counts[index] % len(feeds)])
+            counts[index] += 1
+
+    workers = [threading.Thread(target=serve, args=(i,)) for i in range(sessions)]
+    for worker in workers:
+        worker.start()
+    go.wait()  # every session starts at once
+    started = time.perf_counter()
+    time.sleep(seconds)
+    stop.set()
+    for worker in workers:
+        worker.join()
+    return sum(counts) * batch / (time.perf_counter() - started)
 
 
 def compute_bound(model: Path, seconds: float) -> dict[str, object]:
     """Best frames/s of ``model`` (the network alone) over batch sizes and the ways to use the cores:
     one session with 1 or all threads, or one single-threaded session per core running at once."""
-    frames = batch_inference.real_model_inputs(batch_inference.FRAMES)
+    frames = real_model_inputs(BOUND_FRAMES)
     cores = os.cpu_count() or 1
-    batches = [1, 2, 4, 8]
-    report = batch_inference.measure([model], batches, sorted({1, cores}), seconds, frames)
-    rows = [
-        {"workers": 1, "threads": r.threads, "batch": r.batch, "frames_per_s": round(1e3 / r.ms_per_image, 1)}
-        for r in report.rows
-    ]
-    if cores > 1:
-        rows += batch_inference.measure_parallel_sessions(model, cores, batches, seconds, frames)
+    ways = sorted({(1, 1), (1, cores), (cores, 1)})
+    rows = []
+    for sessions, threads in ways:
+        for batch in BOUND_BATCHES:
+            rate = frames_per_s(model, sessions, threads, batch, seconds, frames)
+            rows.append(
+                {"workers": sessions, "threads": threads, "batch": batch, "frames_per_s": round(rate, 1)}
+            )
+            log.info(
+                "%s: %d x %d threads, batch %d: %.1f frames/s", model.name, sessions, threads, batch, rate
+            )
     best = max(rows, key=lambda row: row["frames_per_s"])
     return {
         "model": model.name,

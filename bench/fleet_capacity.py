@@ -18,9 +18,6 @@ Pi 5 running ``services.encoder`` next to its LiDAR, the design card's robot) an
 so this host runs the detector alone. This process then publishes recorded tensors (the encoder's
 output for the recorded scans, re-stamped per robot and tick) straight onto the tensor keys.
 
-``--profile-detector`` also samples the detector's threads with py-spy over each measured window and
-reports which piece of its code the samples fell in (``bench.sampling_profile``).
-
     python -m bench.fleet_capacity --ladder 10,20,30,40,50 --seconds 20 --workers 2
     python -m bench.fleet_capacity --ladder 10,15,20,25 --workers 1 --threads 2 --batch 8
 """
@@ -32,7 +29,6 @@ import json
 import logging
 import os
 import subprocess
-import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -43,7 +39,6 @@ import numpy as np
 
 from bench.harness import (
     add_detector_model_argument,
-    pin_named_threads,
     proc_cpu_s,
     proc_status_mb,
     recorded_scans,
@@ -52,19 +47,10 @@ from bench.harness import (
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
-from bench.sampling_profile import (
-    PROFILE_RATE_HZ,
-    Recording,
-    detector_profile,
-    finish_recording,
-    py_spy_path,
-    start_recording,
-)
 from common.inference import detector_model_and_batch, model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
-from services.detector.core import INFERENCE_THREAD_PREFIX
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
 
@@ -96,10 +82,6 @@ class FleetStep:
     # The detector's cores by thread name: its inference threads, Zenoh's threads, "python" (main and
     # Zenoh's callback thread).
     detector_thread_cores: dict[str, float] = field(default_factory=dict)
-    # --pin-inference-threads: the CPU each inference thread was pinned to for the window.
-    pinned_threads: dict[str, int] = field(default_factory=dict)
-    # --profile-detector: where the detector's threads spent the window (bench.sampling_profile).
-    detector_profile: dict[str, Any] = field(default_factory=dict)
     passed: bool = False
     why_not: str = ""
 
@@ -150,7 +132,6 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
     robot_ids = [f"fleet{i:03d}" for i in range(robots)]
     published: dict[tuple[str, int], int] = {}
     received: dict[tuple[str, int], int] = {}
-    recording: Recording | None = None
     lock = threading.Lock()
 
     def on_detections(sample: Any) -> None:
@@ -173,11 +154,7 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
             wait_for_subscriber(session, key(robot_ids[0]))
             if runs_encoder(args):
                 wait_for_subscriber(session, tensor_key(robot_ids[0]))
-            with tempfile.TemporaryDirectory(prefix="triscan-fleet-profile-") as scratch:
-                profile_out = Path(scratch) / "detector.txt" if args.profile_detector else None
-                published, recording = _publish_fleet(
-                    step, robot_ids, publishers, frames, args, children, received, lock, profile_out
-                )
+            published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
             step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
@@ -190,10 +167,6 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
     finally:
         stop_processes(children, grace_s=30)
     _judge_step(step, published, received, args)
-    if recording is not None:
-        step.detector_profile = detector_profile(
-            recording, step.scans_answered, PROFILE_RATE_HZ, args.seconds
-        )
     return step
 
 
@@ -212,7 +185,6 @@ def _start_services(
     )
     detector_args = (
         *tuning,
-        *(("--batch-window-ms", str(args.batch_window_ms)) if args.batch_window_ms is not None else ()),
         *(("--no-spin",) if args.no_spin else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
@@ -246,13 +218,11 @@ def _publish_fleet(
     children: dict[str, subprocess.Popen[bytes]],
     received: dict[tuple[str, int], int],
     lock: threading.Lock,
-    profile_out: Path | None = None,
-) -> tuple[dict[tuple[str, int], int], Recording | None]:
+) -> dict[tuple[str, int], int]:
     """Publish every robot's frames at ``--rate`` through warm-up and the measured window.
 
     Returns the publish stamp of each (robot, seq) sent in the measured window, which starts once
-    warm-up is over and every robot has been answered, and with ``profile_out`` the detector's
-    samples over that window; records RSS and publish lag into ``step``.
+    warm-up is over and every robot has been answered; records RSS, CPU and publish lag into ``step``.
     """
     robots = len(robot_ids)
     published: dict[tuple[str, int], int] = {}
@@ -262,7 +232,6 @@ def _publish_fleet(
     start = time.monotonic()
     tick = 0
     measure_from: float | None = None  # once every robot has been answered and warm-up is over
-    recorder: subprocess.Popen[bytes] | None = None
     while measure_from is None or time.monotonic() - measure_from < args.seconds:
         due = start + tick * period
         if (now := time.monotonic()) < due:
@@ -271,14 +240,10 @@ def _publish_fleet(
             with lock:
                 answered = {rid for rid, _ in received}
             if len(answered) == robots:
-                if args.pin_inference_threads:
-                    step.pinned_threads = pin_named_threads(children["detector"].pid, INFERENCE_THREAD_PREFIX)
                 measure_from = time.monotonic()
                 step.rss_mb_start = _rss_mb(children)
                 cpu_start = _cpu_s(children)
                 threads_start = thread_cpu_s(children["detector"].pid)
-                if profile_out is not None:
-                    recorder = start_recording(children["detector"].pid, args.seconds, profile_out)
             elif time.monotonic() - start > MAX_WARM_UP_S:
                 step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
                 break
@@ -312,8 +277,7 @@ def _publish_fleet(
         step.detector_thread_cores = {
             name: round(cores, 3) for name, cores in sorted(used.items(), key=lambda item: -item[1])
         }
-    recording = finish_recording(recorder, profile_out) if recorder is not None and profile_out else None
-    return published, recording
+    return published
 
 
 def _cpu_s(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
@@ -392,22 +356,6 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the robots send tensors (their own encoder on board): this host runs the detector alone",
     )
-    parser.add_argument(
-        "--batch-window-ms",
-        type=float,
-        default=None,
-        help="detector --batch-window-ms (default: the detector's own)",
-    )
-    parser.add_argument(
-        "--pin-inference-threads",
-        action="store_true",
-        help="diagnostic: pin the detector's inference-N threads to CPU N for the measured window",
-    )
-    parser.add_argument(
-        "--profile-detector",
-        action="store_true",
-        help="sample the detector's threads with py-spy over each measured window (bench.sampling_profile)",
-    )
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)
     parser.add_argument("--rss-growth-mb", type=float, default=20.0)
@@ -418,8 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def parse_step_args(argv: list[str] | None = None) -> argparse.Namespace:
-    """This bench's flags, parsed and checked together, before any process starts; ``bench.fleet_ab``
-    and ``bench.fleet_batch_ab`` build their step settings with it too."""
+    """This bench's flags, parsed and checked together, before any process starts."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.from_scans and args.encode_on_robots:
@@ -428,11 +375,6 @@ def parse_step_args(argv: list[str] | None = None) -> argparse.Namespace:
         detector_model(args)
     except ValueError as exc:  # a --batch the model cannot take: the detector would refuse it too
         parser.error(str(exc))
-    if args.profile_detector:
-        try:
-            py_spy_path()
-        except FileNotFoundError as exc:
-            parser.error(str(exc))
     return args
 
 
@@ -472,7 +414,6 @@ def main(argv: list[str] | None = None) -> int:
         "workers": "detector default" if args.detector_defaults else args.workers,
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
-        "batch_window_ms": "detector default" if args.batch_window_ms is None else args.batch_window_ms,
         "from_scans": args.from_scans,
         "encode_on_robots": args.encode_on_robots,
         "model": detector_model(args).name,

@@ -1,23 +1,18 @@
 """What benchmarks (and the tests of real processes) need around the services: start one by hand,
-read a process's memory, real scans recorded up front so a timed loop simulates nothing, frames timed
-one per period as a robot sends them, and spinning processes that keep every CPU awake (``--busy``)."""
+read a process's memory and CPU, real scans recorded up front so a timed loop simulates nothing, and
+frames timed one per period as a robot sends them."""
 
 from __future__ import annotations
 
 import argparse
 import os
-import resource
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
-import numpy as np
-
-from common.encoding import ScanStacker
 from common.messages import Scan
 from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
@@ -49,28 +44,6 @@ def start_loopback_service(
     return subprocess.Popen(
         command, cwd=Path(__file__).resolve().parents[1], env=child_environment(), **popen_kwargs
     )
-
-
-@contextmanager
-def cpu_spinners(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
-    """``count`` lowest-priority processes spinning for the duration, one per CPU so none idles.
-
-    On a VM an idle vCPU halts, and a thread woken on it may wait for the hypervisor to run it again.
-    With the CPUs kept spinning the same work pays no such wake-up, which tells wake-up costs from work
-    per message (``bench.zenoh_rtt --busy``, ``bench.pipeline_latency --busy``; bench/README.md has
-    what each showed). At nice 19 a spinner yields to any other runnable task; it is a diagnostic,
-    never a setting for a robot (it burns every core it covers).
-    """
-    spinners = [
-        subprocess.Popen([sys.executable, "-c", "import os\nos.nice(19)\nwhile True: pass"])
-        for _ in range(count)
-    ]
-    try:
-        yield spinners
-    finally:
-        for spinner in spinners:
-            spinner.kill()
-            spinner.wait()
 
 
 def proc_status_mb(pid: int, field_name: str = "VmRSS") -> float:
@@ -113,100 +86,19 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return totals
 
 
-def pin_named_threads(pid: int, prefix: str) -> dict[str, int]:
-    """Pin each thread of ``pid`` named ``<prefix><N>`` to the N-th CPU this process may use (modulo
-    their count), from outside the process; returns the CPU each got.
-
-    A diagnostic for ``bench.fleet_capacity --pin-inference-threads``: does the scheduler putting both
-    of the detector's inference threads on one vCPU now and then (while the other runs the encoder or
-    the robots) cost the fleet its tail latency? Linux only (``sched_setaffinity`` on a thread id).
-    """
-    cpus = sorted(os.sched_getaffinity(0))
-    pinned: dict[str, int] = {}
-    for name, thread_id in _per_thread(pid, lambda task: int(task.name)):
-        number = name[len(prefix) :]
-        if not name.startswith(prefix) or not number.isdigit():
-            continue
-        cpu = cpus[int(number) % len(cpus)]
-        try:
-            os.sched_setaffinity(thread_id, {cpu})
-        except ProcessLookupError:
-            continue  # the thread ended between the listing and the pinning
-        pinned[name] = cpu
-    return pinned
-
-
-def _voluntary_switches(task: Path) -> int:
-    for line in (task / "status").read_text().splitlines():
-        if line.startswith("voluntary_ctxt_switches:"):
-            return int(line.split()[1])
-    raise RuntimeError(f"{task}/status has no voluntary_ctxt_switches")
-
-
-def thread_wakeups(pid: int) -> dict[str, int]:
-    """Voluntary context switches per thread name of a live process (threads of one name summed).
-
-    A thread switches voluntarily when it blocks (a socket read, a condition, a channel) and counts
-    one when it is woken again: the difference over a timed loop, per message, is how many times each
-    kind of thread was put to sleep and woken to move one message (``bench.zenoh_rtt``).
-    """
-    totals: dict[str, int] = {}
-    for name, switches in _per_thread(pid, _voluntary_switches):
-        totals[name] = totals.get(name, 0) + switches
-    return totals
-
-
-def _minor_faults() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-
-
-def _wait_for_deadline(deadline: float, spin: bool) -> None:
-    if not spin:
-        time.sleep(max(0.0, deadline - time.monotonic()))
-        return
-    while time.monotonic() < deadline:
-        pass
-
-
-def timed_us(
-    frame: Callable[[int], float],
-    frames: int,
-    period_s: float,
-    spin: bool = False,
-    *,
-    prewarm: Callable[[int], object] | None = None,
-    lead_s: float = 0.0,
-) -> tuple[list[float], int]:
-    """µs of ``frame(i)`` for ``i`` in range(frames), less the µs each call returns as spent elsewhere
-    (e.g. the network, for a bench of what surrounds it), and the minor page faults the frames took;
-    ``period_s`` apart when above 0, the thread sleeping between frames or, with ``spin``, busy (its
-    vCPU never idles). With ``prewarm``, paced frames are each preceded by an untimed ``prewarm(i)``
-    that ends ``lead_s`` before the frame starts: does a throw-away frame just before a real one
-    leave the real one warm?"""
-    if prewarm is not None and not 0.0 < lead_s < period_s:
-        raise ValueError(f"a pre-warmed pass needs 0 < lead_s < period_s, got {lead_s} and {period_s}")
+def timed_us(frame: Callable[[int], object], frames: int, period_s: float) -> list[float]:
+    """µs of each ``frame(i)`` for ``i`` in range(frames), ``period_s`` apart when above 0, the thread
+    sleeping between frames as a service's does between a robot's scans."""
     times = []
-    faults = 0
     next_due = time.monotonic()
     for i in range(frames):
-        faults_before = _minor_faults()
-        frame_started = time.monotonic()
         started = time.perf_counter_ns()
-        excluded_us = frame(i)
-        times.append((time.perf_counter_ns() - started) / 1e3 - excluded_us)
-        faults += _minor_faults() - faults_before
+        frame(i)
+        times.append((time.perf_counter_ns() - started) / 1e3)
         if period_s > 0:
-            if prewarm is None:
-                next_due += period_s
-            else:
-                # The period stretches by the throw-away frame's own time, the lead stays exact. Counted
-                # from this frame's own start, not its due time: a frame that started late (the thread
-                # was preempted) must not bring the next one closer than a period.
-                _wait_for_deadline(frame_started + period_s - lead_s, spin)
-                prewarm(i)
-                next_due = time.monotonic() + lead_s
-            _wait_for_deadline(next_due, spin)
-    return times, faults
+            next_due += period_s
+            time.sleep(max(0.0, next_due - time.monotonic()))
+    return times
 
 
 def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
@@ -219,15 +111,3 @@ def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_
     period_ns = round(1e9 / rate_hz)
     with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
         return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
-
-
-def simulated_tensor(seed: int = 1) -> np.ndarray:
-    """The stacked tensor of three consecutive simulated scans (one robot, world ``seed``)."""
-    stacker = ScanStacker()
-    tensor = None
-    for scan in recorded_scans(3, seed=seed):
-        tensor = stacker.push_scan(
-            scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max
-        )
-    assert tensor is not None
-    return tensor

@@ -11,7 +11,7 @@ of the children is their ``VmHWM``.
 
 The network's bare cost is measured in the same run, first: the same model and thread setting on the
 same recorded tensors, one frame every 1/rate s in this process (``bare_ms``), so ``overhead_ms`` =
-pipeline − bare is what the pipeline adds, free of this VM's drift between runs. The VM also drifts
+pipeline − bare is what the pipeline adds, free of a VM's drift between runs. A VM also drifts
 within a run, between the bare phase and the pipeline phase, by as much as the goal; so
 ``added_per_frame_ms`` takes from each frame's latency that frame's own inference and NMS times: what
 the pipeline added to the very frames it measured.
@@ -21,12 +21,6 @@ the pipeline added to the very frames it measured.
     python -m bench.pipeline_latency --duration 30 --trace trace.csv   # per-frame stage rows too
     python -m bench.pipeline_latency --cfg transport/unicast/lowlatency:true \
         --cfg transport/unicast/qos/enabled:false                    # any zenoh setting, every process
-    python -m bench.pipeline_latency --duration 30 --busy 2      # every CPU kept awake, both phases
-
-``--busy N`` runs N lowest-priority spinning processes through the bare phase and the pipeline phase
-alike (:func:`bench.harness.cpu_spinners`): no CPU ever idles, so no hand-off waits for one to wake.
-What the overhead is then, against the same command without it, is what waking idle CPUs costs the
-pipeline on this machine.
 """
 
 from __future__ import annotations
@@ -43,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import add_detector_model_argument, cpu_spinners, proc_status_mb, start_loopback_service
+from bench.harness import add_detector_model_argument, proc_status_mb, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
@@ -60,7 +54,7 @@ log = logging.getLogger("bench.pipeline_latency")
 
 WARM_UP_S = 3.0  # at least this, and until the first detections came back (peers connect on retry)
 MAX_WARM_UP_S = 60.0
-# The pipeline-overhead issue's goals for ``overhead_ms["p50"]``: three processes, and --from-scans.
+# The goals for ``overhead_ms["p50"]``: three processes, and --from-scans.
 OVERHEAD_GOAL_P50_MS = 1.0
 FROM_SCANS_OVERHEAD_GOAL_P50_MS = 0.5
 
@@ -88,7 +82,6 @@ class LatencyReport:
     # frame, free of the drift between the bare phase and the pipeline phase (p50, p99).
     added_per_frame_ms: dict[str, float] = field(default_factory=dict)
     zenoh_cfg: list[str] = field(default_factory=list)  # --cfg entries every process ran with
-    busy_spinners: int = 0  # lowest-priority spinning processes through both phases (--busy)
     bare_threads: int | None = None  # ONNX Runtime threads of the baseline and the detector (None: all)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
     machine: MachineInfo = field(default_factory=machine_info)
@@ -285,11 +278,7 @@ def bare_frame_latency(model: Path, threads: int | None, rate_hz: float, frames:
     detector = OnnxDetector(model, intra_op_threads=threads)
     detector.warmup()
 
-    def frame(i: int) -> float:
-        detector.detect(tensors[i % len(tensors)])
-        return 0.0  # the whole frame counts
-
-    times_us, _ = timed_us(frame, frames, 1.0 / rate_hz)
+    times_us = timed_us(lambda i: detector.detect(tensors[i % len(tensors)]), frames, 1.0 / rate_hz)
     return {**latency_quantiles_ms([t / 1e3 for t in times_us]), "frames": frames}
 
 
@@ -317,12 +306,6 @@ def main(argv: list[str] | None = None) -> int:
         "--no-shm", action="store_true", help="zenoh shared memory off in every process (the comparison)"
     )
     parser.add_argument(
-        "--busy",
-        type=int,
-        default=0,
-        help="lowest-priority processes spinning through both phases (one per CPU: none idles)",
-    )
-    parser.add_argument(
         "--cfg",
         action="append",
         default=[],
@@ -332,19 +315,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    with cpu_spinners(args.busy):
-        report = run(
-            args.robots,
-            args.rate,
-            args.duration,
-            args.from_scans,
-            args.threads,
-            args.model,
-            trace=args.trace,
-            bare_frames=args.bare_frames,
-            zenoh_cfg=(*(NO_SHM if args.no_shm else ()), *args.cfg),
-        )
-    report.busy_spinners = args.busy
+    report = run(
+        args.robots,
+        args.rate,
+        args.duration,
+        args.from_scans,
+        args.threads,
+        args.model,
+        trace=args.trace,
+        bare_frames=args.bare_frames,
+        zenoh_cfg=(*(NO_SHM if args.no_shm else ()), *args.cfg),
+    )
     write_report(report, args.out)
     if "p50" in report.overhead_ms:
         goal = FROM_SCANS_OVERHEAD_GOAL_P50_MS if args.from_scans else OVERHEAD_GOAL_P50_MS

@@ -1,4 +1,4 @@
-"""The per-thread /proc readings the benchmarks split CPU time and hand-offs by."""
+"""The per-thread /proc readings the benchmarks split CPU time by, and their paced timing."""
 
 from __future__ import annotations
 
@@ -6,7 +6,10 @@ import os
 import threading
 import time
 
-from bench.harness import pin_named_threads, thread_cpu_s, thread_wakeups
+import pytest
+
+from bench import harness
+from bench.harness import thread_cpu_s
 from services.detector.core import name_os_thread
 
 SLEEPS = 5
@@ -40,30 +43,20 @@ class _Probe(threading.Thread):
         self.join(10.0)
 
 
-def test_thread_wakeups_count_each_time_a_named_thread_blocks() -> None:
-    with _Probe() as probe:
-        before = thread_wakeups(os.getpid())
-        probe.go.set()
-        assert probe.slept.wait(10.0)
-        after = thread_wakeups(os.getpid())
-    assert "wake-probe" in before
-    assert after["wake-probe"] - before["wake-probe"] >= SLEEPS
-
-
 def test_thread_cpu_s_names_the_threads_that_used_it() -> None:
     with _Probe():
         seconds = thread_cpu_s(os.getpid())
     assert "wake-probe" in seconds and all(value >= 0.0 for value in seconds.values())
 
 
-def test_pin_named_threads_pins_only_the_numbered_threads_of_that_name() -> None:
-    cpus = sorted(os.sched_getaffinity(0))
-    with _Probe("pin-probe-1") as probe, _Probe("pin-probe-x") as unnumbered:
-        pinned = pin_named_threads(os.getpid(), "pin-probe-")
-        assert probe.native_id is not None and unnumbered.native_id is not None
-        probe_cpus = os.sched_getaffinity(probe.native_id)
-        unnumbered_cpus = os.sched_getaffinity(unnumbered.native_id)
-    expected = cpus[1 % len(cpus)]
-    assert pinned == {"pin-probe-1": expected}
-    assert probe_cpus == {expected}
-    assert unnumbered_cpus == set(cpus) and os.sched_getaffinity(0) == set(cpus)
+def test_paced_timing_sleeps_out_each_period_and_times_only_the_frames(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    sleeps: list[float] = []
+    real_sleep = time.sleep
+    monkeypatch.setattr(harness.time, "sleep", lambda s: (sleeps.append(s), real_sleep(s)))
+    started = time.monotonic()
+    times = harness.timed_us(lambda _: real_sleep(0.005), 3, 0.02)
+    assert time.monotonic() - started >= 0.06  # three frames, each 20 ms apart
+    assert len(sleeps) == 3  # the thread sleeps between frames, as a service's does
+    assert len(times) == 3 and all(us >= 5_000 for us in times)  # each frame's own 5 ms at least

@@ -120,7 +120,7 @@ def test_zenoh_own_flag_names_are_accepted(tmp_path: Path) -> None:
 
 
 def test_the_low_latency_transport_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:
-    """It drops messages larger than its batch (bench.zenoh_rtt --delivery): whoever turns it on hears why."""
+    """It drops messages larger than its batch (docs/benchmarks.md): whoever turns it on hears why."""
     with caplog.at_level("WARNING", logger="common.transport"):
         parse("--cfg", "transport/unicast/qos/enabled:false").to_config()
         assert not caplog.records

@@ -9,7 +9,7 @@ Ultralytics' with one scale entry added, so the ``p`` model trains, exports and 
 Each scale can also be built with ReLU instead of YOLOv8's SiLU (Ultralytics' own ``activation`` key
 in the model YAML). SiLU is ``x·sigmoid(x)``: two more nodes after every conv, which ONNX Runtime runs
 as a lookup and a multiply in INT8 (a quarter of the pico INT8 graph's node time) while ReLU folds
-into the conv itself; ``python -m bench.activation_speed`` times both, untrained, in turns.
+into the conv itself; docs/benchmarks.md (activation_speed) has what each costs.
 
 The Detect head's box branch can also be built with fewer DFL bins (Ultralytics' ``reg_max`` key, 16 by
 default). Its convs are ``max(16, P3 channels / 4, 4 · bins)`` wide at every stride, whatever the
@@ -18,7 +18,7 @@ single cost of the pico network. 8 bins halve that branch; a box edge may then l
 from its anchor (56 px at stride 8, 224 px at stride 32, where the 384-px-wide image's largest objects
 go), and the edge within that range is still the bins' continuous expectation, not rounded to one.
 12 bins are the middle ground (48 channels, 11 strides: 88 px at stride 8).
-``python -m bench.activation_speed --dfl-bins 16 12 8`` prices them.
+docs/benchmarks.md (activation_speed) has what each costs.
 """
 
 from __future__ import annotations

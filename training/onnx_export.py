@@ -124,7 +124,7 @@ def export_onnx(
     whole pixels after NMS (:func:`common.inference.snap_boxes_to_pixels`).
 
     ``rewrite_dfl`` applies :func:`training.onnx_rewrites.dfl_softmax_on_last_axis` (exact, faster);
-    off only to measure what it buys (``python -m bench.dfl_rewrite``).
+    off only to measure what it buys (docs/benchmarks.md, dfl_rewrite).
 
     Ultralytics writes the ONNX next to the file it loaded, so the checkpoint is copied into a scratch
     directory first: exporting never litters the run directory or the working directory.

@@ -1,6 +1,6 @@
 """``sensor_msgs/msg/LaserScan`` in, triscan ``Scan`` out: a hand-written CDR reader and the checks between.
 
-Why by hand, when rosbags' generic deserialiser would do (it is fast too, see ``bench/ros2_bridge.py``):
+Why by hand, when rosbags' generic deserialiser would do (it is fast too, docs/benchmarks.md, ros2_bridge):
 the scan is the bridge's hot path and its only input from outside, so this reader checks every count
 against ``MAX_BEAMS`` and against the bytes actually present before it touches them, names each fault
 precisely (``truncated`` is not ``too_many_beams``), builds no Python object per nested message and
