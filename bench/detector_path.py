@@ -59,17 +59,15 @@ from bench.machine import MachineInfo, machine_info
 from bench.model_input import contiguous_input
 from bench.report import write_report
 from common.encoding import to_model_input
-from common.inference import (
-    OnnxDetector,
+from common.inference import OnnxDetector, session_options
+from common.messages import StackedTensor, decode_message, encode_message
+from common.postprocess import (
     PostprocessSettings,
-    check_batch,
     detections_from_boxes,
-    detector_model_and_batch,
     finish_kept_boxes,
-    session_options,
     xywh_rows_to_xyxy,
 )
-from common.messages import StackedTensor, decode_message, encode_message
+from services.detector.batch_cap import check_batch, detector_model_and_batch
 from services.detector.core import DetectorCore, default_workers
 from services.encoder.core import EncoderCore
 

@@ -31,7 +31,7 @@ from typing import Any
 
 from bench import batch_inference, fleet_capacity
 from bench.machine import machine_info
-from common.inference import detector_model_and_batch
+from services.detector.batch_cap import detector_model_and_batch
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

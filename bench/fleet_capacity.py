@@ -60,10 +60,11 @@ from bench.sampling_profile import (
     py_spy_path,
     start_recording,
 )
-from common.inference import detector_model_and_batch, model_facts
+from common.inference import model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.detector.batch_cap import detector_model_and_batch
 from services.detector.core import INFERENCE_THREAD_PREFIX
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes

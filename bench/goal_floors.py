@@ -44,7 +44,7 @@ from bench.zenoh_rtt import (
     median_p50s,
     run_cases_in_turns,
 )
-from common.inference import detector_model_and_batch
+from services.detector.batch_cap import detector_model_and_batch
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

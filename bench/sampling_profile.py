@@ -33,8 +33,9 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from common.encoding import to_model_input
-from common.inference import OnnxDetector, detections_from_boxes, postprocess
+from common.inference import OnnxDetector
 from common.messages import encode_message
+from common.postprocess import detections_from_boxes, postprocess
 from services.detector.core import INFERENCE_THREAD_PREFIX, DetectorCore, LatestPerRobot
 from services.encoder.core import EncoderCore
 from services.runtime import RobotPublishers

@@ -2,7 +2,7 @@
 
 The lever is a measurement, not the detector's code, but a saving measured on wrong boxes would be
 no saving: these tests put hand-made raw outputs through ONNX Runtime (an identity model with the
-lever's nodes appended) and require exactly what ``common.inference.postprocess`` returns, also where
+lever's nodes appended) and require exactly what ``common.postprocess.postprocess`` returns, also where
 scores tie, where the IoU sits exactly on the threshold and where a broken model gives NaN.
 """
 
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from bench.detector_path import boxes_from_selected, float32_at_most, with_nms_in_graph
-from common.inference import PostprocessSettings
 from common.model_spec import NUM_CLASSES
+from common.postprocess import PostprocessSettings
 
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")

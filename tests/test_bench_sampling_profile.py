@@ -22,8 +22,9 @@ from bench.sampling_profile import (
     samples_by_piece,
     start_recording,
 )
-from common.inference import OnnxDetector, postprocess
+from common.inference import OnnxDetector
 from common.messages import encode_message
+from common.postprocess import postprocess
 from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
 from services.runtime import RobotPublishers
 
@@ -141,7 +142,7 @@ def test_a_live_process_is_sampled_in_its_busy_piece(tmp_path: Path) -> None:
     busy = textwrap.dedent(
         """
         import threading, numpy as np
-        from common.inference import postprocess
+        from common.postprocess import postprocess
         out = np.random.default_rng(0).random((1, 8, 504), dtype=np.float32)
         def work():
             while True:

@@ -7,7 +7,7 @@ tensor into a newest-per-robot mailbox; inference threads drain it, so the detec
 behind (see :mod:`services.detector.core`). With ``--batch N`` and a ``-batch`` model, a thread runs
 up to N waiting robots' tensors in one model call, which a CPU does for less per frame; without
 ``--batch`` the detector times its model at start and picks the cap itself
-(:func:`common.inference.timed_batch_cap`).
+(:mod:`services.detector.batch_cap`).
 """
 
 from __future__ import annotations
@@ -18,19 +18,18 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from common.inference import (
-    AUTO_BATCH,
-    AUTO_BATCH_CALL_BUDGET_MS,
-    DEFAULT_CONF,
-    DEFAULT_IOU,
-    OnnxDetector,
-    detector_model_and_batch,
-    timed_batch_cap,
-)
+from common.inference import OnnxDetector
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
+from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
 from common.transport import ZenohSettings, settings_from_args
+from services.detector.batch_cap import (
+    AUTO_BATCH,
+    AUTO_BATCH_CALL_BUDGET_MS,
+    detector_model_and_batch,
+    timed_batch_cap,
+)
 from services.detector.core import (
     DEFAULT_BATCH_WINDOW_MS,
     DetectorCore,

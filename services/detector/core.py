@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
 
-from common.inference import OnnxDetector, check_batch
+from common.inference import OnnxDetector
 from common.keys import parse_key
 from common.messages import (
     Detection,
@@ -33,6 +33,7 @@ from common.messages import (
     StageTimings,
     decode_message,
 )
+from services.detector.batch_cap import check_batch
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 
 log = logging.getLogger(__name__)
