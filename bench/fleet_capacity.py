@@ -213,7 +213,6 @@ def _start_services(
     )
     detector_args = (
         *tuning,
-        *(("--batch-window-ms", str(args.batch_window_ms)) if args.batch_window_ms is not None else ()),
         *(("--no-spin",) if args.no_spin else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
@@ -394,12 +393,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="the robots send tensors (their own encoder on board): this host runs the detector alone",
     )
     parser.add_argument(
-        "--batch-window-ms",
-        type=float,
-        default=None,
-        help="detector --batch-window-ms (default: the detector's own)",
-    )
-    parser.add_argument(
         "--pin-inference-threads",
         action="store_true",
         help="diagnostic: pin the detector's inference-N threads to CPU N for the measured window",
@@ -473,7 +466,6 @@ def main(argv: list[str] | None = None) -> int:
         "workers": "detector default" if args.detector_defaults else args.workers,
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
-        "batch_window_ms": "detector default" if args.batch_window_ms is None else args.batch_window_ms,
         "from_scans": args.from_scans,
         "encode_on_robots": args.encode_on_robots,
         "model": detector_model(args).name,

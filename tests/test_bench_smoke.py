@@ -51,7 +51,7 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
     ("extra", "processes"),
     [
         ((), {"encoder", "detector"}),
-        (("--batch", "4", "--from-scans", "--pin-inference-threads", "--batch-window-ms", "5"), {"detector"}),
+        (("--batch", "4", "--from-scans", "--pin-inference-threads"), {"detector"}),
         (("--encode-on-robots", "--profile-detector"), {"detector"}),
     ],
     ids=["encoder+detector", "from-scans-batched-pinned", "encode-on-robots-profiled"],
@@ -85,7 +85,6 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     assert "inference-0" in step["detector_thread_cores"] and "rx-0" in step["detector_thread_cores"]
     pinned = "--pin-inference-threads" in extra
     assert step["pinned_threads"] == ({"inference-0": min(os.sched_getaffinity(0))} if pinned else {})
-    assert report["batch_window_ms"] == (5.0 if "--batch-window-ms" in extra else "detector default")
     assert report["encode_on_robots"] == ("--encode-on-robots" in extra)
     profile = step["detector_profile"]
     if "--profile-detector" in extra:
