@@ -15,8 +15,8 @@ from common.messages import Detections, StackedTensor, decode_message, encode_me
 from common.model_spec import SHIPPED_FP32_MODEL, batch_variant_path
 from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
 from services.encoder.core import EncoderCore
-from tests.scan_replay import replay_scans
-from tests.waiting import wait_for
+from tests.support.scan_replay import replay_scans
+from tests.support.waiting import wait_for
 from training.evaluate import box_iou
 
 MODEL = SHIPPED_FP32_MODEL

@@ -34,7 +34,7 @@ from common.postprocess import (
     snap_boxes_to_pixels,
     unwrap_seam_duplicates,
 )
-from tests.detection_builders import one_detection
+from tests.support.detection_builders import one_detection
 
 ROW_M = R_MAX_M / 63.0  # metres per raster row
 TENSOR_SHAPE = (64, 384, 3)
