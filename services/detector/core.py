@@ -251,11 +251,11 @@ class DetectorCore:
 def default_workers(cpus: int | None = None) -> int:
     """Inference threads when the user gives none: one per core, each with a single-threaded session.
 
-    ONNX Runtime splits one 64×384 frame over several threads poorly: measured on a 2-core VM, one
-    2-thread session ran the batch model at 210 frames/s at best, two 1-thread sessions side by side at
-    about 300 (bench/README.md, "The fleet against the compute bound"), and the fleet a detector held
-    at 10 Hz grew from 12 to 16 robots. A lone robot waits a little longer per frame (one core instead
-    of two work on it), well inside its 100 ms period.
+    ONNX Runtime splits one small 64×384 frame over several threads poorly: single-threaded sessions
+    side by side, one per core, run more frames a second than one session spread over every core
+    (``bench.fleet_bound`` measures both), so a detector holds more robots. A lone robot waits a
+    little longer per frame (one core instead of all of them work on it), well inside its 100 ms
+    period.
     """
     return cpus or os.cpu_count() or 1
 
@@ -264,9 +264,9 @@ def default_intra_op_threads(workers: int, from_scans: bool, cpus: int | None = 
     """ONNX Runtime threads per worker when the user gives none (``None``: every core).
 
     Several workers share the cores. With ``--from-scans`` the encoder's Zenoh callbacks run in this
-    process too, and an ONNX Runtime thread on every core then competes with them: measured on a
-    2-core VM at 10 Hz, one thread instead of two cut the scan → detections p50 from 13.2 to 9.4 ms
-    (bench/README.md, "Pipeline latency"). So one core is left to the rest of the process.
+    process too, and an ONNX Runtime thread on every core then competes with them for the CPU, which
+    delays every scan's encoding (``bench.pipeline_latency --from-scans --threads N`` compares). So
+    one core is left to the rest of the process.
     """
     cpus = cpus or os.cpu_count() or 1
     if workers > 1:
