@@ -37,8 +37,9 @@ from bench import fleet_capacity
 from bench.harness import recorded_scans
 from bench.machine import machine_info
 from common.encoding import to_model_input
-from common.inference import detector_model_and_batch, session_options
+from common.inference import session_options
 from services.encoder.core import EncoderCore
+from services.detector.batch_cap import detector_model_and_batch
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

@@ -47,10 +47,11 @@ from bench.harness import (
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
-from common.inference import detector_model_and_batch, model_facts
+from common.inference import model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
+from services.detector.batch_cap import detector_model_and_batch
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
 

@@ -65,8 +65,9 @@ from bench.occupancy_grid import (
 )
 from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
-from common.inference import DEFAULT_CONF, DEFAULT_IOU, OnnxDetector
+from common.inference import OnnxDetector
 from common.model_spec import PAPER_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
+from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
 
 ROOT: Final[Path] = Path(__file__).resolve().parents[1]
 DEFAULT_OUT: Final[Path] = ROOT / "bench" / "results" / "frame_latency.json"

@@ -35,8 +35,9 @@ import numpy as np
 import onnxruntime as ort
 
 from common.encoding import R_MAX_M, scan_points_xy
-from common.inference import DEFAULT_CONF, DEFAULT_IOU, decode_yolov8, nms, session_options
+from common.inference import session_options
 from common.model_spec import MAX_DETECTIONS
+from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, decode_yolov8, nms
 
 log = logging.getLogger(__name__)
 

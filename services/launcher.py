@@ -35,11 +35,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import detector_model_and_batch, model_facts
+from common.inference import model_facts
 from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
 from common.transport import ZenohSettings, open_session
 from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
+from services.detector.batch_cap import detector_model_and_batch
 from services.runtime import EXIT_WITH_PARENT_ENV
 
 log = logging.getLogger(__name__)
@@ -66,7 +67,7 @@ class UpConfig:
     rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
     viewer: str = "spawn"  # spawn | web | none, when not headless
     model: Path | None = None
-    # The detector's --batch (None: it times its own cap, common.inference.timed_batch_cap).
+    # The detector's --batch (None: it times its own cap, services.detector.batch_cap.timed_batch_cap).
     batch: int | None = None
     seed: int = 1  # the shipped model trained on seed 0's worlds: show it unseen ones
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up

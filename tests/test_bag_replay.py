@@ -29,6 +29,7 @@ from services.bag_replay import ReplayConfig, ReplayError, replay, robot_id_of_t
 from services.cli import main as cli_main
 from services.launcher import free_tcp_ports
 from services.ros2_bridge.ros_types import LASER_SCAN
+from tests.support.waiting import wait_for
 
 SCANS = 8
 PERIOD_NS = 50_000_000
@@ -104,7 +105,8 @@ def test_replay_publishes_every_scan_in_order_at_recorded_pace(tmp_path: Path, f
         arrivals = []
         for _ in range(SCANS):
             arrivals.append(received.get(timeout=10))
-        time.sleep(0.3)
+        # The replay's session has closed, and its link with it: whatever it sent was delivered first.
+        assert wait_for(lambda: not list(session.info.peers_zid()), 10)
         subscriber.undeclare()
     assert received.empty(), "more scans than the topic holds: another topic leaked in"
     scans = [decode_message(payload, Scan) for _, payload in arrivals]

@@ -13,7 +13,7 @@ from common.messages import Scan, StackedTensor, decode_message
 from common.model_spec import SHIPPED_INT8_MODEL, default_model_path
 from services.detector.core import DetectorCore
 from services.encoder.core import EncoderCore
-from tests.scan_replay import replay_scans
+from tests.support.scan_replay import replay_scans
 
 PERIOD_NS = 100_000_000
 STAMP_NS = 1_700_000_000_000_000_000

@@ -15,8 +15,8 @@ from common.messages import Detections, StackedTensor, decode_message, encode_me
 from common.model_spec import SHIPPED_FP32_MODEL, batch_variant_path
 from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
 from services.encoder.core import EncoderCore
-from tests.scan_replay import replay_scans
-from tests.waiting import wait_for
+from tests.support.scan_replay import replay_scans
+from tests.support.waiting import wait_for
 from training.evaluate import box_iou
 
 MODEL = SHIPPED_FP32_MODEL
@@ -103,105 +103,12 @@ def test_mailbox_close_wakes_a_waiting_taker() -> None:
     result: list[object] = []
     taker = threading.Thread(target=lambda: result.append(take_one(box, 30)))
     taker.start()
-    time.sleep(0.05)
+    # Close only once the taker waits on the mailbox's condition: a taker that came after the close
+    # would see it without being woken, and the test would pass whatever close does.
+    assert wait_for(lambda: box._cond._waiters, 5)  # type: ignore[attr-defined]
     box.close()
-    taker.join(5)
+    taker.join(5)  # well before the taker's own 30 s timeout
     assert not taker.is_alive() and result == [None]
-
-
-def busy_mailbox(arrivals: int, fill_window_s: float) -> LatestPerRobot[int]:
-    """A mailbox that has just seen ``arrivals`` puts (all taken and released): a fleet's arrival rate."""
-    box: LatestPerRobot[int] = LatestPerRobot(fill_window_s)
-    for i in range(arrivals):
-        box.put(f"old{i}", i)
-    for robot_id, _ in box.take_many(arrivals, 0):
-        box.release(robot_id)
-    return box
-
-
-def test_mailbox_fill_window_waits_for_the_batch_while_arrivals_can_fill_it() -> None:
-    box = busy_mailbox(400, fill_window_s=20)  # 400 puts a second: plenty to fill a batch of 4
-    box.put("a", 1)
-    taken: list[list[tuple[str, int]]] = []
-    filler = threading.Thread(target=lambda: taken.append(box.take_many(4, 1)))
-    filler.start()
-    assert wait_for(lambda: box._filling == 1, 5)  # holding the batch open, with a in it
-    for robot in "bcd":
-        box.put(robot, 1)
-    filler.join(10)  # the fourth tensor completes the batch: no need to wait out the window
-    assert not filler.is_alive()
-    assert taken == [[("a", 1), ("b", 1), ("c", 1), ("d", 1)]]
-
-
-def test_mailbox_fill_window_never_holds_a_lone_robot_back() -> None:
-    box: LatestPerRobot[int] = LatestPerRobot(fill_window_s=30)
-    box.put("a", 1)  # one put in the last second: one robot, nothing else coming soon
-    started = time.monotonic()
-    assert box.take_many(4, 1) == [("a", 1)]
-    assert time.monotonic() - started < 10  # it did not wait out the 30 s window
-    assert box.arrivals_per_s() == 1.0
-
-
-def test_mailbox_fill_window_takes_what_is_ready_when_it_ends() -> None:
-    box = busy_mailbox(400, fill_window_s=0.05)
-    box.put("a", 1)
-    box.put("b", 1)
-    assert box.take_many(4, 1) == [("a", 1), ("b", 1)]
-    assert box._filling == 0
-    with pytest.raises(ValueError, match="fill window"):
-        LatestPerRobot(-1.0)
-
-
-def test_other_takers_leave_new_tensors_to_the_one_filling_a_batch() -> None:
-    box = busy_mailbox(400, fill_window_s=20)
-    box.put("a", 1)
-    first: list[list[tuple[str, int]]] = []
-    second: list[list[tuple[str, int]]] = []
-    filler = threading.Thread(target=lambda: first.append(box.take_many(3, 1)))
-    filler.start()
-    assert wait_for(lambda: box._filling == 1, 5)
-    other = threading.Thread(target=lambda: second.append(box.take_many(3, 10)))
-    other.start()
-    box.put("b", 1)
-    box.put("c", 1)  # the filler's batch is full
-    filler.join(10)
-    assert not filler.is_alive()
-    for robot in "def":  # now the other taker's, which fills its own batch with them
-        box.put(robot, 1)
-    other.join(10)
-    assert not other.is_alive()
-    assert first == [[("a", 1), ("b", 1), ("c", 1)]]
-    assert second == [[("d", 1), ("e", 1), ("f", 1)]]
-
-
-def test_mailbox_close_wakes_a_taker_filling_a_batch() -> None:
-    box = busy_mailbox(400, fill_window_s=30)
-    box.put("a", 1)
-    taken: list[list[tuple[str, int]]] = []
-    filler = threading.Thread(target=lambda: taken.append(box.take_many(4, 1)))
-    filler.start()
-    assert wait_for(lambda: box._filling == 1, 5)
-    box.close()
-    filler.join(5)
-    assert not filler.is_alive() and taken == [[]]
-
-
-def test_mailbox_arrival_records_stay_bounded_as_time_passes_and_robots_change() -> None:
-    """While batches fill without waiting nothing reads the arrival records: put itself must keep them
-    to the last second, whatever the number of robots that ever sent. Without a window it keeps none."""
-    clock = [1000.0]
-    box: LatestPerRobot[int] = LatestPerRobot(fill_window_s=0.005, clock=lambda: clock[0])
-    for i in range(20_000):
-        clock[0] += 0.01  # 100 puts a second, each from a robot never seen before
-        box.put(f"r{i}", i)
-        for robot_id, _ in box.take_many(1, 0):
-            box.release(robot_id)
-    assert len(box._arrivals) <= 101  # one second's worth
-    assert len(box._last_put) <= 2 * 101 + 64
-    assert 99.0 <= box.arrivals_per_s() <= 101.0  # 100 a second, give or take the boundary
-    no_window: LatestPerRobot[int] = LatestPerRobot()
-    no_window.put("a", 1)
-    assert not no_window._arrivals and not no_window._last_put
 
 
 def test_mailbox_stays_bounded_under_a_flood() -> None:
@@ -325,8 +232,3 @@ def test_pipeline_serves_a_sample_on_named_inference_threads(
     (message,) = published
     assert message.robot_id == tensor.robot_id and message.seq == tensor.seq
     assert names is None or "inference-0" in names  # None: no /proc, not Linux
-
-
-def test_pipeline_refuses_a_negative_batch_window(detector: OnnxDetector) -> None:
-    with pytest.raises(ValueError, match="batch window"):
-        InferencePipeline([detector], lambda _: None, batch_window_ms=-1.0)

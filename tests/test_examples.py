@@ -25,7 +25,7 @@ from common.keys import DETECTIONS, SCAN, wildcard_key
 from common.messages import Detections, MessageError, Scan, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports, stop_processes
-from tests.waiting import wait_for
+from tests.support.waiting import wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
 

@@ -10,10 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
-import logging
 import math
 import re
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,11 +20,13 @@ import numpy as np
 import pytest
 
 from common.encoding import R_MAX_M, polar_to_xy, to_model_input
-from common.inference import (
+from common.inference import OnnxDetector, model_facts
+from common.messages import Detection, StageTimings
+from common.model_meta import ModelFacts, metadata_entries
+from common.model_spec import MAX_DETECTIONS
+from common.postprocess import (
     DEFAULT_CONF,
     DEFAULT_IOU,
-    MAX_DETECTIONS,
-    OnnxDetector,
     decode_yolov8,
     detections_from_boxes,
     nms,
@@ -34,8 +34,7 @@ from common.inference import (
     snap_boxes_to_pixels,
     unwrap_seam_duplicates,
 )
-from common.messages import Detection, StageTimings
-from tests.detection_builders import one_detection
+from tests.support.detection_builders import one_detection
 
 ROW_M = R_MAX_M / 63.0  # metres per raster row
 TENSOR_SHAPE = (64, 384, 3)
@@ -491,6 +490,19 @@ def test_model_id_names_the_file(tmp_path: Path) -> None:
     assert detector.model_id == f"tri-v1@{digest[:12]}"
 
 
+def test_the_metadata_export_writes_is_what_the_detector_and_the_launcher_read(tmp_path: Path) -> None:
+    entries = metadata_entries(padding="wrap", invalid="empty", box_grid="pixel")
+    path = constant_model(tmp_path / "declared.onnx", known_output(), metadata=entries)
+    detector = OnnxDetector(path, providers=["CPUExecutionProvider"])
+    assert (detector.padding, detector.invalid, detector.box_grid) == ("wrap", "empty", "pixel")
+    assert model_facts(path) == ModelFacts(padding="wrap", invalid="empty", takes_batches=False)
+    plain = constant_model(tmp_path / "plain.onnx", known_output())  # a model that declares nothing
+    assert model_facts(plain) == ModelFacts(padding="zero", invalid="sentinel", takes_batches=False)
+    foreign = metadata_entries(padding="zero", invalid="sentinel", box_grid="none", classes=("cat", "dog"))
+    with pytest.raises(ValueError, match=r"trained for the classes \['cat', 'dog'\]"):
+        OnnxDetector(constant_model(tmp_path / "foreign.onnx", known_output(), metadata=foreign))
+
+
 @pytest.mark.parametrize(
     ("bad", "match"),
     [
@@ -692,75 +704,3 @@ def test_exported_model_detect_gives_valid_detections(exported: tuple[Path, Any]
         assert math.hypot(det.x_m, det.y_m) == pytest.approx((det.range_min_m + det.range_max_m) / 2)
     assert isinstance(timings, StageTimings)
     assert timings.encode_ms >= 0 and timings.inference_ms > 0 and timings.nms_ms >= 0
-
-
-def test_the_detector_picks_its_model_and_batch_by_itself(tmp_path: Path) -> None:
-    from common.inference import AUTO_BATCH, detector_model_and_batch
-    from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
-
-    assert detector_model_and_batch(None, None) == (SHIPPED_BATCH_MODEL, AUTO_BATCH)
-    assert detector_model_and_batch(SHIPPED_MODEL, None) == (SHIPPED_MODEL, 1)  # a fixed model: batch 1
-    assert detector_model_and_batch(None, 1) == (SHIPPED_MODEL, 1)
-    assert detector_model_and_batch(None, 8) == (SHIPPED_BATCH_MODEL, 8)
-    with pytest.raises(ValueError, match="free batch axis"):
-        detector_model_and_batch(SHIPPED_MODEL, 4)
-    with pytest.raises(ValueError, match="--batch must be >= 1"):
-        detector_model_and_batch(None, 0)
-
-
-@pytest.mark.parametrize(
-    ("call_ms", "budget_ms", "cap"),
-    [
-        ({1: 2.0, 2: 4.0, 4: 8.0, 8: 16.0}, 10.0, 4),
-        ({1: 2.0, 2: 4.0, 4: 8.0, 8: 16.0}, 16.0, 8),  # a call exactly on the budget fits
-        ({1: 2.0, 2: 4.0, 4: 8.0, 8: 16.0}, 1.0, 1),  # nothing fits: a lone frame is still served
-        ({8: 5.0, 1: 2.0, 4: 40.0, 2: 3.0}, 30.0, 2),  # sizes in any order; a slow 4 stops the climb
-    ],
-)
-def test_the_batch_cap_is_the_largest_size_whose_call_and_every_smaller_one_fit(
-    call_ms: dict[int, float], budget_ms: float, cap: int
-) -> None:
-    from common.inference import batch_cap_within
-
-    assert batch_cap_within(call_ms, budget_ms) == cap
-
-
-def test_the_detector_times_its_model_calls_per_batch_size() -> None:
-    from common.inference import timed_batch_cap
-    from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
-
-    detector = OnnxDetector(SHIPPED_BATCH_MODEL, intra_op_threads=1)
-    call_ms = detector.call_ms_by_batch([1, 2, 4])
-    assert list(call_ms) == [1, 2, 4] and all(ms > 0 for ms in call_ms.values())
-    # The sizes tried are the powers of two up to the largest; the budget alone decides the cap.
-    cap, timed = timed_batch_cap(detector, largest=6, budget_ms=1e9)
-    assert cap == 4 and list(timed) == [1, 2, 4]
-    assert timed_batch_cap(detector, largest=8, budget_ms=0.0)[0] == 1
-    with pytest.raises(ValueError, match="largest must be >= 1"):
-        timed_batch_cap(detector, largest=0)
-    with pytest.raises(ValueError, match="fixed at batch 1"):
-        OnnxDetector(SHIPPED_MODEL, intra_op_threads=1).call_ms_by_batch([1, 2])
-
-
-@pytest.mark.parametrize(("flags", "timed"), [((), True), (("--batch", "3"), False)], ids=["auto", "given"])
-def test_the_detector_service_times_its_cap_only_when_no_batch_is_given(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, flags: tuple[str, ...], timed: bool
-) -> None:
-    """``main`` wires the real model and timing; only the Zenoh serving loop is replaced, to read what
-    it would have been given."""
-    from common.inference import AUTO_BATCH
-    from services.detector import __main__ as detector_main
-
-    served: dict[str, object] = {}
-    monkeypatch.setattr(detector_main, "run", lambda *args, **kwargs: served.update(kwargs))
-    monkeypatch.setattr(detector_main, "configure_logging", lambda verbose: None)
-    monkeypatch.setattr(detector_main, "stop_event_on_signals", threading.Event)  # pytest keeps its handlers
-    with caplog.at_level(logging.INFO, logger=detector_main.log.name):
-        assert detector_main.main(["--workers", "1", *flags]) == 0
-    batch = served["batch"]
-    logged = [r.getMessage() for r in caplog.records if r.getMessage().startswith("batch cap")]
-    if timed:
-        assert batch in {1, 2, 4, 8} and isinstance(batch, int) and batch <= AUTO_BATCH
-        assert logged and logged[0].startswith(f"batch cap {batch}: model calls of 1/2/4/8 frames took")
-    else:
-        assert batch == 3 and not logged

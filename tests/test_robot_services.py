@@ -25,8 +25,8 @@ from common.messages import Detections, StackedTensor, decode_message, encode_me
 from common.model_spec import SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.launcher import free_tcp_ports
-from tests.scan_replay import replay_scans
-from tests.waiting import wait_for
+from tests.support.scan_replay import replay_scans
+from tests.support.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANS_PER_ROBOT = 40

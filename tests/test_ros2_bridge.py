@@ -45,8 +45,8 @@ from services.ros2_bridge.ros_types import (
     dds_type_name,
     ros_types,
 )
-from tests.detection_builders import one_detection
-from tests.ros2_scans import laser_scan_cdr
+from tests.support.detection_builders import one_detection
+from tests.support.ros2_scans import laser_scan_cdr
 
 JAZZY_LASER_SCAN_HASH = "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924bd828"
 # From rosidl_generator_c's vision_msgs description.c (EXPECTED_HASH of each type), Jazzy build.

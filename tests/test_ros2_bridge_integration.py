@@ -16,7 +16,7 @@ import json
 import queue
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +36,8 @@ from services.ros2_bridge.ros_types import (
     ros_types,
     vision_msgs_definition,
 )
-from tests.scan_replay import replay_scans
-from tests.waiting import wait_for
+from tests.support.scan_replay import replay_scans
+from tests.support.waiting import wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
 sdk = pytest.importorskip("zenoh_ros2_sdk")
@@ -88,6 +88,18 @@ def sdk_session(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tup
         session = sdk.ZenohSession._instance
         if session is not None:
             session.close()
+
+
+def stamp_of(message: Any) -> int:
+    return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+
+
+def next_answer(answers: queue.Queue[Any], not_before_ns: int, stamp: Callable[[Any], int]) -> Any:
+    """The next message stamped ``not_before_ns`` or later, skipping older ones (answers to priming)."""
+    while True:
+        message = answers.get(timeout=30)
+        if stamp(message) >= not_before_ns:
+            return message
 
 
 def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple[int, list[int]]) -> None:
@@ -153,16 +165,14 @@ def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple
             publish(0, stamp)
             stamp += PERIOD_NS
             time.sleep(0.1)
-        time.sleep(0.5)
-        for q in (arrays, markers):
-            while not q.empty():
-                q.get()
         # Lockstep: each scan's detections come back, stamped with that scan, before the next scan.
+        # Answers to priming scans still in flight carry earlier stamps than any lockstep scan's.
+        lockstep_from = stamp
         got_arrays, got_markers = [], []
         for index in range(SCANS):
             publish(index, stamp)
-            array = arrays.get(timeout=30)
-            marker = markers.get(timeout=30)
+            array = next_answer(arrays, lockstep_from, stamp_of)
+            marker = next_answer(markers, lockstep_from, lambda m: stamp_of(m.markers[0]))
             got_arrays.append((stamp, array))
             got_markers.append((stamp, marker))
             stamp += PERIOD_NS
@@ -174,10 +184,6 @@ def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple
         stop_processes(children, grace_s=30)
     logs = {name: p.stdout.read().decode(errors="replace") for name, p in children.items()}  # type: ignore[union-attr]
     assert all(p.returncode == 0 for p in children.values()), {n: log[-2000:] for n, log in logs.items()}
-
-    def stamp_of(message: Any) -> int:
-        return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
-
     assert [stamp_of(a) for _, a in got_arrays] == [s for s, _ in got_arrays]
     assert [stamp_of(m.markers[0]) for _, m in got_markers] == [s for s, _ in got_markers]
     total = 0

@@ -9,8 +9,8 @@ from collections.abc import Callable
 from common.keys import scan_key
 from common.transport import ZenohSettings, open_session
 from services.runtime import RobotPublishers, ServiceRuntime
-from tests.health import service_pids
-from tests.waiting import wait_for
+from tests.support.health import service_pids
+from tests.support.waiting import wait_for
 
 
 def test_the_health_token_appears_only_once_the_service_is_ready(free_port: Callable[[], int]) -> None:

@@ -24,8 +24,8 @@ from common.keys import DETECTIONS, SCAN, parse_key, wildcard_key
 from common.messages import Detections, Scan, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
-from tests.health import service_pids
-from tests.waiting import wait_for
+from tests.support.health import service_pids
+from tests.support.waiting import wait_for
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
 

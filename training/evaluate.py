@@ -32,8 +32,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, InvalidRule, Padding
-from common.inference import OnnxDetector, unwrap_seam_duplicates
+from common.inference import OnnxDetector
 from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, MAX_DETECTIONS
+from common.postprocess import unwrap_seam_duplicates
 from training.png import read_tensor_png
 
 if TYPE_CHECKING:

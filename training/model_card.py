@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import platform
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,10 +37,191 @@ _VAL_MAP50, _VAL_MAP50_95 = "metrics/mAP50(B)", "metrics/mAP50-95(B)"
 _VAL_PRECISION, _VAL_RECALL = "metrics/precision(B)", "metrics/recall(B)"
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+Json = dict[str, Any]  # a JSON object as ``json`` reads and writes it
+
+
+def _read_json(path: Path) -> Json:
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found")
-    return json.loads(path.read_text())
+    return dict(json.loads(path.read_text()))
+
+
+@dataclass(frozen=True)
+class Figures:
+    """Precision, recall, mAP@0.5 and mAP@0.5:0.95, under metrics.json's names."""
+
+    precision: float
+    recall: float
+    map50: float
+    map50_95: float
+
+    @classmethod
+    def read(cls, figures: Mapping[str, Any]) -> Figures:
+        return cls(figures["precision"], figures["recall"], figures["mAP50"], figures["mAP50-95"])
+
+    def to_json(self) -> Json:
+        return {
+            "precision": self.precision,
+            "recall": self.recall,
+            "mAP50": self.map50,
+            "mAP50-95": self.map50_95,
+        }
+
+
+@dataclass(frozen=True)
+class Counted:
+    """:class:`Figures` over a counted set of objects: one class, or the objects on the seam."""
+
+    instances: int
+    figures: Figures
+
+    @classmethod
+    def read(cls, figures: Mapping[str, Any]) -> Counted:
+        return cls(figures["instances"], Figures.read(figures))
+
+    def to_json(self) -> Json:
+        return {"instances": self.instances, **self.figures.to_json()}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The parts of ``triscan eval``'s metrics.json the card shows."""
+
+    model_id: str
+    images: int
+    instances: int
+    overall: Figures
+    per_class: dict[str, Counted]
+    seam_crossing: Counted | None  # None when the evaluation had no seam figures
+    mean_timings_ms: dict[str, float]  # encode_ms, inference_ms, nms_ms
+
+    @classmethod
+    def read(cls, path: Path) -> Evaluation:
+        m = _read_json(path)
+        return cls(
+            model_id=m["model_id"],
+            images=m["images"],
+            instances=m["instances"],
+            overall=Figures.read(m["overall"]),
+            per_class={name: Counted.read(row) for name, row in m["per_class"].items()},
+            seam_crossing=Counted.read(m["seam_crossing"]) if m.get("seam_crossing") else None,
+            mean_timings_ms=m["mean_timings_ms"],
+        )
+
+
+@dataclass(frozen=True)
+class GridCell:
+    """One model under one condition in a ``triscan eval`` grid (summary.json)."""
+
+    images: int
+    instances: int
+    figures: Figures
+    per_class_map50: dict[str, float]
+
+    @classmethod
+    def read(cls, cell: Mapping[str, Any]) -> GridCell:
+        return cls(cell["images"], cell["instances"], Figures.read(cell), cell["per_class_mAP50"])
+
+    def to_json(self) -> Json:
+        return {
+            "images": self.images,
+            "instances": self.instances,
+            **self.figures.to_json(),
+            "per_class_mAP50": self.per_class_map50,
+        }
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A ``triscan eval --fresh N --noise …`` grid: the worlds, the models and every cell."""
+
+    worlds: Json  # the world spec as eval wrote it (seed, scenarios, positions, frame_stride, …)
+    models: dict[str, str]  # file stem → model id
+    results: dict[str, dict[str, GridCell]]  # condition → file stem → cell
+
+    @classmethod
+    def read(cls, path: Path) -> Grid:
+        grid = _read_json(path)
+        return cls(
+            worlds=grid["worlds"],
+            models=grid["models"],
+            results={
+                condition: {stem: GridCell.read(cell) for stem, cell in row.items()}
+                for condition, row in grid["results"].items()
+            },
+        )
+
+    def cells_of(self, model_id: str) -> dict[str, GridCell]:
+        """One model's cells, by condition."""
+        stems = [stem for stem, mid in self.models.items() if mid == model_id]
+        if not stems:
+            raise ValueError(
+                f"the conditions grid has no cells of {model_id} (it has {sorted(self.models.values())})"
+            )
+        return {condition: row[stems[0]] for condition, row in self.results.items()}
+
+
+@dataclass(frozen=True)
+class ExportedFile:
+    """One file ``triscan export`` wrote, as its report names it."""
+
+    path: Path
+    bytes: int
+    sha256: str
+
+    @classmethod
+    def read(cls, entry: Mapping[str, Any]) -> ExportedFile:
+        return cls(Path(entry["path"]), entry["bytes"], entry["sha256"])
+
+
+@dataclass(frozen=True)
+class ExportReport:
+    """``triscan export``'s JSON report: the files, their latency and the INT8 recipe."""
+
+    padding: str
+    fp32: ExportedFile
+    int8: ExportedFile
+    batch: dict[str, ExportedFile]  # "fp32"/"int8" → the same graph with a free batch axis
+    latency_ms_fp32: float  # session.run median, 1 ONNX Runtime thread
+    latency_ms_int8: float
+    calibration_method: str
+    calibration_images: int
+    float_parts: str  # what the INT8 file kept in float, in words
+
+    @classmethod
+    def read(cls, path: Path) -> ExportReport:
+        export = _read_json(path)
+        latency = export["latency_ms_1_thread"]
+        return cls(
+            padding=export["padding"],
+            fp32=ExportedFile.read(export["fp32"]),
+            int8=ExportedFile.read(export["int8"]),
+            # Reports written before the batch variants existed simply have none.
+            batch={
+                kind: ExportedFile.read(export[f"{kind}_batch"])
+                for kind in ("fp32", "int8")
+                if f"{kind}_batch" in export
+            },
+            latency_ms_fp32=latency["fp32"],
+            latency_ms_int8=latency["int8"],
+            calibration_method=export["calibration_method"],
+            calibration_images=export["calibration_images"],
+            float_parts=_float_parts_of_int8(export),
+        )
+
+
+@dataclass(frozen=True)
+class DatasetSummary:
+    """The data set's summary.json, as ``triscan dataset`` wrote it."""
+
+    config: Json  # the generation settings, flags by name
+    scenarios: dict[str, int]  # split → scenarios
+    samples: dict[str, int]  # split → samples
+
+    @classmethod
+    def read(cls, dataset_dir: Path) -> DatasetSummary:
+        data = _read_json(dataset_dir / "summary.json")
+        return cls(data["config"], data["scenarios"], data["samples"])
 
 
 def read_results_csv(path: Path) -> list[dict[str, float]]:
@@ -89,40 +271,58 @@ def training_wall_time_s(history: list[dict[str, float]]) -> float:
     return total + previous
 
 
-def _metrics_rows(metrics: dict[str, Any]) -> list[str]:
+def _metrics_rows(metrics: Evaluation) -> list[str]:
     rows = ["| class | instances | P | R | mAP@0.5 | mAP@0.5:0.95 |", "|---|---:|---:|---:|---:|---:|"]
-    for name, m in metrics["per_class"].items():
+    for name, row in metrics.per_class.items():
+        m = row.figures
         rows.append(
-            f"| {name} | {m['instances']} | {m['precision']:.3f} | {m['recall']:.3f} | {m['mAP50']:.3f} "
-            f"| {m['mAP50-95']:.3f} |"
+            f"| {name} | {row.instances} | {m.precision:.3f} | {m.recall:.3f} | {m.map50:.3f} "
+            f"| {m.map50_95:.3f} |"
         )
-    o = metrics["overall"]
+    o = metrics.overall
     rows.append(
-        f"| **all** | {metrics['instances']} | {o['precision']:.3f} | {o['recall']:.3f} "
-        f"| **{o['mAP50']:.3f}** | **{o['mAP50-95']:.3f}** |"
+        f"| **all** | {metrics.instances} | {o.precision:.3f} | {o.recall:.3f} "
+        f"| **{o.map50:.3f}** | **{o.map50_95:.3f}** |"
     )
     return rows
 
 
-def _ablation_lines(ablation: dict[str, Path], command: str) -> tuple[list[str], dict[str, Any]]:
+@dataclass(frozen=True)
+class AblationEntry:
+    """One padding mode's model in the card's ablation: its test split overall and on the seam."""
+
+    model_id: str
+    test: Figures
+    seam_crossing: Counted
+
+    def to_json(self) -> Json:
+        return {
+            "model_id": self.model_id,
+            "test": self.test.to_json(),
+            "seam_crossing": self.seam_crossing.to_json(),
+        }
+
+
+def _ablation_lines(ablation: dict[str, Path], command: str) -> tuple[list[str], dict[str, AblationEntry]]:
     """The zero vs wrap section: each model on its own padding's test split, overall and on the seam."""
-    results = {padding: _read_json(path) for padding, path in ablation.items()}
+    results = {padding: Evaluation.read(path) for padding, path in ablation.items()}
     rows = [
         "| padding | model | test P | R | mAP@0.5 | mAP@0.5:0.95 | seam objects | seam R | seam mAP@0.5 "
         "| seam mAP@0.5:0.95 |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    summary: dict[str, Any] = {}
+    summary: dict[str, AblationEntry] = {}
     for padding, m in results.items():
-        o, seam = m["overall"], m.get("seam_crossing") or {}
-        if not seam:
+        o, seam = m.overall, m.seam_crossing
+        if seam is None:
             raise ValueError(f"{ablation[padding]} has no seam_crossing figures: rerun `triscan eval` on it")
+        s = seam.figures
         rows.append(
-            f"| `{padding}` | `{m['model_id']}` | {o['precision']:.3f} | {o['recall']:.3f} "
-            f"| {o['mAP50']:.3f} | {o['mAP50-95']:.3f} | {int(seam['instances'])} | {seam['recall']:.3f} "
-            f"| {seam['mAP50']:.3f} | {seam['mAP50-95']:.3f} |"
+            f"| `{padding}` | `{m.model_id}` | {o.precision:.3f} | {o.recall:.3f} "
+            f"| {o.map50:.3f} | {o.map50_95:.3f} | {int(seam.instances)} | {s.recall:.3f} "
+            f"| {s.map50:.3f} | {s.map50_95:.3f} |"
         )
-        summary[padding] = {"model_id": m["model_id"], "test": o, "seam_crossing": seam}
+        summary[padding] = AblationEntry(m.model_id, o, seam)
     lines = [
         "## Ablation: `zero` vs `wrap` padding",
         "",
@@ -143,6 +343,85 @@ def _ablation_lines(ablation: dict[str, Path], command: str) -> tuple[list[str],
     return lines, summary
 
 
+@dataclass(frozen=True)
+class QualityGate:
+    """What tests/test_shipped_model.py requires of the shipped model: the gate set and the bar."""
+
+    seed: int
+    scenarios: int
+    positions: int
+    frame_stride: int
+    min_instances: int
+    min_map50: float
+    measured_map50: float
+
+    def to_json(self) -> Json:
+        return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class UnseenWorlds:
+    """This card's fp32 and INT8 files on the same unseen worlds, by condition."""
+
+    worlds: Json
+    fp32: dict[str, GridCell]
+    int8: dict[str, GridCell]
+
+    def to_json(self) -> Json:
+        return {
+            "worlds": self.worlds,
+            "fp32": {condition: cell.to_json() for condition, cell in self.fp32.items()},
+            "int8": {condition: cell.to_json() for condition, cell in self.int8.items()},
+        }
+
+
+@dataclass
+class ModelCard:
+    """MODEL_CARD.json: the files, which one to run, the test figures and the shipped-model gate."""
+
+    network: str
+    directory: str  # where `triscan export` wrote the files
+    files: dict[str, str]  # kind (fp32, int8, checkpoint, fp32_batch, int8_batch) → file name
+    model_ids: dict[str, str]  # fp32/int8 → model id
+    recommended: str  # "fp32" or "int8": the file the detector should run
+    status: str  # card_status: whether the model spec makes this the default
+    padding: str
+    best_epoch: int
+    epochs_run: int
+    test: dict[str, Figures]  # fp32/int8 → test split figures
+    quality_gate: QualityGate
+    int8_minus_fp32_map50: dict[str, float]  # where measured → INT8 − fp32 mAP@0.5
+    unseen_worlds: UnseenWorlds | None = None
+    grids: Json | None = None  # section title → GridSection.figures
+    curves: Json | None = None  # CurveComparison.figures
+    ablation: dict[str, AblationEntry] | None = None  # padding → its model's figures
+
+    def to_json(self) -> Json:
+        card: Json = {
+            "network": self.network,
+            "directory": self.directory,
+            "files": self.files,
+            "model_ids": self.model_ids,
+            "recommended": self.recommended,
+            "status": self.status,
+            "padding": self.padding,
+            "best_epoch": self.best_epoch,
+            "epochs_run": self.epochs_run,
+            "test": {kind: figures.to_json() for kind, figures in self.test.items()},
+            "quality_gate": self.quality_gate.to_json(),
+            "int8_minus_fp32_map50": self.int8_minus_fp32_map50,
+        }
+        if self.unseen_worlds is not None:
+            card["unseen_worlds"] = self.unseen_worlds.to_json()
+        if self.grids:
+            card["grids"] = self.grids
+        if self.curves is not None:
+            card["curves"] = self.curves
+        if self.ablation:
+            card["ablation"] = {padding: entry.to_json() for padding, entry in self.ablation.items()}
+        return card
+
+
 def write_card(
     *,
     dataset_dir: Path,
@@ -161,8 +440,8 @@ def write_card(
     conditions: Path | None = None,
     grids: list[GridSection] | None = None,
     curves: CurveComparison | None = None,
-) -> dict[str, Any]:
-    """Write the card pair into ``out_dir`` and return the JSON half.
+) -> Json:
+    """Write the card pair into ``out_dir`` and return the JSON half, as written.
 
     ``ablation`` maps each padding mode to the ``metrics.json`` of its model's test-split evaluation.
     ``conditions`` is the ``summary.json`` of ``triscan eval --fresh N --noise …`` run on this card's
@@ -170,33 +449,33 @@ def write_card(
     recommended. ``grids`` are further such grids (another network, another invalid-return rule) shown
     beside them; ``curves`` sets this run's validation curve beside another network's, epoch for epoch.
     """
-    data = _read_json(dataset_dir / "summary.json")
-    export = _read_json(export_json)
-    test32, test8, gate_metrics = (_read_json(p) for p in (eval_test_fp32, eval_test_int8, eval_gate))
-    grid = _read_json(conditions) if conditions is not None else None
+    data = DatasetSummary.read(dataset_dir)
+    export = ExportReport.read(export_json)
+    test32, test8, gate_metrics = (Evaluation.read(p) for p in (eval_test_fp32, eval_test_int8, eval_gate))
+    grid = Grid.read(conditions) if conditions is not None else None
     history = training_history(run_dir)
     best_epoch = checkpoint_epoch(run_dir / "weights" / "best.pt", history)
     best_row = next(r for r in history if int(r["epoch"]) == best_epoch)
-    card = _card_json(export, test32, test8, gate_metrics, gate, history, best_epoch, grid)
+    card = _model_card(export, test32, test8, gate_metrics, gate, history, best_epoch, grid)
     grid_figures = {section.title: section.figures() for section in grids or []}
     curve_figures = curves.figures(history) if curves is not None else None
     lines = [
-        f"# Model card: triscan {network_title(card['network'])} (`{card['files']['fp32']}`)",
+        f"# Model card: triscan {network_title(card.network)} (`{card.files['fp32']}`)",
         "",
         "Generated by `triscan card` from the artefacts named below; rerun the commands to re-measure.",
         "",
-        status_line(card),
+        status_line(card.to_json()),
         "",
         notes.strip(),
         "",
-        *_files_section(card, export, test32, test8),
+        *_files_section(card, export),
         "",
         *_data_section(data),
         "",
         *_training_section(history, best_epoch, best_row, train_command),
         "",
         *(
-            curves.lines(curve_figures, card["network"])
+            curves.lines(curve_figures, card.network)
             if curves is not None and curve_figures is not None
             else []
         ),
@@ -206,118 +485,89 @@ def write_card(
         *(line for section in grids or [] for line in section.lines(grid_figures[section.title])),
         *_latency_section(export, test32),
         "",
-        *_gate_section(card, gate, gate_metrics),
+        *_gate_section(card, gate_metrics),
     ]
-    if grid_figures:
-        card["grids"] = grid_figures
-    if curve_figures is not None:
-        card["curves"] = curve_figures
+    card.grids = grid_figures
+    card.curves = curve_figures
     if ablation:
-        ablation_lines, card["ablation"] = _ablation_lines(ablation, ablation_command)
+        ablation_lines, card.ablation = _ablation_lines(ablation, ablation_command)
         lines += ["", *ablation_lines]
         if ablation_notes.strip():
             lines += ["", ablation_notes.strip()]
+    card_json = card.to_json()
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "MODEL_CARD.md").write_text("\n".join(lines) + "\n")
-    (out_dir / "MODEL_CARD.json").write_text(json.dumps(card, indent=2) + "\n")
+    (out_dir / "MODEL_CARD.json").write_text(json.dumps(card_json, indent=2) + "\n")
     log.info("wrote %s", out_dir / "MODEL_CARD.md")
-    return card
-
-
-def _map50_delta(test32: dict[str, Any], test8: dict[str, Any]) -> float:
-    """INT8's test mAP@0.5 minus fp32's: what decides, with the latency, which file is recommended."""
-    return float(test8["overall"]["mAP50"] - test32["overall"]["mAP50"])
+    return card_json
 
 
 INT8_TOLERANCE = 0.005  # INT8 is recommended only within half a point of fp32's mAP@0.5, everywhere measured
 
 
-def _grid_cells(grid: dict[str, Any], model_id: str) -> dict[str, dict[str, Any]]:
-    """One model's cells of a ``triscan eval`` grid (summary.json), by condition."""
-    stems = [stem for stem, mid in grid["models"].items() if mid == model_id]
-    if not stems:
-        raise ValueError(
-            f"the conditions grid has no cells of {model_id} (it has {sorted(grid['models'].values())})"
-        )
-    return {condition: row[stems[0]] for condition, row in grid["results"].items()}
-
-
-def _int8_deltas(
-    test32: dict[str, Any], test8: dict[str, Any], unseen: dict[str, Any] | None
-) -> dict[str, float]:
-    """INT8 minus fp32 mAP@0.5 on the test split and, when measured (``unseen``: the card's
-    ``unseen_worlds``), under every condition."""
-    deltas = {"test split": _map50_delta(test32, test8)}
+def _int8_deltas(test32: Evaluation, test8: Evaluation, unseen: UnseenWorlds | None) -> dict[str, float]:
+    """INT8 minus fp32 mAP@0.5 on the test split and, when measured, under every condition: what
+    decides, with the latency, which file is recommended."""
+    deltas = {"test split": float(test8.overall.map50 - test32.overall.map50)}
     if unseen is not None:
-        fp32, int8 = unseen["fp32"], unseen["int8"]
-        deltas |= {condition: int8[condition]["mAP50"] - fp32[condition]["mAP50"] for condition in fp32}
+        fp32, int8 = unseen.fp32, unseen.int8
+        deltas |= {
+            condition: int8[condition].figures.map50 - fp32[condition].figures.map50 for condition in fp32
+        }
     return deltas
 
 
-def _batch_entries(export: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """The export report's batch variants (``-batch``) by kind.
-
-    The same graphs with a free batch axis, written by exports since they exist; an older export
-    report simply has none.
-    """
-    return {kind: export[f"{kind}_batch"] for kind in ("fp32", "int8") if f"{kind}_batch" in export}
-
-
-def _card_json(
-    export: dict[str, Any],
-    test32: dict[str, Any],
-    test8: dict[str, Any],
-    gate_metrics: dict[str, Any],
+def _model_card(
+    export: ExportReport,
+    test32: Evaluation,
+    test8: Evaluation,
+    gate_metrics: Evaluation,
     gate: dict[str, int],
     history: list[dict[str, float]],
     best_epoch: int,
-    grid: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """MODEL_CARD.json: the files, which one to run, the test figures and the shipped-model gate."""
-    fp32, int8 = export["fp32"], export["int8"]
-    lat32, lat8 = export["latency_ms_1_thread"]["fp32"], export["latency_ms_1_thread"]["int8"]
+    grid: Grid | None = None,
+) -> ModelCard:
+    """The card's figures, from the artefacts; the sections and the JSON are written from it."""
     unseen = (
         None
         if grid is None
-        else {
-            "worlds": grid["worlds"],
-            "fp32": _grid_cells(grid, test32["model_id"]),
-            "int8": _grid_cells(grid, test8["model_id"]),
-        }
+        else UnseenWorlds(grid.worlds, grid.cells_of(test32.model_id), grid.cells_of(test8.model_id))
     )
     deltas = _int8_deltas(test32, test8, unseen)
-    recommended = "int8" if lat8 < lat32 and min(deltas.values()) >= -INT8_TOLERANCE else "fp32"
-    min_map50 = math.floor((gate_metrics["overall"]["mAP50"] - GATE_MARGIN) * 100) / 100
-    card: dict[str, Any] = {
-        "network": network_of_stem(Path(fp32["path"]).stem),
-        "directory": Path(fp32["path"]).parent.as_posix(),  # where `triscan export` wrote them
-        "files": {
-            "fp32": Path(fp32["path"]).name,
-            "int8": Path(int8["path"]).name,
-            "checkpoint": f"{Path(fp32['path']).stem}.pt",
-            **{f"{kind}_batch": Path(entry["path"]).name for kind, entry in _batch_entries(export).items()},
+    faster = export.latency_ms_int8 < export.latency_ms_fp32
+    recommended = "int8" if faster and min(deltas.values()) >= -INT8_TOLERANCE else "fp32"
+    min_map50 = math.floor((gate_metrics.overall.map50 - GATE_MARGIN) * 100) / 100
+    return ModelCard(
+        network=network_of_stem(export.fp32.path.stem),
+        directory=export.fp32.path.parent.as_posix(),
+        files={
+            "fp32": export.fp32.path.name,
+            "int8": export.int8.path.name,
+            "checkpoint": f"{export.fp32.path.stem}.pt",
+            **{f"{kind}_batch": entry.path.name for kind, entry in export.batch.items()},
         },
-        "model_ids": {"fp32": test32["model_id"], "int8": test8["model_id"]},
-        "recommended": recommended,
-        "status": card_status(Path(fp32["path"]).name),
-        "padding": export["padding"],
-        "best_epoch": best_epoch,
-        "epochs_run": len(history),
-        "test": {"fp32": test32["overall"], "int8": test8["overall"]},
-        "quality_gate": {
-            **gate,
-            "min_instances": gate_metrics["instances"] // 2,
-            "min_map50": min_map50,
-            "measured_map50": gate_metrics["overall"]["mAP50"],
-        },
-        "int8_minus_fp32_map50": deltas,
-    }
-    if unseen is not None:
-        card["unseen_worlds"] = unseen
-    return card
+        model_ids={"fp32": test32.model_id, "int8": test8.model_id},
+        recommended=recommended,
+        status=card_status(export.fp32.path.name),
+        padding=export.padding,
+        best_epoch=best_epoch,
+        epochs_run=len(history),
+        test={"fp32": test32.overall, "int8": test8.overall},
+        quality_gate=QualityGate(
+            seed=gate["seed"],
+            scenarios=gate["scenarios"],
+            positions=gate["positions"],
+            frame_stride=gate["frame_stride"],
+            min_instances=gate_metrics.instances // 2,
+            min_map50=min_map50,
+            measured_map50=gate_metrics.overall.map50,
+        ),
+        int8_minus_fp32_map50=deltas,
+        unseen_worlds=unseen,
+    )
 
 
-def _float_parts_of_int8(export: dict[str, Any]) -> str:
+def _float_parts_of_int8(export: Mapping[str, Any]) -> str:
     """What the INT8 file kept in float, from ``triscan export``'s report (older reports, older rules)."""
     if "float_leading_modules" in export:
         leading = float_modules_label(int(export["float_leading_modules"]))
@@ -331,41 +581,39 @@ def _float_parts_of_int8(export: dict[str, Any]) -> str:
     return "stem and head decode in float" if export.get("float_stem") else "head decode in float"
 
 
-def _files_section(
-    card: dict[str, Any], export: dict[str, Any], test32: dict[str, Any], test8: dict[str, Any]
-) -> list[str]:
+def _files_section(card: ModelCard, export: ExportReport) -> list[str]:
     """The shipped files with their sizes and hashes, and which one the detector should run."""
-    fp32, int8 = export["fp32"], export["int8"]
-    recipe = f"{export['calibration_method']} ranges from {export['calibration_images']} val images, " + (
-        _float_parts_of_int8(export)
+    fp32, int8 = export.fp32, export.int8
+    recipe = f"{export.calibration_method} ranges from {export.calibration_images} val images, " + (
+        export.float_parts
     )
     return [
         "## Files",
         "",
         "| file | what | bytes | sha256 |",
         "|---|---|---:|---|",
-        f"| `{card['files']['fp32']}` | ONNX fp32, input float32[1,3,64,384] | {fp32['bytes']} | "
-        f"`{fp32['sha256'][:16]}…` |",
-        f"| `{card['files']['int8']}` | ONNX INT8 static QDQ, per-channel weights, uint8 activations, "
-        f"{recipe} | {int8['bytes']} | `{int8['sha256'][:16]}…` |",
+        f"| `{card.files['fp32']}` | ONNX fp32, input float32[1,3,64,384] | {fp32.bytes} | "
+        f"`{fp32.sha256[:16]}…` |",
+        f"| `{card.files['int8']}` | ONNX INT8 static QDQ, per-channel weights, uint8 activations, "
+        f"{recipe} | {int8.bytes} | `{int8.sha256[:16]}…` |",
         *(
-            f"| `{card['files'][f'{kind}_batch']}` | the {kind} file with a free batch axis (same graph "
+            f"| `{card.files[f'{kind}_batch']}` | the {kind} file with a free batch axis (same graph "
             "and weights, outputs checked equal) for `python -m services.detector --batch N` | "
-            f"{entry['bytes']} | `{entry['sha256'][:16]}…` |"
-            for kind, entry in _batch_entries(export).items()
+            f"{entry.bytes} | `{entry.sha256[:16]}…` |"
+            for kind, entry in export.batch.items()
         ),
-        f"| `{card['files']['checkpoint']}` | Ultralytics checkpoint of the same weights "
+        f"| `{card.files['checkpoint']}` | Ultralytics checkpoint of the same weights "
         "(optimizer stripped) | | |",
         "",
-        f"Recommended for the detector: **{card['recommended']}** (INT8 ships as default only if it is "
+        f"Recommended for the detector: **{card.recommended}** (INT8 ships as default only if it is "
         "faster and its mAP@0.5 is within 0.5 points of fp32's on the test split and, where measured, "
         "on unseen worlds under every LiDAR condition; measured INT8 − fp32: "
-        + ", ".join(f"{name} {delta * 100:+.2f}" for name, delta in card["int8_minus_fp32_map50"].items())
+        + ", ".join(f"{name} {delta * 100:+.2f}" for name, delta in card.int8_minus_fp32_map50.items())
         + " points).",
     ]
 
 
-def _randomisation_flags(cfg: dict[str, Any]) -> str:
+def _randomisation_flags(cfg: Mapping[str, Any]) -> str:
     """The data set's domain randomisation as ``triscan dataset`` flags ('' for the paper's clean set)."""
     from services.simulator.lidar import DEFAULT_SPEC  # the data set was simulated, so PyBullet is here
 
@@ -384,9 +632,9 @@ def _randomisation_flags(cfg: dict[str, Any]) -> str:
     return "".join(f" {flag}" for flag in flags)
 
 
-def _data_section(data: dict[str, Any]) -> list[str]:
+def _data_section(data: DatasetSummary) -> list[str]:
     """The command that generated the data set and its split sizes, from its summary.json."""
-    cfg = data["config"]
+    cfg = data.config
     randomised = _randomisation_flags(cfg)
     return [
         "## Data",
@@ -401,9 +649,9 @@ def _data_section(data: dict[str, Any]) -> list[str]:
             else ""
         )
         + f"padding **{cfg['padding']}**, "
-        f"scenarios train/val/test {data['scenarios']['train']}/{data['scenarios']['val']}/"
-        f"{data['scenarios']['test']}, samples {data['samples']['train']}/{data['samples']['val']}/"
-        f"{data['samples']['test']} (every {cfg['frame_stride']}th three-scan window of each motion).",
+        f"scenarios train/val/test {data.scenarios['train']}/{data.scenarios['val']}/"
+        f"{data.scenarios['test']}, samples {data.samples['train']}/{data.samples['val']}/"
+        f"{data.samples['test']} (every {cfg['frame_stride']}th three-scan window of each motion).",
     ]
 
 
@@ -431,61 +679,62 @@ def _training_section(
     ]
 
 
-def _test_section(card: dict[str, Any], test32: dict[str, Any], test8: dict[str, Any]) -> list[str]:
+def _test_section(card: ModelCard, test32: Evaluation, test8: Evaluation) -> list[str]:
     """Per-class test-split figures of both files, with the command that measured them."""
     return [
         "## Test metrics (held-out test scenarios, through `OnnxDetector`)",
         "",
-        f"fp32 — `triscan eval --model {card['directory']}/{card['files']['fp32']} --data DATA --split test` "
-        f"({test32['images']} images):",
+        f"fp32 — `triscan eval --model {card.directory}/{card.files['fp32']} --data DATA --split test` "
+        f"({test32.images} images):",
         "",
         *_metrics_rows(test32),
         "",
-        f"INT8 — same command with `--model {card['directory']}/{card['files']['int8']}` "
-        f"({test8['images']} images):",
+        f"INT8 — same command with `--model {card.directory}/{card.files['int8']}` ({test8.images} images):",
         "",
         *_metrics_rows(test8),
     ]
 
 
-def _latency_section(export: dict[str, Any], test32: dict[str, Any]) -> list[str]:
+def _latency_section(export: ExportReport, test32: Evaluation) -> list[str]:
     """session.run medians from the export report, and the end-to-end split from the evaluation."""
-    lat32, lat8 = export["latency_ms_1_thread"]["fp32"], export["latency_ms_1_thread"]["int8"]
-    timings = test32["mean_timings_ms"]
+    timings = test32.mean_timings_ms
     return [
         "## Latency of one frame (this machine, 1 ONNX Runtime thread, session.run only)",
         "",
-        f"fp32 {lat32:.2f} ms, INT8 {lat8:.2f} ms (median, from `triscan export`; end-to-end figures with "
+        f"fp32 {export.latency_ms_fp32:.2f} ms, INT8 {export.latency_ms_int8:.2f} ms (median, from "
+        "`triscan export`; end-to-end figures with "
         f"encoding and NMS: eval mean {timings['encode_ms']:.2f} + "
         f"{timings['inference_ms']:.2f} + {timings['nms_ms']:.2f} ms).",
     ]
 
 
-def _gate_section(card: dict[str, Any], gate: dict[str, int], gate_metrics: dict[str, Any]) -> list[str]:
+def _gate_section(card: ModelCard, gate_metrics: Evaluation) -> list[str]:
     """What tests/test_shipped_model.py requires of the shipped model, and where the bar comes from."""
-    min_map50 = card["quality_gate"]["min_map50"]
+    gate = card.quality_gate
     return [
         "## Quality gate",
         "",
-        f"`tests/test_shipped_model.py` simulates {gate['scenarios']} scenarios with seed {gate['seed']} "
-        f"(never trained on), {gate['positions']} positions each, every {gate['frame_stride']}th window, "
-        f"and requires mAP@0.5 ≥ **{min_map50:.2f}**: the {gate_metrics['overall']['mAP50']:.3f} measured "
+        f"`tests/test_shipped_model.py` simulates {gate.scenarios} scenarios with seed {gate.seed} "
+        f"(never trained on), {gate.positions} positions each, every {gate.frame_stride}th window, "
+        f"and requires mAP@0.5 ≥ **{gate.min_map50:.2f}**: the {gate_metrics.overall.map50:.3f} measured "
         f"on that exact, deterministic set when the card was written, less {GATE_MARGIN:.2f}. A larger "
         "drop means the model file, encoder, simulator or decoding changed behaviour.",
     ]
 
 
-def _conditions_section(card: dict[str, Any], path: Path) -> list[str]:
+def _conditions_section(card: ModelCard, path: Path) -> list[str]:
     """This card's fp32 and INT8 on unseen worlds (``path``: their grid), clean and under LiDAR
     imperfections, per class."""
-    unseen = card["unseen_worlds"]
-    worlds, fp32, int8 = unseen["worlds"], unseen["fp32"], unseen["int8"]
-    classes = list(next(iter(fp32.values()))["per_class_mAP50"])
+    unseen = card.unseen_worlds
+    if unseen is None:
+        raise ValueError("the card has no unseen-worlds figures to show")
+    worlds, fp32, int8 = unseen.worlds, unseen.fp32, unseen.int8
+    classes = list(next(iter(fp32.values())).per_class_map50)
     lines = [
         "## Unseen worlds under LiDAR imperfections",
         "",
-        f"`triscan eval --model {card['directory']}/{card['files']['fp32']} "
-        f"--model {card['directory']}/{card['files']['int8']} "
+        f"`triscan eval --model {card.directory}/{card.files['fp32']} "
+        f"--model {card.directory}/{card.files['int8']} "
         f"--fresh {worlds['scenarios']} --seed {worlds['seed']} --positions {worlds['positions']} "
         f"--frame-stride {worlds['frame_stride']} --noise {' '.join(fp32)}` ({path.name}): "
         f"{worlds['scenarios']} scenarios of a seed never trained on, the same worlds under every "
@@ -496,10 +745,10 @@ def _conditions_section(card: dict[str, Any], path: Path) -> list[str]:
         "| INT8 − fp32 |",
         "|---|---:|---:|---:|---:|---:|---:|",
         *(
-            f"| {condition} | {fp32[condition]['images']} | {fp32[condition]['mAP50']:.3f} "
-            f"| {fp32[condition]['mAP50-95']:.3f} | {int8[condition]['mAP50']:.3f} "
-            f"| {int8[condition]['mAP50-95']:.3f} "
-            f"| {(int8[condition]['mAP50'] - fp32[condition]['mAP50']) * 100:+.2f} |"
+            f"| {condition} | {fp32[condition].images} | {fp32[condition].figures.map50:.3f} "
+            f"| {fp32[condition].figures.map50_95:.3f} | {int8[condition].figures.map50:.3f} "
+            f"| {int8[condition].figures.map50_95:.3f} "
+            f"| {(int8[condition].figures.map50 - fp32[condition].figures.map50) * 100:+.2f} |"
             for condition in fp32
         ),
         "",
@@ -510,9 +759,7 @@ def _conditions_section(card: dict[str, Any], path: Path) -> list[str]:
         *(
             f"| {condition} | "
             + " | ".join(
-                f"{cells[condition]['per_class_mAP50'][name]:.3f}"
-                for name in classes
-                for cells in (fp32, int8)
+                f"{cells[condition].per_class_map50[name]:.3f}" for name in classes for cells in (fp32, int8)
             )
             + " |"
             for condition in fp32
@@ -532,16 +779,20 @@ class GridSection:
 
     def figures(self) -> dict[str, Any]:
         """The card JSON's copy: the worlds, each model's id, and mAP@0.5 / mAP@0.5:0.95 per condition."""
-        grid = _read_json(self.summary)
+        grid = Grid.read(self.summary)
         return {
-            "worlds": grid["worlds"],
-            "models": grid["models"],
+            "worlds": grid.worlds,
+            "models": grid.models,
             "results": {
                 condition: {
-                    stem: {metric: cell[metric] for metric in ("mAP50", "mAP50-95", "per_class_mAP50")}
+                    stem: {
+                        "mAP50": cell.figures.map50,
+                        "mAP50-95": cell.figures.map50_95,
+                        "per_class_mAP50": cell.per_class_map50,
+                    }
                     for stem, cell in row.items()
                 }
-                for condition, row in grid["results"].items()
+                for condition, row in grid.results.items()
             },
         }
 

@@ -21,16 +21,8 @@ import time
 from pathlib import Path
 
 from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS
-from common.model_spec import (
-    BOX_GRIDS,
-    CLASS_NAMES,
-    DEFAULT_BOX_GRID,
-    META_BOX_GRID,
-    META_CLASSES,
-    META_INVALID,
-    META_PADDING,
-    META_PREFIX,
-)
+from common.model_meta import metadata_entries
+from common.model_spec import BOX_GRIDS, CLASS_NAMES, DEFAULT_BOX_GRID, META_PREFIX
 from training.onnx_model import ExportError, provenance, save_checked, set_metadata
 from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
 
@@ -121,7 +113,7 @@ def export_onnx(
     (:func:`resolve_invalid_rule`; the sentinel row when neither says).
 
     ``box_grid`` (``none``, ``pixel``) is recorded for the detector: whether it rounds the boxes to
-    whole pixels after NMS (:func:`common.inference.snap_boxes_to_pixels`).
+    whole pixels after NMS (:func:`common.postprocess.snap_boxes_to_pixels`).
 
     ``rewrite_dfl`` applies :func:`training.onnx_rewrites.dfl_softmax_on_last_axis` (exact, faster);
     off only to measure what it buys (docs/benchmarks.md, dfl_rewrite).
@@ -162,7 +154,7 @@ def export_onnx(
             dynamic=False,
             simplify=True,
             opset=opset,
-            nms=False,  # NMS runs in common/inference.py, where its thresholds are configurable
+            nms=False,  # NMS runs in common/postprocess.py, where its thresholds are configurable
             device="cpu",  # the same graph whatever accelerator this machine has
             verbose=False,
         )
@@ -172,10 +164,7 @@ def export_onnx(
     set_metadata(
         model,
         {
-            META_PADDING: recorded_padding,
-            META_INVALID: recorded_invalid,
-            META_BOX_GRID: box_grid,
-            META_CLASSES: json.dumps(list(CLASS_NAMES)),
+            **metadata_entries(padding=recorded_padding, invalid=recorded_invalid, box_grid=box_grid),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",
             f"{META_PREFIX}rewrites": DFL_SOFTMAX_LAST_AXIS if rewrite_dfl else "",

@@ -10,10 +10,9 @@ each box branch): the DFL reads a box edge as the softmax-weighted mean of 16 bi
 move that mean, which costs box tightness (mAP@0.5:0.95), not detections. And the leading modules of
 the backbone, which read the sparse 0/1 raster at full resolution: quantising the stem is where a
 trained pico model lost the most mAP@0.5 (24 points with percentile ranges), and the modules after
-it hold most of what INT8 still lost in mAP@0.5:0.95. On the 16-bin pico's val split
-(``python -m training.int8_recipes``), with the box logits float: stem alone 0.720, modules
-0–1 0.729, 0–4 0.733, 0–5 0.736, 0–9 0.733, fp32 0.741; so the stem and the stride-8 stage, modules
-0–4, stay float. They are the layers with the fewest channels: no measurable speed cost.
+it hold most of what INT8 still lost in mAP@0.5:0.95. On the pico's val split, with the box logits
+float, keeping modules past 0–4 float bought nothing further, so the stem and the stride-8 stage,
+modules 0–4, stay float. They are the layers with the fewest channels: no measurable speed cost.
 ``python -m training.int8_recipes`` compares the recipes by mAP for any model.
 Whether INT8 ships is decided by evaluation, not here.
 

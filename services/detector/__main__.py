@@ -7,7 +7,7 @@ tensor into a newest-per-robot mailbox; inference threads drain it, so the detec
 behind (see :mod:`services.detector.core`). With ``--batch N`` and a ``-batch`` model, a thread runs
 up to N waiting robots' tensors in one model call, which a CPU does for less per frame; without
 ``--batch`` the detector times its model at start and picks the cap itself
-(:func:`common.inference.timed_batch_cap`).
+(:mod:`services.detector.batch_cap`).
 """
 
 from __future__ import annotations
@@ -18,26 +18,19 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from common.inference import (
-    AUTO_BATCH,
-    AUTO_BATCH_CALL_BUDGET_MS,
-    DEFAULT_CONF,
-    DEFAULT_IOU,
-    OnnxDetector,
-    detector_model_and_batch,
-    timed_batch_cap,
-)
+from common.inference import OnnxDetector
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
+from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
 from common.transport import ZenohSettings, settings_from_args
-from services.detector.core import (
-    DEFAULT_BATCH_WINDOW_MS,
-    DetectorCore,
-    InferencePipeline,
-    default_intra_op_threads,
-    default_workers,
+from services.detector.batch_cap import (
+    AUTO_BATCH,
+    AUTO_BATCH_CALL_BUDGET_MS,
+    detector_model_and_batch,
+    timed_batch_cap,
 )
+from services.detector.core import DetectorCore, InferencePipeline, default_intra_op_threads, default_workers
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
 from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
 
@@ -53,7 +46,6 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     batch: int = 1,
-    batch_window_ms: float = DEFAULT_BATCH_WINDOW_MS,
 ) -> DetectorCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
     with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
@@ -66,7 +58,6 @@ def run(
             detectors,
             publish,
             batch=batch,
-            batch_window_ms=batch_window_ms,
             from_scans=from_scans,
             forget_after_s=forget_after_s,
         )
@@ -117,13 +108,6 @@ def main(argv: list[str] | None = None) -> int:
         f"whose call takes at most {AUTO_BATCH_CALL_BUDGET_MS:g} ms on this machine; 1 with a fixed model)",
     )
     parser.add_argument(
-        "--batch-window-ms",
-        type=float,
-        default=DEFAULT_BATCH_WINDOW_MS,
-        help="how long a worker may wait for a batch to fill while tensors arrive fast enough to fill it "
-        f"(default: {DEFAULT_BATCH_WINDOW_MS:g}; 0 takes only what is ready)",
-    )
-    parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
     )
     parser.add_argument(
@@ -146,8 +130,6 @@ def main(argv: list[str] | None = None) -> int:
     workers = args.workers or default_workers()
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
-    if args.batch_window_ms < 0:
-        parser.error(f"--batch-window-ms must be >= 0, got {args.batch_window_ms}")
     threads = args.threads or default_intra_op_threads(workers, args.from_scans)
     try:
         model, batch = detector_model_and_batch(args.model, args.batch)
@@ -182,7 +164,6 @@ def main(argv: list[str] | None = None) -> int:
         forget_after_s=args.forget_after,
         duration_s=args.duration,
         batch=batch,
-        batch_window_ms=args.batch_window_ms,
     )
     return 0
 

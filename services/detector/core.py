@@ -18,12 +18,12 @@ import os
 import sys
 import threading
 import time
-from collections import Counter, OrderedDict, deque
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
 
-from common.inference import OnnxDetector, check_batch
+from common.inference import OnnxDetector
 from common.keys import parse_key
 from common.messages import (
     Detection,
@@ -33,6 +33,7 @@ from common.messages import (
     StageTimings,
     decode_message,
 )
+from services.detector.batch_cap import check_batch
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 
 log = logging.getLogger(__name__)
@@ -55,41 +56,23 @@ class Pending(NamedTuple):
 
 
 TAKE_TIMEOUT_S = 0.5  # how often an idle inference thread looks at the stop flag
-# How long a worker may hold a batch open for more robots' tensors when they arrive fast enough to fill
-# it (``LatestPerRobot.take_many``). Off by default: measured with ``bench.fleet_ab``, a 5 ms window
-# cut the detector's CPU a scan by about 5 % below the fleet's knee, at 6 ms more p50, and held no more
-# robots, because past the knee the workers find full batches waiting anyway (bench/README.md,
-# "A batch window").
-DEFAULT_BATCH_WINDOW_MS = 0.0
 # Inference threads are named <prefix><N> in the OS (``name_os_thread``), which the benches read.
 INFERENCE_THREAD_PREFIX = "inference-"
 
 
-ARRIVAL_RATE_WINDOW_S = 1.0  # how far back ``LatestPerRobot`` counts puts to know the arrival rate
-
-
 class LatestPerRobot(Generic[T]):
-    """A mailbox with one slot per robot; ``take`` serves the robot waiting longest.
+    """A mailbox with one slot per robot; ``take_many`` serves the robots waiting longest.
 
-    Thread-safe: Zenoh callbacks ``put``, inference threads ``take`` and ``release``. A robot whose
+    Thread-safe: Zenoh callbacks ``put``, inference threads ``take_many`` and ``release``. A robot whose
     previous item is still being processed is not handed out again until ``release``, so with several
-    inference workers one robot's detections still come out in order. ``fill_window_s``: see
-    :meth:`take_many`; only a mailbox with a window keeps the arrival records it needs.
+    inference workers one robot's detections still come out in order.
     """
 
-    def __init__(self, fill_window_s: float = 0.0, clock: Callable[[], float] = time.monotonic) -> None:
-        if fill_window_s < 0:
-            raise ValueError(f"fill window must be >= 0 s, got {fill_window_s}")
-        self._fill_window_s = fill_window_s
-        self._clock = clock  # seconds, for the arrival rate; tests pass their own
+    def __init__(self) -> None:
         self._slots: OrderedDict[str, T] = OrderedDict()
         self._busy: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
-        self._arrivals: deque[float] = deque()  # monotonic times of the last second's puts
-        self._last_put: dict[str, float] = {}  # robot → monotonic time of its last put
-        self._last_put_cap = 64  # when _last_put grows past this, robots gone quiet are forgotten
-        self._filling = 0  # takers waiting for a batch to fill: the others leave the new items to them
         self.dropped = 0
 
     def __len__(self) -> int:
@@ -103,45 +86,8 @@ class LatestPerRobot(Generic[T]):
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
                 self.dropped += 1
-            if self._fill_window_s > 0:
-                now = self._clock()
-                self._arrivals.append(now)
-                self._last_put[robot_id] = now
-                self._forget_old_arrivals(now)
-            # A taker filling a batch waits on a predicate of its own: wake everyone, or the one
-            # notify could go to a taker that must leave the item to it.
-            if self._filling:
-                self._cond.notify_all()
-            else:
-                self._cond.notify()
+            self._cond.notify()
             return replaced
-
-    def arrivals_per_s(self) -> float:
-        """Puts over the last :data:`ARRIVAL_RATE_WINDOW_S`, per second."""
-        with self._cond:
-            return self._arrivals_per_s(self._clock())
-
-    def _forget_old_arrivals(self, now: float) -> None:
-        """Keep the arrival records to the last :data:`ARRIVAL_RATE_WINDOW_S`, amortised O(1) a put,
-        so they do not grow for ever while batches fill without waiting."""
-        while self._arrivals and now - self._arrivals[0] > ARRIVAL_RATE_WINDOW_S:
-            self._arrivals.popleft()
-        if len(self._last_put) > self._last_put_cap:
-            self._last_put = self._recent_robots(now)
-            self._last_put_cap = max(64, 2 * len(self._last_put))
-
-    def _recent_robots(self, now: float) -> dict[str, float]:
-        return {robot_id: t for robot_id, t in self._last_put.items() if now - t <= ARRIVAL_RATE_WINDOW_S}
-
-    def _arrivals_per_s(self, now: float) -> float:
-        self._forget_old_arrivals(now)
-        return len(self._arrivals) / ARRIVAL_RATE_WINDOW_S
-
-    def _robots_that_may_send(self, now: float) -> int:
-        """Robots heard from in the last :data:`ARRIVAL_RATE_WINDOW_S` with nothing waiting or being
-        processed: the ones whose next tensor would add to a batch rather than replace one in it."""
-        recent = self._recent_robots(now)
-        return sum(1 for robot_id in recent if robot_id not in self._slots and robot_id not in self._busy)
 
     def _first_ready(self) -> str | None:
         return next((robot_id for robot_id in self._slots if robot_id not in self._busy), None)
@@ -154,39 +100,16 @@ class LatestPerRobot(Generic[T]):
         """Up to ``limit`` free robots' newest items, longest-waiting first; empty after ``timeout``
         or once closed.
 
-        Waits for the first item and takes whatever else is ready then, so a lone robot's frame is
-        never held back for others. With a ``fill_window_s`` it may then wait up to that long for the
-        batch to fill, but only while the items missing can come: at least as many other robots heard
-        from in the last :data:`ARRIVAL_RATE_WINDOW_S`, and an arrival rate that brings that many
-        within the window. Several frames in one model call cost less CPU each than one call each
-        (bench/README.md, "The detector's own path at full load"). Other takers leave new items to a
-        filling one. Each robot stays busy until :meth:`release`.
+        Waits for the first item and takes whatever else is ready then: a batch is never held open
+        for more robots, so a lone robot's frame is never held back for others, and past a fleet's
+        knee the batches fill by themselves. Each robot stays busy until :meth:`release`.
         """
         if limit < 1:
             raise ValueError(f"limit must be >= 1, got {limit}")
         with self._cond:
-            self._cond.wait_for(
-                lambda: self._closed or (self._filling == 0 and self._first_ready() is not None), timeout
-            )
-            if self._closed or self._filling or self._first_ready() is None:
-                return []  # closed, timed out, or timed out while another taker fills its batch
-            missing = limit - len(self._ready())
-            if self._fill_window_s > 0 and missing > 0:
-                now = self._clock()
-                if (
-                    self._robots_that_may_send(now) >= missing
-                    and self._arrivals_per_s(now) * self._fill_window_s >= missing
-                ):
-                    self._filling += 1
-                    try:
-                        self._cond.wait_for(
-                            lambda: self._closed or len(self._ready()) >= limit, self._fill_window_s
-                        )
-                    finally:
-                        self._filling -= 1
-                        self._cond.notify_all()  # takers left waiting for it may take now
-                    if self._closed:
-                        return []
+            self._cond.wait_for(lambda: self._closed or self._first_ready() is not None, timeout)
+            if self._closed:
+                return []  # a timeout with nothing ready returns the empty list below
             ready = self._ready()[:limit]
             self._busy.update(ready)
             return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
@@ -328,11 +251,11 @@ class DetectorCore:
 def default_workers(cpus: int | None = None) -> int:
     """Inference threads when the user gives none: one per core, each with a single-threaded session.
 
-    ONNX Runtime splits one 64×384 frame over several threads poorly: measured on a 2-core VM, one
-    2-thread session ran the batch model at 210 frames/s at best, two 1-thread sessions side by side at
-    about 300 (bench/README.md, "The fleet against the compute bound"), and the fleet a detector held
-    at 10 Hz grew from 12 to 16 robots. A lone robot waits a little longer per frame (one core instead
-    of two work on it), well inside its 100 ms period.
+    ONNX Runtime splits one small 64×384 frame over several threads poorly: single-threaded sessions
+    side by side, one per core, run more frames a second than one session spread over every core
+    (``bench.fleet_bound`` measures both), so a detector holds more robots. A lone robot waits a
+    little longer per frame (one core instead of all of them work on it), well inside its 100 ms
+    period.
     """
     return cpus or os.cpu_count() or 1
 
@@ -341,9 +264,9 @@ def default_intra_op_threads(workers: int, from_scans: bool, cpus: int | None = 
     """ONNX Runtime threads per worker when the user gives none (``None``: every core).
 
     Several workers share the cores. With ``--from-scans`` the encoder's Zenoh callbacks run in this
-    process too, and an ONNX Runtime thread on every core then competes with them: measured on a
-    2-core VM at 10 Hz, one thread instead of two cut the scan → detections p50 from 13.2 to 9.4 ms
-    (bench/README.md, "Pipeline latency"). So one core is left to the rest of the process.
+    process too, and an ONNX Runtime thread on every core then competes with them for the CPU, which
+    delays every scan's encoding (``bench.pipeline_latency --from-scans --threads N`` compares). So
+    one core is left to the rest of the process.
     """
     cpus = cpus or os.cpu_count() or 1
     if workers > 1:
@@ -388,7 +311,6 @@ class InferencePipeline:
         publish: Callable[[Detections], None],
         *,
         batch: int = 1,
-        batch_window_ms: float = DEFAULT_BATCH_WINDOW_MS,
         from_scans: bool = False,
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     ) -> None:
@@ -404,11 +326,9 @@ class InferencePipeline:
             if from_scans
             else None
         )
-        if batch_window_ms < 0:
-            raise ValueError(f"batch window must be >= 0 ms, got {batch_window_ms}")
         self.batch = batch
         self._publish = publish
-        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot(batch_window_ms / 1e3 if batch > 1 else 0.0)
+        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot()
         self._stop = threading.Event()
         self._workers: list[threading.Thread] = []
 

@@ -170,7 +170,7 @@ def sector_outline(detection: Detection, step_deg: float = ARC_STEP_DEG) -> np.n
     """Outline (sensor frame, metres) of the arc × range interval a detection covers.
 
     The arc runs counter-clockwise from ``bearing_min_deg`` to ``bearing_max_deg``: after wrapping to
-    (−180, 180] a box straddling ±180° has min > max (see ``common.inference``).
+    (−180, 180] a box straddling ±180° has min > max (see ``common.postprocess``).
     """
     start = detection.bearing_min_deg
     span = (detection.bearing_max_deg - start) % 360.0

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.inference import detections_from_boxes
 from common.messages import Detection
+from common.postprocess import detections_from_boxes
 
 
 def one_detection(box_xyxy: tuple[float, ...] | np.ndarray, score: float, class_id: int) -> Detection:

@@ -1,0 +1,102 @@
+"""What a triscan ONNX file declares about itself: the ``triscan.*`` metadata, written and read here.
+
+``triscan export`` records how the model reads scans (padding, invalid-return rule), the classes it
+was trained for and whether its boxes snap to the pixel grid, so that a detector or a launcher can
+match the encoder to the model, or refuse a model it would misread, before any frame is lost. The
+keys are named in :mod:`common.model_spec`; this module is the one place that turns them into values
+(:func:`metadata_entries` for the writer, the ``declared_*`` readers for everyone else). Opening a
+file to read them is :func:`common.inference.model_facts`' job.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import onnxruntime as ort
+
+from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding
+from common.model_spec import (
+    BOX_GRIDS,
+    CLASS_NAMES,
+    DEFAULT_BOX_GRID,
+    META_BOX_GRID,
+    META_CLASSES,
+    META_INVALID,
+    META_PADDING,
+    BoxGrid,
+)
+
+
+def metadata_entries(
+    *, padding: str, invalid: str, box_grid: str, classes: Sequence[str] = CLASS_NAMES
+) -> dict[str, str]:
+    """The ``triscan.*`` entries an exported model carries, as the readers below expect them."""
+    return {
+        META_PADDING: padding,
+        META_INVALID: invalid,
+        META_BOX_GRID: box_grid,
+        META_CLASSES: json.dumps(list(classes)),
+    }
+
+
+def _declared(
+    session: ort.InferenceSession, path: Path | str, key: str, allowed: tuple[str, ...], absent: str | None
+) -> Any:
+    """One ``triscan.*`` metadata value of the model, checked against ``allowed``; ``absent`` when the
+    model does not have the key (it was exported before the key existed)."""
+    value = session.get_modelmeta().custom_metadata_map.get(key, absent)
+    if value is not None and value not in allowed:
+        raise ValueError(f"{path} declares an unknown {key} {value!r}")
+    return value
+
+
+def declared_padding(session: ort.InferenceSession, path: Path | str) -> Padding | None:
+    """The model's ``triscan.padding`` metadata, checked; None for a model without it."""
+    return _declared(session, path, META_PADDING, PADDINGS, None)
+
+
+def declared_box_grid(session: ort.InferenceSession, path: Path | str) -> BoxGrid:
+    """The model's ``triscan.box_grid`` (``none`` when absent: models exported before the key)."""
+    return _declared(session, path, META_BOX_GRID, BOX_GRIDS, DEFAULT_BOX_GRID)
+
+
+def declared_invalid_rule(session: ort.InferenceSession, path: Path | str) -> InvalidRule:
+    """The model's ``triscan.invalid`` metadata (``sentinel``, the paper's rule, when it does not say)."""
+    return _declared(session, path, META_INVALID, INVALID_RULES, "sentinel")
+
+
+def declared_classes(session: ort.InferenceSession) -> tuple[str, ...] | None:
+    """The class names the model was trained for (``triscan.classes``); None for a model without them."""
+    declared = session.get_modelmeta().custom_metadata_map.get(META_CLASSES)
+    return None if declared is None else tuple(json.loads(declared))
+
+
+def is_end_to_end(session: ort.InferenceSession) -> bool:
+    """Whether Ultralytics exported the model with its NMS inside (``end2end``): its output is final
+    boxes, not the raw detect head this project post-processes."""
+    return str(session.get_modelmeta().custom_metadata_map.get("end2end", "")).lower() == "true"
+
+
+def is_free_dimension(dim: object) -> bool:
+    """ONNX Runtime reports a symbolic dimension as its name (a str) and an unnamed one as None."""
+    return dim is None or isinstance(dim, str)
+
+
+class ModelFacts(NamedTuple):
+    """What a triscan ONNX file says about itself, read without running it."""
+
+    padding: Padding  # ``zero`` for a model that does not say
+    invalid: InvalidRule  # ``sentinel`` for a model that does not say
+    takes_batches: bool  # a free batch axis (a ``-batch`` file)
+
+    @classmethod
+    def of_session(cls, session: ort.InferenceSession, path: Path | str) -> ModelFacts:
+        shape = session.get_inputs()[0].shape
+        return cls(
+            padding=declared_padding(session, path) or "zero",
+            invalid=declared_invalid_rule(session, path),
+            takes_batches=bool(shape) and is_free_dimension(shape[0]),
+        )
