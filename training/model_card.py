@@ -154,6 +154,7 @@ def write_card(
     conditions: Path | None = None,
     grids: list[GridSection] | None = None,
     curves: CurveComparison | None = None,
+    recipe: str = "",
 ) -> dict[str, Any]:
     """Write the card pair into ``out_dir`` and return the JSON half.
 
@@ -162,6 +163,8 @@ def write_card(
     fp32 and INT8 files: unseen worlds under LiDAR imperfections, which also decide whether INT8 is
     recommended. ``grids`` are further such grids (another network, another invalid-return rule) shown
     beside them; ``curves`` sets this run's validation curve beside another network's, epoch for epoch.
+    ``recipe`` names the recipe file (:mod:`training.recipe`) the run and the export took their defaults
+    from.
     """
     data = _read_json(dataset_dir / "summary.json")
     export = _read_json(export_json)
@@ -187,6 +190,11 @@ def write_card(
         *_training_section(history, best_epoch, best_row, train_command),
         "",
         *(
+            [f"Recipe (the defaults of `triscan train` and `triscan export`): `{recipe}`.", ""]
+            if recipe
+            else []
+        ),
+        *(
             curves.lines(curve_figures, card["network"])
             if curves is not None and curve_figures is not None
             else []
@@ -199,6 +207,8 @@ def write_card(
         "",
         *_gate_section(card, gate, gate_metrics),
     ]
+    if recipe:
+        card["recipe"] = recipe
     if grid_figures:
         card["grids"] = grid_figures
     if curve_figures is not None:
