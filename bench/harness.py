@@ -18,11 +18,10 @@ from typing import Any, TypeVar
 import numpy as np
 
 from common.encoding import ScanStacker
-from common.messages import Scan
 from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
 from services.launcher import child_environment
-from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
+from services.sim_bag import recorded_scans
 
 T = TypeVar("T")
 
@@ -207,18 +206,6 @@ def timed_us(
                 next_due = time.monotonic() + lead_s
             _wait_for_deadline(next_due, spin)
     return times, faults
-
-
-def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
-    """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
-
-    For benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
-    """
-    from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
-
-    period_ns = round(1e9 / rate_hz)
-    with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
-        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
 
 
 def simulated_tensor(seed: int = 1) -> np.ndarray:

@@ -40,7 +40,7 @@ from common.keys import scan_key, validate_robot_id
 from common.messages import Scan, encode_message
 from common.transport import ZenohSettings, add_zenoh_arguments, settings_from_args
 from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
-from services.runtime import ServiceRuntime, configure_logging, stop_event_on_signals
+from services.runtime import ServiceRuntime, configure_logging, service_parser, stop_event_on_signals
 
 log = logging.getLogger(__name__)
 
@@ -309,9 +309,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m services.bag_replay``: 0 at the end of the bag, 2 if the replay cannot start."""
-    parser = argparse.ArgumentParser(
-        prog="python -m services.bag_replay", description=__doc__.splitlines()[0]
-    )
+    parser = service_parser("services.bag_replay", __doc__.splitlines()[0])
     add_replay_arguments(parser)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     args = parser.parse_args(argv)

@@ -20,7 +20,13 @@ from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.ros2_bridge.core import DEFAULT_SCAN_TOPIC, BridgeConfig, BridgeCore, Outgoing
 from services.ros2_bridge.rmw_zenoh import STYLES
 from services.ros2_bridge.ros_types import DEFAULT_DISTRO, DISTROS
-from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
+from services.runtime import (
+    ServiceRuntime,
+    add_service_arguments,
+    configure_logging,
+    service_parser,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -108,7 +114,7 @@ def build_config(args: argparse.Namespace) -> BridgeConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="triscan-ros2-bridge", description=__doc__.splitlines()[0])
+    parser = service_parser("services.ros2_bridge", __doc__.splitlines()[0])
     parser.add_argument("--style", choices=STYLES, default="rmw_zenoh", help="how ROS 2 reaches Zenoh")
     parser.add_argument("--domain", type=int, default=0, help="ROS_DOMAIN_ID of the robot (rmw_zenoh style)")
     parser.add_argument("--scan-topic", default=DEFAULT_SCAN_TOPIC, help="LaserScan topic, relative")
