@@ -8,26 +8,39 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from common.transport import add_zenoh_arguments
 from services.cli.command import Command
+from services.runtime import default_of
 
 SIMULATOR_ONLY_FLAGS = {"robots": "--robots", "rate_hz": "--rate", "seed": "--seed"}
 REPLAY_ONLY_FLAGS = {"topic": "--topic", "robot": "--robot", "speed": "--speed", "loop": "--loop"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from services.bag_replay import ReplayConfig
+    from services.launcher import UpConfig
+
+    def up(name: str) -> Any:
+        return default_of(UpConfig, name)
+
     # None: the default of UpConfig (simulator flags) or ReplayConfig (replay flags), so that a flag of
     # the other source can be refused rather than silently ignored.
-    p.add_argument("--robots", type=int, default=None, help="simulated robots (default 1)")
-    p.add_argument("--rate", dest="rate_hz", type=float, default=None, help="scans per second per robot")
-    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: Ctrl-C)")
+    p.add_argument("--robots", type=int, default=None, help=f"simulated robots (default {up('robots')})")
+    p.add_argument(
+        "--rate", dest="rate_hz", type=float, default=None,
+        help=f"scans per second per robot (default {up('rate_hz'):g})",
+    )  # fmt: skip
+    p.add_argument(
+        "--duration", type=float, default=up("duration_s"), help="stop after this many seconds (0: Ctrl-C)"
+    )
     p.add_argument("--headless", action="store_true", help="no viewer: record an .rrd instead")
     p.add_argument(
         "--rrd", type=Path, default=None, help="--headless recording (default: runs/triscan-<time>.rrd)"
     )
     p.add_argument(
-        "--viewer", choices=("spawn", "web", "none"), default="spawn", help="viewer when not --headless"
+        "--viewer", choices=("spawn", "web", "none"), default=up("viewer"), help="viewer when not --headless"
     )
     p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
     p.add_argument(
@@ -36,9 +49,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="detector: most robots per model call (default: it picks, 4 with the shipped -batch model)",
     )
-    p.add_argument("--seed", type=int, default=None, help="simulator seed (default 1; training used 0)")
     p.add_argument(
-        "--max-restarts", type=int, default=5, help="restarts of one service per minute before giving up"
+        "--seed", type=int, default=None, help=f"simulator seed (default {up('seed')}; training used 0)"
+    )
+    p.add_argument(
+        "--max-restarts",
+        type=int,
+        default=up("max_restarts"),
+        help="restarts of one service per minute before giving up",
     )
     replay = p.add_argument_group("replay (instead of the simulator; the run ends when the bag does)")
     replay.add_argument(
@@ -51,7 +69,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     replay.add_argument("--topic", action="append", default=None, help="LaserScan topic (default: all)")
     replay.add_argument("--robot", default=None, help="robot id of a single replayed topic (default: replay)")
-    replay.add_argument("--speed", type=float, default=None, help="playback speed (default 1)")
+    replay.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        help=f"playback speed (default {default_of(ReplayConfig, 'speed'):g})",
+    )
     replay.add_argument("--loop", action="store_true", default=None, help="replay until stopped")
     add_zenoh_arguments(p)
 
