@@ -258,8 +258,7 @@ def _int8_deltas(
 def _batch_entries(export: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """The export report's batch variants (``-batch``) by kind.
 
-    The same graphs with a free batch axis, written by exports since they exist; an older export
-    report simply has none.
+    The same graphs with a free batch axis; a report without them gives a card without them.
     """
     return {kind: export[f"{kind}_batch"] for kind in ("fp32", "int8") if f"{kind}_batch" in export}
 
