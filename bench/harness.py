@@ -13,11 +13,10 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-from common.messages import Scan
 from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
 from services.launcher import child_environment
-from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
+from services.sim_bag import recorded_scans
 
 T = TypeVar("T")
 
@@ -101,13 +100,3 @@ def timed_us(frame: Callable[[int], object], frames: int, period_s: float) -> li
     return times
 
 
-def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
-    """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
-
-    For benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
-    """
-    from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
-
-    period_ns = round(1e9 / rate_hz)
-    with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
-        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]

@@ -4,7 +4,7 @@ A replayed bag is what a user's first session with triscan looks like (``triscan
 recorded robot, at recorded pace, into the encoder and detector processes over loopback Zenoh. This
 measures it without the launcher and the viewer, so the figure is the pipeline's own:
 
-* the bag: a 10 Hz ROS 2 bag of real simulated scans (:mod:`bench.sim_bag`, rosbags' MCAP writer), or
+* the bag: a 10 Hz ROS 2 bag of real simulated scans (`triscan sim-bag`, rosbags' MCAP writer), or
   any bag given with ``--bag``;
 * the services: ``python -m services.encoder`` and ``python -m services.detector`` as children
   (:func:`bench.harness.start_loopback_service`), primed first with the bag replayed under another
@@ -261,7 +261,7 @@ def _prime(bag: Path, put: Callable[[str, bytes], None], answers: Answers, timeo
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.sim_bag import write_sim_bag
+    from services.sim_bag import write_sim_bag
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bag", type=Path, default=None, help="a bag to replay (default: simulate one)")
@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         bag = args.bag or write_sim_bag(Path(tmp) / "sim_drive", args.scans)
         report = run(bag, args.speed, args.model, connect=args.connect, wait_s=args.wait)
         if args.bag is None:
-            report.bag = f"simulated: {args.scans} scans at {SCAN_RATE_HZ:g} Hz (bench.sim_bag)"
+            report.bag = f"simulated: {args.scans} scans at {SCAN_RATE_HZ:g} Hz (triscan sim-bag)"
     write_report(report, args.out)
     return 0 if report.passed else 1
 

@@ -6,7 +6,7 @@
 #   2. the robot image for linux/arm64 from docker/Dockerfile (every RUN, pip included, is emulated);
 #   3. the detector in it, `python -m services.detector --from-scans`, emulated, on the host's network,
 #      given a Raspberry Pi 5's /proc/cpuinfo (see PI5_CPUINFO below);
-#   4. from the host: a bag of simulated scans (bench/sim_bag.py) replayed at recorded pace into it by
+#   4. from the host: a bag of simulated scans (triscan sim-bag) replayed at recorded pace into it by
 #      bench/replay_answered.py, which waits for the detector and measures what comes back.
 # PASS when detections of the replayed scans come back to the host from the arm64 container; prints the
 # build times, the detector's start time, the share of scans answered, latency and the detector's own
@@ -116,7 +116,7 @@ done
 echo "its Zenoh port $PORT open after $(( $(date +%s) - t_start )) s"
 
 log "a bag of $SCANS simulated scans, replayed from the host into it"
-"${NICE[@]}" "$PY" -m bench.sim_bag --scans "$SCANS" --out "$WORK/bag"
+"${NICE[@]}" "$PY" -m services.cli sim-bag --scans "$SCANS" --out "$WORK/bag"
 status=0
 # --wait: the emulated detector loads ONNX Runtime and the model before it subscribes and answers
 "$PY" -m bench.replay_answered --bag "$WORK/bag" --connect "tcp/127.0.0.1:$PORT" --speed "$SPEED" \

@@ -193,7 +193,7 @@ def secure_config(
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m security.zenoh_config", description=__doc__.split("\n")[0]
+        prog="python -m security.zenoh_config", description=__doc__.split("\n")[0], allow_abbrev=False
     )
     parser.add_argument(
         "--certs", type=Path, required=True, help="directory written by security/make_certs.sh"

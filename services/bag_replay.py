@@ -40,7 +40,13 @@ from common.keys import scan_key, validate_robot_id
 from common.messages import Scan, encode_message
 from common.transport import ZenohSettings, add_zenoh_arguments, settings_from_args
 from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
-from services.runtime import ServiceRuntime, configure_logging, stop_event_on_signals
+from services.runtime import (
+    ServiceRuntime,
+    configure_logging,
+    default_of,
+    service_parser,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger(__name__)
 
@@ -287,7 +293,12 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--robot", default=None, help=f"robot id of a single replayed topic (default: {DEFAULT_ROBOT})"
     )
-    parser.add_argument("--speed", type=float, default=1.0, help="playback speed relative to the recording")
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=default_of(ReplayConfig, "speed"),
+        help="playback speed relative to the recording",
+    )
     parser.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
     parser.add_argument(
         "--wait", type=float, default=DEFAULT_WAIT_S, help="seconds to wait for a subscriber first"
@@ -309,9 +320,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m services.bag_replay``: 0 at the end of the bag, 2 if the replay cannot start."""
-    parser = argparse.ArgumentParser(
-        prog="python -m services.bag_replay", description=__doc__.splitlines()[0]
-    )
+    parser = service_parser("services.bag_replay", __doc__.splitlines()[0])
     add_replay_arguments(parser)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     args = parser.parse_args(argv)

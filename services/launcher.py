@@ -42,6 +42,7 @@ from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
 from services.runtime import EXIT_WITH_PARENT_ENV
+from services.simulator.defaults import ROBOTS, SCAN_RATE_HZ, SIM_SEED
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +61,8 @@ REPLAY_WAIT_S = 30.0  # the replay's --wait for the encoder's subscription (it s
 class UpConfig:
     """Everything ``triscan up`` starts; ``service_args`` are extra flags per service."""
 
-    robots: int = 1
-    rate_hz: float = 10.0
+    robots: int = ROBOTS
+    rate_hz: float = SCAN_RATE_HZ
     duration_s: float = 0.0  # 0: until Ctrl-C
     headless: bool = False
     rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
@@ -69,7 +70,7 @@ class UpConfig:
     model: Path | None = None
     # The detector's --batch (None: it times its own cap, services.detector.batch_cap.timed_batch_cap).
     batch: int | None = None
-    seed: int = 1  # the shipped model trained on seed 0's worlds: show it unseen ones
+    seed: int = SIM_SEED
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
     verbose: bool = False

@@ -16,6 +16,7 @@ service's ``run`` is then: build its pure core, subscribe the core's handlers, a
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import logging
 import os
@@ -38,6 +39,12 @@ PARENT_POLL_S = 0.5
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
+def service_parser(module: str, description: str) -> argparse.ArgumentParser:
+    """The parser of ``python -m <module>``: usage and errors name the command as it is typed, and a
+    flag must be spelt out (an abbreviation is an error, not a guess)."""
+    return argparse.ArgumentParser(prog=f"python -m {module}", description=description, allow_abbrev=False)
+
+
 def add_service_arguments(parser: argparse.ArgumentParser, *, forget_after_s: float | None = None) -> None:
     """The flags every long-running service shares: ``--duration``, ``--verbose`` and Zenoh's, plus
     ``--forget-after`` (default ``forget_after_s``) for the services that keep state per robot."""
@@ -50,6 +57,15 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, forget_after_s: fl
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     add_zenoh_arguments(parser)
+
+
+def default_of(owner: Callable[..., Any], name: str) -> Any:
+    """The default of parameter or dataclass field ``name`` of ``owner``: argparse reads it there
+    instead of restating the number."""
+    default = inspect.signature(owner).parameters[name].default
+    if default is inspect.Parameter.empty:
+        raise ValueError(f"{owner.__qualname__}'s {name} has no default")
+    return default
 
 
 def configure_logging(verbose: bool = False) -> None:

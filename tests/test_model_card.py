@@ -295,11 +295,11 @@ def test_a_curve_without_a_common_epoch_is_refused(tmp_path: Path) -> None:
 def test_compare_curve_takes_network_equals_csv(text: str) -> None:
     import argparse
 
-    from services.cli import _network_and_csv
+    from services.cli.card import network_and_csv
 
-    assert _network_and_csv("yolov8n=runs/n/results.csv") == ("yolov8n", Path("runs/n/results.csv"))
+    assert network_and_csv("yolov8n=runs/n/results.csv") == ("yolov8n", Path("runs/n/results.csv"))
     with pytest.raises(argparse.ArgumentTypeError, match="NETWORK=RESULTS_CSV"):
-        _network_and_csv(text)
+        network_and_csv(text)
 
 
 def test_the_card_takes_its_status_from_the_model_spec(tmp_path: Path) -> None:

@@ -205,14 +205,16 @@ def test_fewer_dfl_bins_keep_every_trained_tensor_but_the_box_branch(
 
 def test_a_fine_tune_keeps_the_trained_weights_and_a_gentle_bias_warm_up(tmp_path: Path) -> None:
     """Ultralytics discards a loaded model's weights unless ``pretrained`` is set; a fresh run has none."""
-    from training.train import LR0, TrainConfig, recipe
+    from training.recipe import load_recipe
+    from training.train import TrainConfig, recipe
 
     fresh = recipe(TrainConfig(data=tmp_path / "data.yaml", out=tmp_path / "run"), "cpu")
     tuned = recipe(
         TrainConfig(data=tmp_path / "data.yaml", out=tmp_path / "run", init=tmp_path / "w.pt"), "cpu"
     )
     assert fresh["pretrained"] is False and "warmup_bias_lr" not in fresh
-    assert tuned["pretrained"] is True and tuned["warmup_bias_lr"] == LR0 == tuned["lr0"]
+    assert tuned["pretrained"] is True and tuned["warmup_bias_lr"] == tuned["lr0"]
+    assert tuned["lr0"] == load_recipe().train.ultralytics["lr0"]
 
 
 def test_fine_tuning_refuses_weights_of_another_network(

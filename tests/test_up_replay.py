@@ -1,6 +1,6 @@
 """``triscan up --headless --replay BAG``: a recorded drive through encoder, detector and visualizer.
 
-The bag holds real simulated scans (``bench.sim_bag``, written by rosbags' MCAP writer). The test
+The bag holds real simulated scans (``triscan sim-bag``, written by rosbags' MCAP writer). The test
 joins the loop through the launcher's endpoint, as any app would, and checks that the replayed robot's
 scans come back as detections, that the run ends by itself when the bag does (exit 0, well before
 ``--duration``), and that the ``.rrd`` holds the robot's entities.
@@ -35,7 +35,7 @@ DURATION_S = 120  # a ceiling only: the run must end when the bag does
 
 
 def test_up_replays_a_bag_through_the_loop_and_ends_with_it(tmp_path: Path) -> None:
-    from bench.sim_bag import write_sim_bag
+    from services.sim_bag import write_sim_bag
 
     bag = write_sim_bag(tmp_path / "drive", SCANS)
     rrd = tmp_path / "replay.rrd"

@@ -1,6 +1,6 @@
 """Offline tooling: data sets, training, export, evaluation.
 
-No robot service imports it. ``services/cli.py`` imports the light ``training.architectures`` for its
-flags and the rest lazily inside the subcommands that need it (``dataset``, ``train``, ``export``,
-``eval``, ``card``, ``show``), so the robot's base install never loads torch or Ultralytics.
+No robot service imports it. The ``triscan`` subcommands that need it (``dataset``, ``show``,
+``train``, ``export``, ``batch-model``, ``eval``, ``card``) import it inside their handlers
+(``services/cli/``), so the robot's base install never loads it, torch or Ultralytics.
 """

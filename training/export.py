@@ -22,6 +22,7 @@ from training.batch_variant import add_batch_axis
 from training.export_checks import compare_outputs, median_latency_ms
 from training.onnx_export import dataset_invalid_rule, export_onnx, resolve_padding
 from training.quantization import (
+    DEFAULT_ACTIVATION_TYPE,
     DEFAULT_CALIB_COUNT,
     DEFAULT_CALIB_METHOD,
     DEFAULT_FLOAT_LEADING_MODULES,
@@ -48,7 +49,7 @@ def export_models(
     padding: str | None = None,
     calib_count: int = DEFAULT_CALIB_COUNT,
     method: CalibMethod = DEFAULT_CALIB_METHOD,
-    activation_type: ActivationType = "uint8",
+    activation_type: ActivationType = DEFAULT_ACTIVATION_TYPE,
     float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
     keep_box_logits_float: bool = True,
     keep_head_convs_float: bool = False,

@@ -141,7 +141,9 @@ def format_recipe_table(scores: list[RecipeScore]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m training.int8_recipes", description=__doc__.splitlines()[0], allow_abbrev=False
+    )
     parser.add_argument("--fp32", type=Path, required=True, help="the fp32 ONNX model `triscan export` wrote")
     parser.add_argument(
         "--data", type=Path, required=True, help="its data set: calibration from val, scores on --split"

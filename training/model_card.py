@@ -395,6 +395,7 @@ class ModelCard:
     grids: Json | None = None  # section title → GridSection.figures
     curves: Json | None = None  # CurveComparison.figures
     ablation: dict[str, AblationEntry] | None = None  # padding → its model's figures
+    recipe: str | None = None  # the recipe file whose defaults made the model
 
     def to_json(self) -> Json:
         card: Json = {
@@ -413,6 +414,8 @@ class ModelCard:
         }
         if self.unseen_worlds is not None:
             card["unseen_worlds"] = self.unseen_worlds.to_json()
+        if self.recipe:
+            card["recipe"] = self.recipe
         if self.grids:
             card["grids"] = self.grids
         if self.curves is not None:
@@ -440,6 +443,7 @@ def write_card(
     conditions: Path | None = None,
     grids: list[GridSection] | None = None,
     curves: CurveComparison | None = None,
+    recipe: str = "",
 ) -> Json:
     """Write the card pair into ``out_dir`` and return the JSON half, as written.
 
@@ -448,6 +452,8 @@ def write_card(
     fp32 and INT8 files: unseen worlds under LiDAR imperfections, which also decide whether INT8 is
     recommended. ``grids`` are further such grids (another network, another invalid-return rule) shown
     beside them; ``curves`` sets this run's validation curve beside another network's, epoch for epoch.
+    ``recipe`` names the recipe file (:mod:`training.recipe`) the run and the export took their defaults
+    from.
     """
     data = DatasetSummary.read(dataset_dir)
     export = ExportReport.read(export_json)
@@ -475,6 +481,11 @@ def write_card(
         *_training_section(history, best_epoch, best_row, train_command),
         "",
         *(
+            [f"Recipe (the defaults of `triscan train` and `triscan export`): `{recipe}`.", ""]
+            if recipe
+            else []
+        ),
+        *(
             curves.lines(curve_figures, card.network)
             if curves is not None and curve_figures is not None
             else []
@@ -489,6 +500,7 @@ def write_card(
     ]
     card.grids = grid_figures
     card.curves = curve_figures
+    card.recipe = recipe or None
     if ablation:
         ablation_lines, card.ablation = _ablation_lines(ablation, ablation_command)
         lines += ["", *ablation_lines]

@@ -29,7 +29,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal, cast, get_args
 
 import numpy as np
 
@@ -37,21 +37,25 @@ from common.encoding import to_model_input
 from common.model_spec import META_PREFIX
 from training.onnx_model import ExportError, input_name, provenance, save_checked, set_metadata
 from training.png import read_tensor_png
+from training.recipe import load_recipe
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CALIB_COUNT = 200
+_SHIPPED = load_recipe().export  # the defaults below are the shipped recipe's
+DEFAULT_CALIB_COUNT: int = _SHIPPED.calib_count
 PERCENTILE = 99.999  # share of calibration values the "percentile" activation ranges keep
 ENTROPY_BINS = 2048  # histogram resolution for KL calibration, as TensorRT uses
 ENTROPY_QUANTIZED_BINS = 128  # ONNX Runtime's default target bin count for the KL search
 
 CalibMethod = Literal["minmax", "entropy", "percentile"]
 CALIB_METHODS: tuple[str, ...] = get_args(CalibMethod)
-DEFAULT_CALIB_METHOD: CalibMethod = "minmax"
+DEFAULT_CALIB_METHOD = cast(CalibMethod, _SHIPPED.calib_method)
 ActivationType = Literal["uint8", "int8"]
 ACTIVATION_TYPES: tuple[str, ...] = get_args(ActivationType)
-# Modules 0-4 of Ultralytics' YOLOv8 backbone: the stem and everything down to the stride-8 C2f.
-DEFAULT_FLOAT_LEADING_MODULES = 5
+DEFAULT_ACTIVATION_TYPE = cast(ActivationType, _SHIPPED.activations)
+DEFAULT_FLOAT_LEADING_MODULES: int = _SHIPPED.float_modules
+if DEFAULT_CALIB_METHOD not in CALIB_METHODS or DEFAULT_ACTIVATION_TYPE not in ACTIVATION_TYPES:
+    raise ValueError(f"the shipped recipe names an unknown INT8 setting: {_SHIPPED}")
 
 
 # --- calibration data ----------------------------------------------------------------------------------
@@ -325,7 +329,7 @@ def quantize_int8(
     *,
     per_channel: bool = True,
     method: CalibMethod = DEFAULT_CALIB_METHOD,
-    activation_type: ActivationType = "uint8",
+    activation_type: ActivationType = DEFAULT_ACTIVATION_TYPE,
     keep_head_float: bool = True,
     float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
     keep_box_logits_float: bool = True,

@@ -1,11 +1,11 @@
 """``triscan train``: YOLOv8n (or the lighter ``p``) from Ultralytics' yaml with the paper's recipe, offline.
 
-The recipe: imgsz 384 with rectangular batches (the 64×384 images are never letterboxed to a square),
-mosaic/mixup/cutmix/copy-paste off (they would cut scans apart and break the range/bearing geometry),
-horizontal flips 0.5 and vertical flips 0.2, AdamW at lr0 0.001 with a cosine schedule, early stopping
-on validation fitness. Ultralytics keeps ``best.pt`` by validation fitness; on top of that a callback
-watches for the collapse the paper saw after its best epoch and stops the run when val mAP@0.5 falls
-far below its best, so a diverged run cannot waste hours. Training resumes from ``last.pt``.
+The recipe (:mod:`training.recipe`, ``training/recipes/default.toml``): imgsz 384 with rectangular
+batches, no mosaic/mixup/cutmix/copy-paste (they would cut scans apart), flips, AdamW with a cosine
+schedule, early stopping on validation fitness. Ultralytics keeps ``best.pt`` by validation fitness;
+on top of that a callback watches for the collapse the paper saw after its best epoch and stops the
+run when val mAP@0.5 falls far below its best, so a diverged run cannot waste hours. Training resumes
+from ``last.pt``.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from training.architectures import (
     parse_network_name,
 )
 from training.offline import configure_offline
+from training.recipe import SHIPPED_RECIPE, load_recipe
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,8 @@ log = logging.getLogger(__name__)
 DIVERGENCE_RATIO = 0.5
 DIVERGENCE_EPOCHS = 2
 DIVERGENCE_MIN_BEST = 0.3  # only judge runs that have learnt something
-LR0 = 0.001  # AdamW's initial learning rate (the paper's)
+
+_SHIPPED = load_recipe(SHIPPED_RECIPE).train
 
 
 @dataclass(frozen=True)
@@ -52,17 +54,18 @@ class TrainConfig:
 
     data: Path  # data.yaml written by `triscan dataset`
     out: Path  # run directory: weights/best.pt, weights/last.pt, results.csv, train_summary.json
-    epochs: int = 30
-    batch: int = 32
-    patience: int = 8
-    workers: int = 2
+    epochs: int = _SHIPPED.epochs
+    batch: int = _SHIPPED.batch
+    patience: int = _SHIPPED.patience
+    workers: int = _SHIPPED.workers
     device: str = ""  # "" picks the first GPU when there is one, else the CPU
-    seed: int = 0
-    fraction: float = 1.0  # share of the training images used per epoch (Ultralytics' `fraction`)
+    seed: int = _SHIPPED.seed
+    fraction: float = _SHIPPED.fraction  # share of the training images used per epoch (Ultralytics')
     arch: str = DEFAULT_ARCH  # training.architectures: n (the paper's YOLOv8n) or p (pico)
     activation: str = DEFAULT_ACTIVATION  # silu (YOLOv8's) or relu (cheaper in INT8)
     init: Path | None = None  # weights to start from (fine-tuning a shipped .pt), else random
     dfl_bins: int = DEFAULT_DFL_BINS  # the box branch's DFL bins (training.architectures)
+    recipe: Path = SHIPPED_RECIPE  # its [train.ultralytics] arguments are this run's
 
     def __post_init__(self) -> None:
         check_arch(self.arch)
@@ -183,8 +186,11 @@ def _with_narrowed_box_branch(network: Any, spec: dict[str, Any]) -> Any:
 
 
 def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
-    """Ultralytics ``train`` arguments: the paper's recipe plus this run's sizes."""
+    """Ultralytics ``train`` arguments: the recipe file's fixed ones plus this run's sizes."""
+    fixed = load_recipe(config.recipe).train.ultralytics
+    lr0 = fixed["lr0"]
     return {
+        **fixed,
         "data": str(config.data),
         "epochs": config.epochs,
         "batch": config.batch,
@@ -193,29 +199,11 @@ def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
         "device": device,
         "seed": config.seed,
         "fraction": config.fraction,
-        "imgsz": 384,
-        "rect": True,
-        "mosaic": 0.0,
-        "mixup": 0.0,
-        "cutmix": 0.0,
-        "copy_paste": 0.0,
-        "fliplr": 0.5,
-        "flipud": 0.2,
-        "hsv_h": 0.0,  # colour is time here (R = t-2, G = t-1, B = t): no hue/saturation/value jitter
-        "hsv_s": 0.0,
-        "hsv_v": 0.0,
-        "degrees": 0.0,
-        "translate": 0.0,
-        "scale": 0.0,
-        "erasing": 0.0,
-        "optimizer": "AdamW",
-        "lr0": LR0,
-        "cos_lr": True,
         # Ultralytics trains a loaded model from its yaml, discarding the weights, when this is False.
         "pretrained": config.init is not None,
         # Warm-up runs biases at 0.1, a rate meant for SGD from random weights; with AdamW it walks a
         # fine-tune's trained biases far off in the first hundred steps, so a fine-tune keeps lr0.
-        **({"warmup_bias_lr": LR0} if config.init is not None else {}),
+        **({"warmup_bias_lr": lr0} if config.init is not None else {}),
         "amp": device != "cpu",  # AMP is a GPU feature; on the CPU it only triggers a download check
         "project": str(config.out.parent.resolve()),
         "name": config.out.name,

@@ -12,7 +12,6 @@ up to N waiting robots' tensors in one model call, which a CPU does for less per
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 from collections.abc import Sequence
@@ -32,7 +31,13 @@ from services.detector.batch_cap import (
 )
 from services.detector.core import DetectorCore, InferencePipeline, default_intra_op_threads, default_workers
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
-from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
+from services.runtime import (
+    ServiceRuntime,
+    add_service_arguments,
+    configure_logging,
+    service_parser,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -81,7 +86,7 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="triscan-detector", description=__doc__.splitlines()[0])
+    parser = service_parser("services.detector", __doc__.splitlines()[0])
     parser.add_argument(
         "--model", type=Path, default=None, help=f"ONNX model (default: ${MODEL_ENV} or {SHIPPED_MODEL.name})"
     )

@@ -7,7 +7,6 @@ health, counters and shutdown in :class:`services.runtime.ServiceRuntime`. This 
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 
@@ -16,7 +15,13 @@ from common.keys import ALL_SCANS, tensor_key
 from common.messages import encode_message
 from common.transport import ZenohSettings, settings_from_args
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
-from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
+from services.runtime import (
+    ServiceRuntime,
+    add_service_arguments,
+    configure_logging,
+    service_parser,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -51,7 +56,7 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m services.encoder", description=__doc__.splitlines()[0])
+    parser = service_parser("services.encoder", __doc__.splitlines()[0])
     parser.add_argument("--padding", choices=PADDINGS, default="zero", help="must match the detector's model")
     parser.add_argument(
         "--invalid",

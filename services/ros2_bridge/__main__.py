@@ -17,10 +17,17 @@ from typing import Any
 
 from common.keys import ALL_DETECTIONS
 from common.transport import ZenohSettings, payload_bytes, settings_from_args
-from services.ros2_bridge.core import DEFAULT_SCAN_TOPIC, BridgeConfig, BridgeCore, Outgoing
+from services.ros2_bridge.core import BridgeConfig, BridgeCore, Outgoing
 from services.ros2_bridge.rmw_zenoh import STYLES
-from services.ros2_bridge.ros_types import DEFAULT_DISTRO, DISTROS
-from services.runtime import ServiceRuntime, add_service_arguments, configure_logging, stop_event_on_signals
+from services.ros2_bridge.ros_types import DISTROS
+from services.runtime import (
+    ServiceRuntime,
+    add_service_arguments,
+    configure_logging,
+    default_of,
+    service_parser,
+    stop_event_on_signals,
+)
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -108,13 +115,22 @@ def build_config(args: argparse.Namespace) -> BridgeConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="triscan-ros2-bridge", description=__doc__.splitlines()[0])
-    parser.add_argument("--style", choices=STYLES, default="rmw_zenoh", help="how ROS 2 reaches Zenoh")
-    parser.add_argument("--domain", type=int, default=0, help="ROS_DOMAIN_ID of the robot (rmw_zenoh style)")
-    parser.add_argument("--scan-topic", default=DEFAULT_SCAN_TOPIC, help="LaserScan topic, relative")
+    parser = service_parser("services.ros2_bridge", __doc__.splitlines()[0])
+    parser.add_argument(
+        "--style", choices=STYLES, default=default_of(BridgeConfig, "style"), help="how ROS 2 reaches Zenoh"
+    )
+    parser.add_argument(
+        "--domain",
+        type=int,
+        default=default_of(BridgeConfig, "domain"),
+        help="ROS_DOMAIN_ID of the robot (rmw_zenoh style)",
+    )
+    parser.add_argument(
+        "--scan-topic", default=default_of(BridgeConfig, "scan_topic"), help="LaserScan topic, relative"
+    )
     parser.add_argument(
         "--namespace",
-        default="/",
+        default=default_of(BridgeConfig, "namespace"),
         help="ROS namespace of the robot (its last segment is the robot id), or '*' for every "
         "one-segment namespace (default: the root namespace, which needs --robot)",
     )
@@ -124,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--ros-distro",
         choices=DISTROS,
-        default=DEFAULT_DISTRO,
+        default=default_of(BridgeConfig, "distro"),
         help="type hashes and message layouts to publish",
     )
     add_service_arguments(parser)

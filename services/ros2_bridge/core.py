@@ -53,6 +53,7 @@ from services.ros2_bridge.rmw_zenoh import (
 )
 from services.ros2_bridge.ros_messages import Boxes, DetectionMessages
 from services.ros2_bridge.ros_types import (
+    DEFAULT_DISTRO,
     DETECTION3D_ARRAY,
     LASER_SCAN,
     MARKER_ARRAY,
@@ -85,7 +86,7 @@ class BridgeConfig:
     scan_topic: str = DEFAULT_SCAN_TOPIC
     namespace: str | None = "/"
     robot: str | None = None
-    distro: Distro = "jazzy"
+    distro: Distro = DEFAULT_DISTRO
     node_name: str = DEFAULT_NODE_NAME
 
     def __post_init__(self) -> None:

@@ -30,9 +30,10 @@ from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
     configure_logging,
+    service_parser,
     stop_event_on_signals,
 )
-from services.simulator.defaults import ROBOT_ID_PREFIX, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
+from services.simulator.defaults import ROBOT_ID_PREFIX, ROBOTS, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
 from services.simulator.fleet import SimulatedFleet
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -117,11 +118,12 @@ def run(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m services.simulator",
-        description="Publish simulated LiDAR scans and ground truth over Zenoh in real time.",
+    parser = service_parser(
+        "services.simulator", "Publish simulated LiDAR scans and ground truth over Zenoh in real time."
     )
-    parser.add_argument("--robots", type=int, default=1, help="number of simulated robots (default: 1)")
+    parser.add_argument(
+        "--robots", type=int, default=ROBOTS, help=f"number of simulated robots (default: {ROBOTS})"
+    )
     parser.add_argument(
         "--rate", type=float, default=SCAN_RATE_HZ, metavar="HZ", help="scans per second per robot"
     )

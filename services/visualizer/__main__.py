@@ -30,7 +30,7 @@ from common.transport import (
     add_zenoh_arguments,
     settings_from_args,
 )
-from services.runtime import ServiceRuntime, configure_logging, stop_event_on_signals
+from services.runtime import ServiceRuntime, configure_logging, service_parser, stop_event_on_signals
 from services.visualizer.core import APPLICATION_ID, RerunVisualizer, VisualizerStats
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -147,9 +147,9 @@ def _positive_float(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m services.visualizer",
-        description="Show every robot's scans, network input, detections and ground truth in Rerun.",
+    parser = service_parser(
+        "services.visualizer",
+        "Show every robot's scans, network input, detections and ground truth in Rerun.",
     )
     sinks = parser.add_argument_group("viewer (exactly one)").add_mutually_exclusive_group(required=True)
     sinks.add_argument("--spawn", action="store_true", help="spawn a native Rerun viewer")

@@ -1,4 +1,5 @@
-"""A ROS 2 bag of real simulated LiDAR scans: data for ``triscan replay``, ``up --replay`` and benchmarks.
+"""A ROS 2 bag of real simulated LiDAR scans (``triscan sim-bag``): data for ``triscan replay``,
+``triscan up --replay`` and benchmarks. Needs the sim and ros2 extras.
 
 No robot recording ships with triscan, and a bag of made-up ranges would show the detector nothing. This
 writes what a ROS 2 robot with an LDS-01 would have recorded while driving through one of the
@@ -6,30 +7,38 @@ simulator's rooms: one ``sensor_msgs/msg/LaserScan`` topic (default ``/scan``), 
 at its rate, header stamps and log times counted from ``T0_NS``, written by rosbags' own MCAP writer
 (not by triscan's reader code, so a replay test checks one against the other).
 
-    python -m bench.sim_bag --scans 150 --out runs/sim_drive      # prints the .mcap file it wrote
+    triscan sim-bag --scans 150 --out runs/sim_drive      # prints the .mcap file it wrote
 """
 
 from __future__ import annotations
 
-import argparse
-import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from bench.harness import recorded_scans
 from common.messages import Scan
-from services.ros2_bridge.ros_types import LASER_SCAN, ros_types
 from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
-
-log = logging.getLogger("bench.sim_bag")
 
 T0_NS: Final[int] = 1_700_000_000_000_000_000  # a plausible wall-clock start (2023-11-14)
 DEFAULT_TOPIC: Final[str] = "/scan"
 
 
+def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
+    """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
+
+    For bags, benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
+    """
+    from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
+
+    period_ns = round(1e9 / rate_hz)
+    with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
+        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
+
+
 def laser_scan_message(scan: Scan, stamp_ns: int) -> Any:
     """The rosbags (Jazzy) LaserScan a ROS driver would publish for ``scan``, stamped ``stamp_ns``."""
+    from services.ros2_bridge.ros_types import LASER_SCAN, ros_types  # rosbags: the ros2 extra
+
     types = ros_types("jazzy").store.types
     beams = scan.ranges.shape[0]
     sec, nanosec = divmod(stamp_ns, 1_000_000_000)
@@ -44,9 +53,11 @@ def laser_scan_message(scan: Scan, stamp_ns: int) -> Any:
 
 
 def write_scan_bag(directory: Path, scans: Sequence[Scan], *, topic: str = DEFAULT_TOPIC) -> Path:
-    """Write ``scans`` (stamped from 0, as :func:`bench.harness.recorded_scans` makes them) as a ROS 2
+    """Write ``scans`` (stamped from 0, as :func:`recorded_scans` makes them) as a ROS 2
     MCAP bag in ``directory`` (which must not exist); returns the ``.mcap`` file."""
     from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from services.ros2_bridge.ros_types import LASER_SCAN, ros_types
 
     store = ros_types("jazzy").store
     with Writer(directory, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
@@ -69,21 +80,3 @@ def write_sim_bag(
 ) -> Path:
     """Simulate ``scans`` consecutive scans of one robot and write them as a bag; returns the ``.mcap``."""
     return write_scan_bag(directory, recorded_scans(scans, seed=seed, rate_hz=rate_hz), topic=topic)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scans", type=int, default=150, help="scans to record (at --rate)")
-    parser.add_argument("--seed", type=int, default=SIM_SEED, help="simulator seed (the model trained on 0)")
-    parser.add_argument("--rate", type=float, default=SCAN_RATE_HZ, help="scans per second")
-    parser.add_argument("--topic", default=DEFAULT_TOPIC, help="LaserScan topic")
-    parser.add_argument("--out", type=Path, required=True, help="bag directory to create")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    mcap = write_sim_bag(args.out, args.scans, seed=args.seed, rate_hz=args.rate, topic=args.topic)
-    print(mcap)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

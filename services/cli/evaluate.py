@@ -1,0 +1,167 @@
+"""``triscan eval``: mAP, P, R per class of ONNX models through the run-time detector code.
+
+``--preset NAME`` names a protocol of the recipe file (``[eval.NAME]``: ``unseen`` is the model cards'
+unseen worlds under every LiDAR condition); a flag given with it overrides the preset's value.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from common.encoding import PADDINGS
+from common.model_spec import BOX_GRIDS
+from services.cli.command import Command
+
+# The --fresh worlds' settings when no --preset gives them.
+FRESH_DEFAULTS: dict[str, object] = {"seed": 1000, "positions": 90, "frame_stride": 15, "noise": ["clean"]}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--model", type=Path, required=True, action="append",
+        help="ONNX model; repeat it to score several models on the very same --fresh tensors",
+    )  # fmt: skip
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", type=Path, help="a data set written by `triscan dataset`")
+    source.add_argument("--fresh", type=int, metavar="N", help="simulate N new scenarios instead")
+    source.add_argument(
+        "--preset", metavar="NAME",
+        help="the fresh worlds and conditions of the recipe file's [eval.NAME] (unseen: the model cards' "
+        "20 unseen worlds under five LiDAR conditions)",
+    )  # fmt: skip
+    p.add_argument(
+        "--recipe", type=Path, default=None,
+        help="recipe file holding --preset (default: training/recipes/default.toml)",
+    )  # fmt: skip
+    p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split of --data")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help=f"seed of the --fresh scenarios (default {FRESH_DEFAULTS['seed']})",
+    )
+    p.add_argument(
+        "--positions", type=int, default=None,
+        help=f"positions per --fresh scenario (default {FRESH_DEFAULTS['positions']})",
+    )  # fmt: skip
+    p.add_argument(
+        "--frame-stride", type=int, default=None,
+        help=f"window stride of --fresh motions (default {FRESH_DEFAULTS['frame_stride']})",
+    )  # fmt: skip
+    p.add_argument(
+        "--noise",
+        nargs="+",
+        default=None,
+        metavar="CONDITION",
+        help="LiDAR imperfections of the --fresh worlds: clean (default), sigma3, drop5, drop5+sigma3, "
+        "drop10+sigma3+spur1, or sigma=S,dropout=D,spurious=P; several: each on the same worlds",
+    )
+    p.add_argument(
+        "--clutter", type=int, default=0, metavar="N",
+        help="up to N unlabelled poles, wall stubs and walking leg pairs per --fresh motion: does the "
+        "model detect things that are not furniture?",
+    )  # fmt: skip
+    p.add_argument(
+        "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
+    )
+    p.add_argument(
+        "--box-grid", choices=BOX_GRIDS, default=None,
+        help="'pixel': round box edges to whole pixels after NMS (default: the model's own)",
+    )  # fmt: skip
+    p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
+    p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
+
+
+def _apply_preset(args: argparse.Namespace) -> None:
+    """Fill the --fresh settings left unset: from ``--preset``'s table, else :data:`FRESH_DEFAULTS`."""
+    defaults = dict(FRESH_DEFAULTS)
+    if args.preset is not None:
+        from training.recipe import SHIPPED_RECIPE, load_recipe
+
+        preset = load_recipe(args.recipe or SHIPPED_RECIPE).preset(args.preset)
+        args.fresh = preset.fresh
+        defaults = {
+            "seed": preset.seed,
+            "positions": preset.positions,
+            "frame_stride": preset.frame_stride,
+            "noise": list(preset.noise),
+        }
+    elif args.recipe is not None:
+        raise ValueError("--recipe names the file of a --preset: give both")
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
+def run(args: argparse.Namespace) -> int:
+    from common.inference import OnnxDetector
+    from training.evaluate import (
+        VAL_CONF,
+        VAL_IOU,
+        VAL_MAX_DET,
+        FreshWorlds,
+        condition_matrix,
+        dataset_samples,
+        evaluate,
+        format_condition_table,
+        format_table,
+        fresh_samples,
+    )
+
+    _apply_preset(args)
+    worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride, args.clutter)
+    matrix = len(args.model) > 1 or len(args.noise) > 1
+    if matrix and args.data is not None:
+        raise ValueError("several --model or --noise values need --fresh worlds, not --data")
+    if args.clutter and args.data is not None:
+        raise ValueError("--clutter places clutter in --fresh worlds; a --data set has its own")
+    detectors = [
+        OnnxDetector(
+            model,
+            conf_threshold=VAL_CONF,
+            iou_threshold=VAL_IOU,
+            max_detections=VAL_MAX_DET,
+            padding=args.padding,
+            intra_op_threads=args.threads,
+            box_grid=args.box_grid,
+        )
+        for model in args.model
+    ]
+    if matrix:
+        reports = condition_matrix(detectors, args.noise, worlds, args.out)
+        print(format_condition_table(reports))
+        print(f"per cell: {args.out}/<condition>/<model>/metrics.json; grid: {args.out}/summary.json")
+        return 0
+    detector = detectors[0]
+    if args.data is not None:
+        from training.onnx_export import dataset_invalid_rule
+
+        if (rule := dataset_invalid_rule(args.data)) != detector.invalid:
+            raise ValueError(
+                f"{args.data} puts invalid returns {rule!r}, {args.model[0]} reads them {detector.invalid!r}"
+            )
+        samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
+    else:
+        from services.simulator.lidar import with_imperfections
+
+        noise = args.noise[0]
+        spec = with_imperfections(noise)  # a bad condition is a ValueError: one line, exit 2
+        samples = fresh_samples(
+            args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec,
+            invalid=detector.invalid, clutter=args.clutter,
+        )  # fmt: skip
+        source = worlds.source(noise)
+    report = evaluate(detector, samples, args.out, source=source)
+    print(format_table(report))
+    print(f"images {report.images}; mean ms: {report.mean_timings_ms}; written to {args.out}/metrics.json")
+    return 0
+
+
+COMMAND = Command(
+    "eval",
+    "mAP, P, R per class of an ONNX model, through the run-time detector code",
+    add_arguments,
+    run,
+    extras=("sim",),
+)
