@@ -38,8 +38,8 @@ from bench.harness import recorded_scans
 from bench.machine import machine_info
 from common.encoding import to_model_input
 from common.inference import session_options
-from services.encoder.core import EncoderCore
 from services.detector.batch_cap import detector_model_and_batch
+from services.encoder.core import EncoderCore
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

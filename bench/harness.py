@@ -16,7 +16,6 @@ from typing import Any, TypeVar
 from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
 from services.launcher import child_environment
-from services.sim_bag import recorded_scans
 
 T = TypeVar("T")
 
@@ -98,5 +97,3 @@ def timed_us(frame: Callable[[int], object], frames: int, period_s: float) -> li
             next_due += period_s
             time.sleep(max(0.0, next_due - time.monotonic()))
     return times
-
-
