@@ -43,14 +43,13 @@ from common.model_meta import (
     declared_padding,
     is_end_to_end,
     is_free_dimension,
+    model_classes,
 )
 from common.model_spec import (
     BOX_GRIDS,
-    CLASS_NAMES,
     INPUT_SHAPE,
     MAX_DETECTIONS,
     NUM_ANCHORS,
-    NUM_CLASSES,
     BoxGrid,
     file_model_id,
 )
@@ -206,8 +205,8 @@ class OnnxDetector:
 
     @property
     def num_classes(self) -> int:
-        """Classes the model predicts; loading checked it against the project's class list."""
-        return self.postprocessing.num_classes or NUM_CLASSES  # None would mean "read it off the output"
+        """Classes the model predicts (:attr:`class_names`); ids are the project's."""
+        return len(self.class_names)
 
     def _padding_of_model(self, path: Path, requested: Padding | None) -> Padding:
         trained = declared_padding(self._session, path)
@@ -255,18 +254,9 @@ class OnnxDetector:
                 f"{path} output {output.name!r} has shape {shape}, expected [batch, 4 + nc, anchors]"
             )
         num_classes = shape[1] - 4
-        if num_classes != NUM_CLASSES:
-            raise ValueError(
-                f"{path} predicts {num_classes} classes, this project has {NUM_CLASSES} {CLASS_NAMES}"
-            )
         if shape[2] != NUM_ANCHORS:
             raise ValueError(f"{path} has {shape[2]} anchors, a 64×384 YOLOv8 head has {NUM_ANCHORS}")
-        declared = declared_classes(self._session)
-        if declared is not None and declared != CLASS_NAMES:
-            raise ValueError(
-                f"{path} was trained for the classes {list(declared)}, this build knows {CLASS_NAMES}"
-                " (the class list lives in common/model_spec.py)"
-            )
+        self.class_names = model_classes(declared_classes(self._session), num_classes, path)
         return model_input.name, [output.name], num_classes, shape[2], free_batch
 
     def infer(self, tensor: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ from common.model_spec import (
     BOX_GRIDS,
     CLASS_NAMES,
     DEFAULT_BOX_GRID,
+    FURNITURE_CLASSES,
     META_BOX_GRID,
     META_CLASSES,
     META_INVALID,
@@ -30,9 +31,7 @@ from common.model_spec import (
 )
 
 
-def metadata_entries(
-    *, padding: str, invalid: str, box_grid: str, classes: Sequence[str] = CLASS_NAMES
-) -> dict[str, str]:
+def metadata_entries(*, padding: str, invalid: str, box_grid: str, classes: Sequence[str]) -> dict[str, str]:
     """The ``triscan.*`` entries an exported model carries, as the readers below expect them."""
     return {
         META_PADDING: padding,
@@ -66,6 +65,28 @@ def declared_box_grid(session: ort.InferenceSession, path: Path | str) -> BoxGri
 def declared_invalid_rule(session: ort.InferenceSession, path: Path | str) -> InvalidRule:
     """The model's ``triscan.invalid`` metadata (``sentinel``, the paper's rule, when it does not say)."""
     return _declared(session, path, META_INVALID, INVALID_RULES, "sentinel")
+
+
+def model_classes(declared: tuple[str, ...] | None, outputs: int, path: Path) -> tuple[str, ...]:
+    """The classes a model with ``outputs`` class scores predicts, as it ``declared`` them.
+
+    Class ids are the project's (``CLASS_NAMES``) on the wire, in the viewer and in ROS, so a model
+    predicts the first ``outputs`` of them in that order: the paper's four, or those and ``person``.
+    A model exported before the metadata existed predicts the paper's four.
+    """
+    if declared is not None and declared != CLASS_NAMES[: len(declared)]:
+        raise ValueError(
+            f"{path} was trained for the classes {list(declared)}; triscan's ids are {list(CLASS_NAMES)} "
+            "and a model predicts a prefix of them (the class list lives in common/model_spec.py)"
+        )
+    if declared is None and outputs == len(FURNITURE_CLASSES):
+        declared = FURNITURE_CLASSES
+    if declared is None or len(declared) != outputs:
+        raise ValueError(
+            f"{path} predicts {outputs} classes but declares {list(declared or [])}: "
+            "re-export it with `triscan export`"
+        )
+    return declared
 
 
 def declared_classes(session: ort.InferenceSession) -> tuple[str, ...] | None:

@@ -15,8 +15,10 @@ from typing import Final, Literal, get_args
 
 from common.encoding import IMAGE_WIDTH, PADDINGS, RANGE_ROWS, STACK_DEPTH
 
-CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe")
+CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe", "person")
 NUM_CLASSES: Final[int] = len(CLASS_NAMES)
+# The paper's classes: a data set without people, and the models trained on one, hold these only.
+FURNITURE_CLASSES: Final[tuple[str, ...]] = CLASS_NAMES[:4]
 
 Rgb = tuple[int, int, int]
 # One palette for the viewer and the pictures. It avoids the pure and mixed channel colours (red,
@@ -27,6 +29,7 @@ CLASS_COLOURS: Final[tuple[Rgb, ...]] = (
     (180, 130, 255),  # box: lavender
     (255, 95, 170),  # desk: pink
     (215, 205, 130),  # doorframe: khaki
+    (120, 230, 255),  # person: sky blue
 )
 UNKNOWN_CLASS_COLOUR: Final[Rgb] = (128, 128, 128)
 assert len(CLASS_COLOURS) == NUM_CLASSES, "one colour per class"

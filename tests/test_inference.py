@@ -23,7 +23,7 @@ from common.encoding import R_MAX_M, polar_to_xy, to_model_input
 from common.inference import OnnxDetector, model_facts
 from common.messages import Detection, StageTimings
 from common.model_meta import ModelFacts, metadata_entries
-from common.model_spec import MAX_DETECTIONS
+from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES, MAX_DETECTIONS
 from common.postprocess import (
     DEFAULT_CONF,
     DEFAULT_IOU,
@@ -294,7 +294,7 @@ def test_detections_from_boxes_matches_one_by_one() -> None:
     ]
     assert detections_from_boxes(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64)) == []
     with pytest.raises(ValueError, match="class ids"):
-        detections_from_boxes(boxes, scores, np.array([0, 1, 4]))
+        detections_from_boxes(boxes, scores, np.array([0, 1, len(CLASS_NAMES)]))
 
 
 def test_postprocess_clips_and_merges() -> None:
@@ -491,7 +491,7 @@ def test_model_id_names_the_file(tmp_path: Path) -> None:
 
 
 def test_the_metadata_export_writes_is_what_the_detector_and_the_launcher_read(tmp_path: Path) -> None:
-    entries = metadata_entries(padding="wrap", invalid="empty", box_grid="pixel")
+    entries = metadata_entries(padding="wrap", invalid="empty", box_grid="pixel", classes=FURNITURE_CLASSES)
     path = constant_model(tmp_path / "declared.onnx", known_output(), metadata=entries)
     detector = OnnxDetector(path, providers=["CPUExecutionProvider"])
     assert (detector.padding, detector.invalid, detector.box_grid) == ("wrap", "empty", "pixel")

@@ -32,6 +32,7 @@ from common.messages import (
     decode_message,
     encode_message,
 )
+from common.model_spec import FURNITURE_CLASSES
 
 DEG = math.pi / 180.0
 
@@ -361,7 +362,8 @@ def test_models_are_frozen_and_forbid_extra() -> None:
 
 
 def test_class_names() -> None:
-    assert CLASS_NAMES == ("chair", "box", "desk", "doorframe")
+    assert CLASS_NAMES == ("chair", "box", "desk", "doorframe", "person")
+    assert CLASS_NAMES[: len(FURNITURE_CLASSES)] == FURNITURE_CLASSES == ("chair", "box", "desk", "doorframe")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ import numpy as np
 
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, InvalidRule, Padding
 from common.inference import OnnxDetector
-from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, MAX_DETECTIONS
+from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, FURNITURE_CLASSES, MAX_DETECTIONS
 from common.postprocess import unwrap_seam_duplicates
 from training.png import read_tensor_png
 
@@ -118,7 +118,7 @@ def _seam_flags_of_dataset(dataset_dir: Path) -> dict[str, dict[int, bool]] | No
         pose = tuple(float(v) for v in sample["lidar_pose"])
         flags[Path(sample["image"]).stem] = {
             class_id: arc_crosses_seam(*footprint_polar(scenario.footprint_of(class_id), pose)[:3])
-            for class_id in range(len(CLASS_NAMES))
+            for class_id in range(len(FURNITURE_CLASSES))  # people are not part of the scenario
         }
     return flags
 
@@ -307,7 +307,10 @@ def evaluate(
     configure_offline()
     from ultralytics.utils.metrics import ConfusionMatrix, DetMetrics
 
-    names = dict(enumerate(CLASS_NAMES))
+    # A model is scored on the classes it predicts: a four-class model on a set with people is judged
+    # on the furniture, its people labels set aside.
+    model_classes: tuple[str, ...] = getattr(detector, "class_names", CLASS_NAMES)
+    names = dict(enumerate(model_classes))
     metrics = DetMetrics(names=names)
     seam_metrics = DetMetrics(names=names)
     confusion = ConfusionMatrix(names=names)
@@ -319,6 +322,8 @@ def evaluate(
     seam_instances = 0
     for raw_sample in samples:
         sample = merge_label_copies(raw_sample) if wrap else raw_sample
+        if np.any(sample.classes >= len(names)):
+            sample = _of_classes(sample, len(names))
         boxes, scores, classes, timings = detector.detect_boxes(sample.tensor)
         for key in timing_sums:
             timing_sums[key] += float(getattr(timings, key))
@@ -360,6 +365,13 @@ def evaluate(
     (out_dir / "metrics.json").write_text(json.dumps(report.to_json(), indent=2) + "\n")
     log.info("%s on %s: %s", report.model_id, source, report.overall)
     return report
+
+
+def _of_classes(sample: EvalSample, count: int) -> EvalSample:
+    """``sample`` with only the labels of the first ``count`` classes."""
+    keep = sample.classes < count
+    crosses = None if sample.crosses_seam is None else sample.crosses_seam[keep]
+    return EvalSample(sample.name, sample.tensor, sample.boxes[keep], sample.classes[keep], crosses)
 
 
 def _ap_by_iou(metrics: Any) -> tuple[dict[str, float], dict[str, dict[str, float]]]:

@@ -16,11 +16,12 @@ import re
 from pathlib import Path
 from typing import Any
 
-from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, batch_variant_path, file_sha256, model_stem
+from common.model_spec import DEFAULT_BOX_GRID, batch_variant_path, file_sha256, model_stem
 from training.architectures import network_of_checkpoint
 from training.batch_variant import add_batch_axis
 from training.export_checks import compare_outputs, median_latency_ms
 from training.onnx_export import dataset_invalid_rule, export_onnx, resolve_padding
+from training.onnx_model import declared_class_names
 from training.quantization import (
     DEFAULT_ACTIVATION_TYPE,
     DEFAULT_CALIB_COUNT,
@@ -112,7 +113,7 @@ def export_models(
         "int8_batch": _describe(int8_batch),
         "padding": recorded_padding,
         "box_grid": box_grid,
-        "classes": list(CLASS_NAMES),
+        "classes": list(declared_class_names(_onnx_load(fp32))),
         "calibration_images": len(calibration),
         "calibration_method": method,
         "float_leading_modules": float_leading_modules,
@@ -126,3 +127,9 @@ def export_models(
         result["latency_ms_1_thread"] = {"fp32": fp32_ms, "int8": int8_ms}
         log.info("median session.run, 1 thread: fp32 %.2f ms, INT8 %.2f ms", fp32_ms, int8_ms)
     return result
+
+
+def _onnx_load(path: Path) -> Any:
+    import onnx
+
+    return onnx.load(str(path))

@@ -139,8 +139,10 @@ def export_onnx(
         shutil.copyfile(weights, local)
         yolo = YOLO(str(local), task="detect")
         names = [yolo.names[i] for i in sorted(yolo.names)]
-        if tuple(names) != CLASS_NAMES:
-            raise ExportError(f"{weights} predicts {names}, not the triscan classes {list(CLASS_NAMES)}")
+        if tuple(names) != CLASS_NAMES[: len(names)]:
+            raise ExportError(
+                f"{weights} predicts {names}, not the first {len(names)} triscan classes {list(CLASS_NAMES)}"
+            )
         data = (getattr(yolo, "ckpt", None) or {}).get("train_args", {}).get("data")
         dataset_dir = Path(data).parent if data else None
         if dataset_dir is not None and not dataset_dir.is_dir():
@@ -164,7 +166,9 @@ def export_onnx(
     set_metadata(
         model,
         {
-            **metadata_entries(padding=recorded_padding, invalid=recorded_invalid, box_grid=box_grid),
+            **metadata_entries(
+                padding=recorded_padding, invalid=recorded_invalid, box_grid=box_grid, classes=names
+            ),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",
             f"{META_PREFIX}rewrites": DFL_SOFTMAX_LAST_AXIS if rewrite_dfl else "",

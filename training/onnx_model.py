@@ -11,10 +11,11 @@ onnx and onnxruntime are imported inside the functions: importing this module co
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
-from common.model_spec import CLASS_NAMES, INPUT_SHAPE, NUM_ANCHORS, file_sha256
+from common.model_spec import FURNITURE_CLASSES, INPUT_SHAPE, META_CLASSES, NUM_ANCHORS, file_sha256
 
 BOX_CHANNELS = 4  # output rows 0–3: cx, cy, w, h in input pixels; rows 4…: per-class scores in [0, 1]
 SHA_PREFIX = 12  # hex digits of a source file's sha256 recorded in the metadata
@@ -50,11 +51,19 @@ def check_io(model: Any, path: Path, batch: int | str = 1) -> None:
     expected_in = (batch, *INPUT_SHAPE[1:])
     if signature(graph_input) != (onnx.TensorProto.FLOAT, expected_in):
         raise ExportError(f"{path}: input must be float32{list(expected_in)}, got {described(graph_input)}")
-    expected_out = (batch, BOX_CHANNELS + len(CLASS_NAMES), NUM_ANCHORS)
+    expected_out = (batch, BOX_CHANNELS + len(declared_class_names(model)), NUM_ANCHORS)
     outputs = model.graph.output
     if len(outputs) != 1 or signature(outputs[0]) != (onnx.TensorProto.FLOAT, expected_out):
         got = ", ".join(described(o) for o in outputs)
         raise ExportError(f"{path}: output must be float32{list(expected_out)}, got {got}")
+
+
+def declared_class_names(model: Any) -> tuple[str, ...]:
+    """The classes a model's metadata declares (``triscan.classes``); the paper's four without it."""
+    for prop in model.metadata_props:
+        if prop.key == META_CLASSES:
+            return tuple(json.loads(prop.value))
+    return FURNITURE_CLASSES
 
 
 def save_checked(model: Any, out: Path, batch: int | str = 1) -> None:
