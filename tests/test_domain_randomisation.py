@@ -17,9 +17,7 @@ import pytest
 from services.simulator.clutter import (
     CLUTTER_OBJECT,
     Pole,
-    WalkingLegs,
     WallStub,
-    clutter_distances,
     ray_circle_distances,
     ray_rect_distances,
     sample_clutter,
@@ -59,15 +57,6 @@ def test_ray_rect_distance_by_hand_including_rotation() -> None:
     assert math.isinf(d[2])
 
 
-def test_walking_legs_move_and_swing_in_antiphase() -> None:
-    legs = WalkingLegs((0.0, 0.0), (1.0, 0.0), 0.05, 0.2, 0.1, 1.0, 0.0)
-    (l0x, l0y, _), (r0x, r0y, _) = legs.circles(0.25)  # quarter step: full swing
-    assert l0y == pytest.approx(-0.1) and r0y == pytest.approx(0.1)  # stance across the walking direction
-    assert l0x == pytest.approx(0.25 - 0.1) and r0x == pytest.approx(0.25 + 0.1)  # one behind, one ahead
-    standing = WalkingLegs((1.0, 1.0), (0.0, 0.0), 0.05, 0.2, 0.0, 1.0, 0.0)
-    assert standing.circles(0.0) == standing.circles(3.0)
-
-
 def test_clutter_keeps_off_furniture_and_the_robot_path() -> None:
     scenario = sample_scenario(3, seed=11)
     rng = np.random.default_rng(5)
@@ -82,7 +71,7 @@ def test_clutter_keeps_off_furniture_and_the_robot_path() -> None:
                 assert np.all(obj.footprint.distance(path) > item.extent_m)
             gaps = np.hypot(*(path[:, None, :] - robot_path[None]).transpose(2, 0, 1))
             assert gaps.min() >= 0.35
-    assert kinds == {Pole, WallStub, WalkingLegs}
+    assert kinds == {Pole, WallStub}
     assert sample_clutter(scenario, robot_path, 3.0, 0, rng) == []
 
 
@@ -101,11 +90,13 @@ def test_scan_merges_clutter_as_unlabelled_hits() -> None:
     np.testing.assert_array_equal(seen.ranges[~changed], plain.ranges[~changed])
 
 
-def test_clutter_distances_follow_time() -> None:
-    legs = WalkingLegs((1.0, 0.0), (0.0, 1.0), 0.05, 0.2, 0.0, 1.0, 0.0)
-    rays = unit_rays([0.0])
-    assert np.isfinite(clutter_distances([legs], (0.0, 0.0), rays, 0.0)[0])
-    assert math.isinf(clutter_distances([legs], (0.0, 0.0), rays, 2.0)[0])  # walked 2 m away
+def test_people_distances_follow_time() -> None:
+    from services.simulator.people import _build, people_distances
+
+    person = _build([(1.0, 0.0), (1.0, 20.0)], [1.0], [0.0], 0.0, 4.0, 0.05, 0.2, math.pi / 2)
+    rays = unit_rays([0.0, 3.0, -3.0])
+    assert np.isfinite(people_distances([person], (0.0, 0.0), rays, 0.0)[0]).any()
+    assert np.isinf(people_distances([person], (0.0, 0.0), rays, 3.0)[0]).all()  # walked 3 m away
 
 
 def test_dropouts_and_spurious_returns_leave_the_noise_stream_alone() -> None:

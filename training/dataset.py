@@ -23,23 +23,33 @@ import math
 import multiprocessing
 import shutil
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding, ScanStacker
-from common.model_spec import CLASS_NAMES
+from common.encoding import INVALID_RULES, PADDINGS, R_MAX_M, InvalidRule, Padding, ScanStacker
+from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
 from services.simulator.clutter import Clutter, sample_clutter
+from services.simulator.defaults import SCAN_PERIOD_S
 from services.simulator.labels import ObjectLabel, label_scan, yolo_lines
-from services.simulator.lidar import DEFAULT_SPEC, Lidar, LidarReading, LidarSpec
+from services.simulator.lidar import Lidar, LidarReading
+from services.simulator.people import Person, sample_people
 from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
     Scenario,
     sample_robot_positions,
     sample_scenario,
     sample_waypoints,
+)
+from services.simulator.sensors import (
+    DEFAULT_PROFILE,
+    DEFAULT_SPEC,
+    LidarSpec,
+    check_sensor,
+    draw_profile,
+    stack_stride,
 )
 from services.simulator.world import World
 from training.png import write_rgb_png
@@ -49,6 +59,7 @@ log = logging.getLogger(__name__)
 SPLITS = ("train", "val", "test")
 SPLIT_FRACTIONS = (0.85, 0.10, 0.05)
 HEADINGS_DEG = np.arange(0, 360, 45)
+STATIONARY_SHARE = 0.25  # of the motions with people, those where the robot stands still
 
 
 @dataclass(frozen=True)
@@ -68,6 +79,8 @@ class DatasetConfig:
     dropout_rate: tuple[float, float] = (0.0, 0.0)
     spurious_rate: tuple[float, float] = (0.0, 0.0)
     clutter: int = 0  # at most this many unlabelled clutter items per motion
+    people: int = 0  # at most this many people per motion (0: the paper's four classes only)
+    sensor: str = DEFAULT_PROFILE  # a profile of services.simulator.sensors, or "random" per scenario
 
     def __post_init__(self) -> None:
         if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
@@ -82,17 +95,46 @@ class DatasetConfig:
                 raise ValueError(f"{name} must be a range 0 <= low <= high <= {upper}, got {lo}..{hi}")
         if self.clutter < 0:
             raise ValueError(f"clutter must be >= 0, got {self.clutter}")
+        if self.people < 0:
+            raise ValueError(f"people must be >= 0, got {self.people}")
+        check_sensor(self.sensor)
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        """The classes this set labels: the paper's four, and ``person`` once people walk in it."""
+        return CLASS_NAMES if self.people > 0 else FURNITURE_CLASSES
+
+    def summary_fields(self) -> dict[str, object]:
+        """The configuration as summary.json records it. Options the paper's set does not use are
+        written only when set, so that set's summary stays byte for byte what it always was."""
+        fields = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self).items()}
+        for key in ("out", "workers"):
+            fields.pop(key)
+        if self.people == 0:
+            fields.pop("people")
+        if self.sensor == DEFAULT_PROFILE:
+            fields.pop("sensor")
+        return fields
+
+
+def scenario_sensor(config: DatasetConfig, index: int) -> str:
+    """The sensor profile of scenario ``index``: the configured one, or for ``random`` one drawn from
+    the scenario's own stream (``[seed, index, 5]``)."""
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, index, 5]))
+    return draw_profile(config.sensor, rng)[0]
 
 
 def scenario_lidar_spec(config: DatasetConfig, index: int) -> LidarSpec:
-    """The sensor of scenario ``index``: σ, dropout and spurious rates drawn from the config's ranges.
+    """The sensor of scenario ``index``: its profile's geometry and rate, with σ, dropout and spurious
+    rates drawn from the config's ranges.
 
     Its own stream (``[seed, index, 3]``): the paper's fixed setting draws the same values every
     time, so the defaults rebuild the clean data set unchanged.
     """
+    _, base = draw_profile(scenario_sensor(config, index), np.random.default_rng(0))
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, index, 3]))
     return replace(
-        DEFAULT_SPEC,
+        base,
         noise_sigma_m=float(rng.uniform(*config.noise_sigma_m)),
         dropout_rate=float(rng.uniform(*config.dropout_rate)),
         spurious_rate=float(rng.uniform(*config.spurious_rate)),
@@ -106,7 +148,7 @@ class ScenarioResult:
     index: int
     split: str
     samples: int = 0
-    boxes_per_class: list[int] = field(default_factory=lambda: [0] * len(CLASS_NAMES))
+    boxes_per_class: list[int] = field(default_factory=lambda: [0] * len(CLASS_NAMES))  # cut to the set's
     sample_records: list[dict[str, object]] = field(default_factory=list)
     scenario_json: dict[str, object] = field(default_factory=dict)
     positions: int = 0
@@ -164,22 +206,65 @@ def plan_motions(scenario: Scenario, seed: int, positions: int) -> list[Motion]:
     return motions
 
 
+def stacked_period_s(spec: LidarSpec) -> float:
+    """Time between the scans a model stacks from this sensor: the simulator's scan period for a fast
+    sensor (every k-th scan of it, as the encoder picks them), the sensor's own for a slower one."""
+    return stack_stride(spec.rate_hz, SCAN_PERIOD_S) / spec.rate_hz
+
+
 def scans_of_motion(
     lidar: Lidar,
     motion: Motion,
     scenario: Scenario | None = None,
     clutter: int = 0,
     clutter_rng: np.random.Generator | None = None,
+    people: int = 0,
+    people_rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, list[LidarReading]]:
-    """Drive one motion and scan at every 10 Hz tick, among up to ``clutter`` clutter items."""
-    poses = follow_waypoints((*motion.start_xy, motion.heading_rad), motion.waypoints)
-    period_s = 0.1
+    """Drive one motion and keep the scans a model stacks (:func:`stacked_period_s` apart), among up to
+    ``clutter`` clutter items and ``people`` people. With people, a share of motions keeps the robot
+    standing where it starts, as a robot waiting for people to pass does."""
+    poses, kept = _scans_of_motion(lidar, motion, scenario, clutter, clutter_rng, people, people_rng, None)
+    return poses, [reading for _, reading in kept]
+
+
+def _scans_of_motion(
+    lidar: Lidar,
+    motion: Motion,
+    scenario: Scenario | None,
+    clutter: int,
+    clutter_rng: np.random.Generator | None,
+    people: int,
+    people_rng: np.random.Generator | None,
+    keep: Callable[[int], bool] | None,
+) -> tuple[np.ndarray, list[tuple[int, LidarReading]]]:
+    """:func:`scans_of_motion`, ray-casting only the ticks ``keep`` accepts (all when ``None``)."""
+    period_s = stacked_period_s(lidar.spec)
+    poses = follow_waypoints((*motion.start_xy, motion.heading_rad), motion.waypoints, scan_period_s=period_s)
     items: tuple[Clutter, ...] = ()
     if clutter > 0:
         if scenario is None or clutter_rng is None:
             raise ValueError("clutter needs the scenario and a generator to place it")
         items = tuple(sample_clutter(scenario, poses, len(poses) * period_s, clutter, clutter_rng))
-    return poses, [lidar.scan(tuple(pose), items, t * period_s) for t, pose in enumerate(poses)]
+    walkers: tuple[Person, ...] = ()
+    if people > 0:
+        if scenario is None or people_rng is None:
+            raise ValueError("people need the scenario and a generator to place them")
+        if people_rng.random() < STATIONARY_SHARE:
+            poses = np.repeat(poses[:1], len(poses), axis=0)
+        walkers = tuple(sample_people(scenario, poses, period_s, len(poses) * period_s, people, people_rng))
+    return poses, [
+        (t, lidar.scan(tuple(pose), items, t * period_s, walkers))
+        for t, pose in enumerate(poses)
+        if keep is None or keep(t)
+    ]
+
+
+def _window_ticks(frame_stride: int) -> Callable[[int], bool] | None:
+    """The ticks whose scans a sample uses: all for strides below 3, else the three of each window."""
+    if frame_stride < 3:
+        return None
+    return lambda t: t % frame_stride < 3
 
 
 def simulate_samples(
@@ -193,6 +278,7 @@ def simulate_samples(
     spec: LidarSpec = DEFAULT_SPEC,
     clutter: int = 0,
     invalid: InvalidRule = "sentinel",
+    people: int = 0,
 ) -> Iterator[Sample]:
     """Simulate one scenario and yield its samples, tensors made exactly as on the robot.
 
@@ -203,10 +289,17 @@ def simulate_samples(
     world.load(scenario)
     lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 2])))
     clutter_rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 4]))
+    people_rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 6]))
+    label_range = min(spec.range_max, R_MAX_M)  # past the raster's full scale a return is no box
     for p_index, motion in enumerate(motions):
-        _, readings = scans_of_motion(lidar, motion, scenario, clutter, clutter_rng)
+        # With a frame stride of 3 or more, the windows a sample needs are disjoint: only their scans
+        # are cast (the stacker then holds exactly the three scans of each sample when it is made).
+        _, kept = _scans_of_motion(
+            lidar, motion, scenario, clutter, clutter_rng, people, people_rng, _window_ticks(frame_stride)
+        )
+        readings = dict(kept)
         stacker = ScanStacker(padding, invalid)
-        for t, reading in enumerate(readings):
+        for t, reading in kept:
             tensor = stacker.push_scan(
                 reading.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max
             )
@@ -219,8 +312,9 @@ def simulate_samples(
                 spec.bearings_rad,
                 middle.true_ranges,
                 middle.hit_object,
-                spec.range_max,
+                label_range,
                 padding,
+                middle.people_legs,
             )
             name = f"s{scenario.index:04d}_p{p_index:03d}_f{t:03d}"
             yield Sample(name, p_index, t, tensor, labels, middle.lidar_pose)
@@ -246,11 +340,14 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
     motions = plan_motions(scenario, config.seed, config.positions)
     result.positions = len(motions)
     spec = scenario_lidar_spec(config, index)
-    result.scenario_json["lidar"] = {
+    lidar_record: dict[str, object] = {
         "noise_sigma_m": spec.noise_sigma_m,
         "dropout_rate": spec.dropout_rate,
         "spurious_rate": spec.spurious_rate,
     }
+    if config.sensor != DEFAULT_PROFILE:
+        lidar_record["sensor"] = scenario_sensor(config, index)
+    result.scenario_json["lidar"] = lidar_record
     samples = simulate_samples(
         _world(),
         scenario,
@@ -261,6 +358,7 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
         spec=spec,
         clutter=config.clutter,
         invalid=config.invalid,
+        people=config.people,
     )
     for sample in samples:
         write_rgb_png(image_dir / f"{sample.name}.png", sample.tensor)
@@ -309,13 +407,13 @@ def _prepare_out_dir(out: Path, overwrite: bool) -> None:
 
 
 def _data_yaml(config: DatasetConfig) -> str:
-    names = "\n".join(f"  {i}: {name}" for i, name in enumerate(CLASS_NAMES))
+    names = "\n".join(f"  {i}: {name}" for i, name in enumerate(config.classes))
     # No "path:" key: Ultralytics then resolves the splits next to this file, so the set can be moved.
     return (
         f"# triscan data set: seed {config.seed}, {config.scenarios} scenarios, padding {config.padding}, "
         f"invalid {config.invalid}\n"
         "train: images/train\nval: images/val\ntest: images/test\n"
-        f"nc: {len(CLASS_NAMES)}\nnames:\n{names}\n"
+        f"nc: {len(config.classes)}\nnames:\n{names}\n"
     )
 
 
@@ -328,7 +426,8 @@ def generate_dataset(
     started = time.perf_counter()
     samples = {s: 0 for s in SPLITS}
     scenarios = {s: 0 for s in SPLITS}
-    boxes = {s: [0] * len(CLASS_NAMES) for s in SPLITS}
+    classes = config.classes
+    boxes = {s: [0] * len(classes) for s in SPLITS}
     results = _results(config, splits)
     if progress:
         from tqdm import tqdm
@@ -342,7 +441,8 @@ def generate_dataset(
             scenarios[result.split] += 1
             samples[result.split] += result.samples
             boxes[result.split] = [
-                a + b for a, b in zip(boxes[result.split], result.boxes_per_class, strict=True)
+                a + b
+                for a, b in zip(boxes[result.split], result.boxes_per_class[: len(classes)], strict=True)
             ]
             record = {
                 "split": result.split,
@@ -356,14 +456,10 @@ def generate_dataset(
     elapsed = time.perf_counter() - started
     (config.out / "data.yaml").write_text(_data_yaml(config))
     summary: dict[str, object] = {
-        "config": {
-            k: (str(v) if isinstance(v, Path) else v)
-            for k, v in asdict(config).items()
-            if k not in ("out", "workers")
-        },
+        "config": config.summary_fields(),
         "scenarios": scenarios,
         "samples": samples,
-        "boxes_per_class": {s: dict(zip(CLASS_NAMES, boxes[s], strict=True)) for s in SPLITS},
+        "boxes_per_class": {s: dict(zip(classes, boxes[s], strict=True)) for s in SPLITS},
     }
     # Timing is reported, not stored: summary.json must be identical between two runs of one seed.
     (config.out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")

@@ -8,6 +8,14 @@ from pathlib import Path
 
 from common.encoding import INVALID_RULES, PADDINGS
 from services.cli.command import Command
+from services.simulator.sensors import DEFAULT_PROFILE, RANDOM_PROFILE, SENSOR_CHOICES, check_sensor
+
+
+def _sensor(text: str) -> str:
+    try:
+        return check_sensor(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,7 +52,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="up to N unlabelled poles, wall stubs and walking leg pairs per robot motion",
+        help="up to N unlabelled poles and wall stubs per robot motion",
+    )
+    dr.add_argument(
+        "--people",
+        type=int,
+        default=0,
+        metavar="N",
+        help="up to N walking or standing people per robot motion, labelled as class 'person' "
+        "(0: the paper's four classes only)",
+    )
+    dr.add_argument(
+        "--sensor",
+        type=_sensor,
+        default=DEFAULT_PROFILE,
+        metavar="NAME",
+        help=f"the LiDAR: one of {', '.join(SENSOR_CHOICES)} ('{RANDOM_PROFILE}': a profile drawn per "
+        "scenario); geometry, rate and range from docs/sensors.md",
     )
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing data set in --out")
@@ -66,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
         dropout_rate=tuple(args.dropout),
         spurious_rate=tuple(args.spurious),
         clutter=args.clutter,
+        people=args.people,
+        sensor=args.sensor,
         **({"noise_sigma_m": tuple(args.noise_sigma)} if args.noise_sigma else {}),
     )
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)

@@ -1,9 +1,9 @@
-"""Non-target clutter for domain-randomised data: thin poles, short wall stubs and walking leg pairs.
+"""Non-target clutter for domain-randomised data: thin poles and short wall stubs.
 
-Real rooms hold things that are none of the four classes, and the ones that fool a scan detector
-look like them: a lone pole is one chair leg, a wall stub is a box side, a person's two legs are half
-a chair. Clutter appears in the scans and is never labelled, so the network learns to tell them
-apart; leg pairs move between scans, as people do, so their colour fringes differ from a chair's.
+Real rooms hold things that are none of the classes, and the ones that fool a scan detector look like
+them: a lone pole is one chair leg (or one person's leg), a wall stub is a box side. Clutter appears in
+the scans and is never labelled, so the network learns to tell them apart. People are not clutter:
+they are labelled (:mod:`services.simulator.people`).
 
 Clutter is ray-cast in closed form here rather than added to the PyBullet world: it changes with every
 robot motion and legs move with every scan, and PyBullet leaks memory on every body removed or
@@ -27,7 +27,7 @@ FURNITURE_CLEARANCE_M = 0.08  # clutter never touches furniture (a pole against 
 ROBOT_CLEARANCE_M = 0.35  # nor comes near the robot's own path
 ROOM_MARGIN_M = 0.1  # and stays inside the room, off the walls
 PLACEMENT_TRIES = 30
-KINDS = ("pole", "stub", "legs")
+KINDS = ("pole", "stub")
 
 
 @dataclass(frozen=True)
@@ -71,50 +71,7 @@ class WallStub:
         return math.hypot(*self.rect.size) / 2.0
 
 
-@dataclass(frozen=True)
-class WalkingLegs:
-    """A person's two legs: the pair walks in a straight line while the legs swing in antiphase.
-
-    ``start`` is the pair's centre at t = 0, ``velocity`` its speed in m/s (zero for someone
-    standing), ``stance_m`` the distance between the legs across the walking direction and
-    ``swing_m`` how far each leg moves ahead of and behind the centre over a step.
-    """
-
-    start: tuple[float, float]
-    velocity: tuple[float, float]
-    radius_m: float
-    stance_m: float
-    swing_m: float
-    step_hz: float
-    phase_rad: float
-
-    def _centre(self, t_s: float) -> np.ndarray:
-        return np.asarray(self.start) + np.asarray(self.velocity) * t_s
-
-    def circles(self, t_s: float) -> list[tuple[float, float, float]]:
-        speed = math.hypot(*self.velocity)
-        heading = np.asarray(self.velocity) / speed if speed > 0 else np.array([1.0, 0.0])
-        across = np.array([-heading[1], heading[0]])
-        swing = self.swing_m * math.sin(2 * math.pi * self.step_hz * t_s + self.phase_rad)
-        centre = self._centre(t_s)
-        legs = []
-        for side in (-1.0, 1.0):
-            leg = centre + side * (self.stance_m / 2.0) * across + side * swing * heading
-            legs.append((float(leg[0]), float(leg[1]), self.radius_m))
-        return legs
-
-    def rects(self, t_s: float) -> list[Rect]:
-        return []
-
-    def path(self, duration_s: float) -> np.ndarray:
-        return np.array([self._centre(t) for t in np.linspace(0.0, duration_s, 8)])
-
-    @property
-    def extent_m(self) -> float:
-        return self.stance_m / 2.0 + self.swing_m + self.radius_m
-
-
-Clutter = Pole | WallStub | WalkingLegs
+Clutter = Pole | WallStub
 
 
 def ray_circle_distances(
@@ -179,20 +136,8 @@ def _draw_item(kind: str, rng: np.random.Generator, duration_s: float) -> Clutte
     centre = (float(rng.uniform(-lim, lim)), float(rng.uniform(-lim, lim)))
     if kind == "pole":
         return Pole(centre, float(rng.uniform(0.01, 0.03)))
-    if kind == "stub":
-        size = (float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.02, 0.12)))
-        return WallStub(Rect(centre, size, float(rng.uniform(0.0, math.pi))))
-    speed = float(rng.uniform(0.0, 1.0)) if rng.random() < 0.8 else 0.0  # some people stand still
-    heading = float(rng.uniform(0.0, 2 * math.pi))
-    return WalkingLegs(
-        start=centre,
-        velocity=(speed * math.cos(heading), speed * math.sin(heading)),
-        radius_m=float(rng.uniform(0.04, 0.07)),
-        stance_m=float(rng.uniform(0.15, 0.3)),
-        swing_m=float(rng.uniform(0.05, 0.2)) if speed > 0 else 0.0,
-        step_hz=float(rng.uniform(0.8, 1.2)),
-        phase_rad=float(rng.uniform(0.0, 2 * math.pi)),
-    )
+    size = (float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.02, 0.12)))
+    return WallStub(Rect(centre, size, float(rng.uniform(0.0, math.pi))))
 
 
 def _fits(item: Clutter, scenario: Scenario, robot_path: np.ndarray, duration_s: float) -> bool:

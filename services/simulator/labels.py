@@ -10,6 +10,7 @@ only if the sensor saw it: at least two beams of scan t−1 hit it (for the door
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +22,8 @@ from common.encoding import (
     ROW_SCALE,
     Padding,
 )
-from services.simulator.scenario import DOORFRAME, Rect, Scenario
+from services.simulator.people import leg_object
+from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario
 
 MIN_BEAMS_ON_OBJECT = 2
 Box = tuple[float, float, float, float]
@@ -126,6 +128,48 @@ def beams_through_segment(
     return int(np.count_nonzero(crossing))
 
 
+def clip_to_field_of_view(
+    center: float, lo: float, hi: float, bearings_rad: np.ndarray
+) -> tuple[float, float] | None:
+    """The part of the arc ``lo``…``hi`` (degrees, unwrapped around ``center``) that the beams cover.
+
+    A sensor that sees all around leaves the arc as it is. One with a narrower field of view keeps the
+    largest piece inside it, so a box never claims columns the sensor leaves dark; ``None`` when the
+    arc lies wholly outside.
+    """
+    bearings = np.asarray(bearings_rad, dtype=np.float64)
+    step = float(bearings[1] - bearings[0]) if len(bearings) > 1 else 2.0 * math.pi
+    if len(bearings) * step >= 2.0 * math.pi - 1e-9:
+        return lo, hi
+    first, last = math.degrees(float(bearings[0])), math.degrees(float(bearings[-1]))
+    best: tuple[float, float] | None = None
+    for turn in (-720.0, -360.0, 0.0, 360.0, 720.0):
+        a, b = max(lo, first + turn), min(hi, last + turn)
+        if b > a and (best is None or b - a > best[1] - best[0]):
+            best = (a, b)
+    return best
+
+
+def _person_polar(
+    legs: Sequence[tuple[float, float, float]], lidar_pose: tuple[float, float, float]
+) -> tuple[float, float, float, float, float]:
+    """(centre bearing, arc min, arc max, range min, range max) of a person's visible legs' circles."""
+    local = _to_sensor_frame(np.array([leg[:2] for leg in legs]), lidar_pose)
+    distances = np.hypot(local[:, 0], local[:, 1])
+    bearings = np.degrees(np.arctan2(local[:, 1], local[:, 0]))
+    center = float(np.mod(np.degrees(np.arctan2(local[:, 1].mean(), local[:, 0].mean())), 360.0))
+    radii = np.array([leg[2] for leg in legs])
+    halves = np.degrees(np.arcsin(np.minimum(radii / np.maximum(distances, 1e-9), 1.0)))
+    offsets = np.mod(bearings - center + 180.0, 360.0) - 180.0
+    return (
+        center,
+        center + float((offsets - halves).min()),
+        center + float((offsets + halves).max()),
+        float(max((distances - radii).min(), 0.0)),
+        float((distances + radii).max()),
+    )
+
+
 def label_scan(
     scenario: Scenario,
     lidar_pose: tuple[float, float, float],
@@ -134,11 +178,16 @@ def label_scan(
     hit_object: np.ndarray,
     range_max: float,
     padding: Padding = "zero",
+    people_legs: Sequence[Sequence[tuple[float, float, float]]] = (),
 ) -> list[ObjectLabel]:
-    """Labels of every object of ``scenario`` (chair, box, desk, doorframe) for one scan.
+    """Labels of every object of ``scenario`` (chair, box, desk, doorframe) and every person for one scan.
 
     ``true_ranges`` and ``hit_object`` are the noise-free first hit of each beam and the index in
-    ``scenario.objects`` of what it hit (−1 wall, −2 nothing within range).
+    ``scenario.objects`` of what it hit (−1 wall, −2 nothing within range, a person's legs
+    :func:`services.simulator.people.leg_object`). ``people_legs`` holds each person's two leg
+    circles (x, y, r) at this scan: a person's box spans the legs that at least one beam hit, and the
+    person is a target when at least two beams hit them. ``range_max`` is the labelling range: the
+    sensor's reach within the raster's full scale. Boxes keep to the sensor's field of view.
     """
     labels: list[ObjectLabel] = []
     hits = np.asarray(hit_object)
@@ -150,10 +199,18 @@ def label_scan(
         scenario.door.opening, lidar_pose, bearings_rad, true_ranges, range_max
     )
     candidates.append((DOORFRAME, scenario.door.frame, door_beams))
-    for class_id, rect, beams in candidates:
-        center, lo, hi, rmin, rmax = footprint_polar(rect, lidar_pose)
-        visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max
-        boxes = _pixel_boxes(center, lo, hi, rmin, rmax, padding) if visible else ()
+    polar = [(class_id, footprint_polar(rect, lidar_pose), beams) for class_id, rect, beams in candidates]
+    for person, legs in enumerate(people_legs):
+        leg_beams = [int(np.count_nonzero(hits == leg_object(person, leg))) for leg in range(len(legs))]
+        seen = [leg for leg, beams in zip(legs, leg_beams, strict=True) if beams > 0]
+        if seen:
+            polar.append((PERSON, _person_polar(seen, lidar_pose), sum(leg_beams)))
+        else:
+            polar.append((PERSON, _person_polar(legs, lidar_pose), 0))
+    for class_id, (center, lo, hi, rmin, rmax), beams in polar:
+        arc = clip_to_field_of_view(center, lo, hi, bearings_rad)
+        visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max and arc is not None
+        boxes = _pixel_boxes(center, *arc, rmin, rmax, padding) if visible and arc is not None else ()
         labels.append(
             ObjectLabel(class_id, beams, visible and bool(boxes), center, lo, hi, rmin, rmax, boxes)
         )

@@ -28,52 +28,15 @@ import numpy as np
 import pybullet as p
 
 from services.simulator.clutter import CLUTTER_OBJECT, Clutter, clutter_distances
+from services.simulator.people import Person, people_distances
 from services.simulator.robot import Pose
+from services.simulator.sensors import DEFAULT_SPEC, LidarSpec
 from services.simulator.world import World
 
 # PyBullet rejects batches above MAX_RAY_INTERSECTION_BATCH_SIZE (16384 in 3.2.7) and, in 3.2.7,
 # silently returns no results for a batch of exactly that size; one ray less is always safe.
 RAY_BATCH_LIMIT = int(getattr(p, "MAX_RAY_INTERSECTION_BATCH_SIZE", 1024)) - 1
 
-
-@dataclass(frozen=True)
-class LidarSpec:
-    """Sensor geometry and noise. Defaults: LDS-01 on a TurtleBot3 Burger (README, "The simulated world")."""
-
-    beams: int = 360
-    angle_min: float = 0.0
-    angle_increment: float = 2.0 * math.pi / 360
-    range_min: float = 0.12
-    range_max: float = 3.5
-    noise_sigma_m: float = 0.015
-    dropout_rate: float = 0.0  # share of beams that come back invalid (inf)
-    spurious_rate: float = 0.0  # share of beams that come back short, at U(range_min, true range)
-    mount_offset_x_m: float = -0.03  # the LDS-01 sits 3 cm behind the robot centre
-    mount_height_m: float = 0.173
-
-    def __post_init__(self) -> None:
-        if self.beams < 1:
-            raise ValueError(f"beams must be positive, got {self.beams}")
-        if not 0.0 <= self.range_min < self.range_max:
-            raise ValueError(f"need 0 <= range_min < range_max, got {self.range_min}, {self.range_max}")
-        if self.noise_sigma_m < 0.0:
-            raise ValueError(f"noise_sigma_m must be >= 0, got {self.noise_sigma_m}")
-        for name in ("dropout_rate", "spurious_rate"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-
-    @property
-    def bearings_rad(self) -> np.ndarray:
-        """float64[beams]: bearing of each beam in the sensor frame, CCW from forward."""
-        return self.angle_min + np.arange(self.beams) * self.angle_increment
-
-    @property
-    def angle_max(self) -> float:
-        """Bearing of the last beam, as ``LaserScan.angle_max`` defines it."""
-        return self.angle_min + (self.beams - 1) * self.angle_increment
-
-
-DEFAULT_SPEC = LidarSpec()
 
 # The LiDAR imperfections ``triscan eval --noise`` measures a model under (the model card's conditions):
 # a name here, or the same ``key=value`` text directly.
@@ -124,6 +87,7 @@ class LidarReading:
     true_ranges: np.ndarray  # float64[N], inf where nothing within range_max
     hit_object: np.ndarray  # int16[N]
     lidar_pose: Pose
+    people_legs: tuple[tuple[tuple[float, float, float], ...], ...] = ()  # each person's leg circles
 
 
 def lidar_pose(robot_pose: Pose, spec: LidarSpec = DEFAULT_SPEC) -> Pose:
@@ -188,23 +152,37 @@ class Lidar:
         true_ranges = np.where(bodies >= 0, np.asarray(fractions, dtype=np.float64) * spec.range_max, np.inf)
         return true_ranges, bodies
 
-    def scan(self, robot_pose: Pose, clutter: tuple[Clutter, ...] = (), t_s: float = 0.0) -> LidarReading:
-        """One scan from a robot pose (the sensor offset is applied here), with ``clutter`` as at ``t_s``.
+    def scan(
+        self,
+        robot_pose: Pose,
+        clutter: tuple[Clutter, ...] = (),
+        t_s: float = 0.0,
+        people: tuple[Person, ...] = (),
+    ) -> LidarReading:
+        """One scan from a robot pose (the sensor offset is applied here), with ``clutter`` and
+        ``people`` as they stand at ``t_s``.
 
-        Clutter is merged with the world's first hits before any noise: a beam stopped by clutter
-        has the clutter's true range and object index ``CLUTTER_OBJECT``, so it counts for no label.
+        Both are merged with the world's first hits before any noise: a beam stopped by clutter has
+        the clutter's true range and object index ``CLUTTER_OBJECT``, so it counts for no label; a
+        beam stopped by a leg of person k has :func:`services.simulator.people.leg_object` of it.
         """
         spec = self.spec
         sensor_pose = self.pose_of(robot_pose)
         true_ranges, bodies = self.cast(sensor_pose)
         hit_object = self.world.hit_object(bodies)
-        if clutter:
+        if clutter or people:
             angles = sensor_pose[2] + spec.bearings_rad
             directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        if clutter:
             blocked = clutter_distances(clutter, sensor_pose[:2], directions, t_s)
             closer = blocked < np.minimum(true_ranges, spec.range_max)
             true_ranges = np.where(closer, blocked, true_ranges)
             hit_object = np.where(closer, CLUTTER_OBJECT, hit_object).astype(hit_object.dtype)
+        if people:
+            blocked, legs = people_distances(people, sensor_pose[:2], directions, t_s)
+            closer = blocked < np.minimum(true_ranges, spec.range_max)
+            true_ranges = np.where(closer, blocked, true_ranges)
+            hit_object = np.where(closer, legs, hit_object).astype(hit_object.dtype)
         # Always draw N samples, even where there is no return, so the stream does not depend on the scene.
         noisy = true_ranges + self.rng.normal(0.0, spec.noise_sigma_m, size=spec.beams)
         if spec.dropout_rate > 0.0 or spec.spurious_rate > 0.0:
@@ -220,4 +198,5 @@ class Lidar:
             true_ranges=true_ranges,
             hit_object=hit_object,
             lidar_pose=sensor_pose,
+            people_legs=tuple(tuple(person.legs(t_s)) for person in people),
         )

@@ -14,8 +14,9 @@ from typing import Any
 
 import numpy as np
 
-# Class ids of README "Labels"; the doorframe is a label only, never a body.
-CHAIR, BOX, DESK, DOORFRAME = 0, 1, 2, 3
+# Class ids of common.model_spec.CLASS_NAMES; the doorframe is a label only, never a body, and people
+# are ray-cast in closed form (services.simulator.people).
+CHAIR, BOX, DESK, DOORFRAME, PERSON = 0, 1, 2, 3, 4
 
 ROOM_HALF_M = 2.0  # inner faces of the room walls
 WALL_THICKNESS_M = 0.1

@@ -1,0 +1,352 @@
+"""Simulated people at scan height: two legs with a walking gait, on paths through the room and the door.
+
+A 2D LiDAR at about 0.17 m sees a person as two leg cross-sections (docs/people.md has the sources of
+the sizes and the gait used here):
+
+* each leg is a circle of 0.04–0.07 m radius (lower calf over a sock or trousers); wide trousers and
+  skirts widen it, up to 0.09 m;
+* the legs stand ``step_width_m`` apart across the walking direction;
+* walking at speed v, the cadence is ``CADENCE_BASE + CADENCE_GAIN·v`` steps/s, so a step is
+  ``v / cadence`` long: 0.64 m and 2.0 steps/s at 1.3 m/s, shrinking to nothing as v → 0;
+* each leg is planted for the stance share of the gait cycle (it stays put in the world while the
+  body moves over it) and swings forward for the rest, the two legs half a cycle apart. A standing
+  person's legs are still, side by side.
+
+People follow polylines at their own speed, with smoothed turns and speed changes, may stop and stand
+(beside the desk or the chair, say) and come in pairs and small groups. Like clutter they are
+ray-cast in closed form rather than added to the PyBullet world: they move with every scan, and
+PyBullet leaks memory on every body removed. Unlike clutter they are labelled (class ``person``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.simulator.clutter import ray_circle_distances
+from services.simulator.scenario import ROOM_HALF_M, Scenario
+
+PERSON_OBJECT_BASE = 100  # hit_object of leg j of person k: BASE + 2k + j (furniture 0.., wall -1, ...)
+CADENCE_BASE = 1.0  # steps/s as v → 0
+CADENCE_GAIN = 0.8  # steps/s per m/s
+STANCE_SHARE = 0.6  # of the gait cycle, a leg on the ground
+MAX_SPEED_MPS = 1.6
+TIME_STEP_S = 0.02  # trajectories are sampled this finely and interpolated
+SMOOTHING_S = 0.5  # window of the moving average that rounds corners and ramps speed
+FURNITURE_CLEARANCE_M = 0.3  # a person's centre keeps this far from every footprint
+ROBOT_CLEARANCE_M = 0.5  # and from the robot at the same instant
+PEOPLE_CLEARANCE_M = 0.45  # and from everyone else not in their group
+INSIDE_HALF_M = ROOM_HALF_M - 0.25  # centres inside the room stay this far inside the walls
+OUTSIDE_DEPTH_M = 0.8  # how far beyond the door a path may start or end
+PLACEMENT_TRIES = 30
+BEHAVIOURS = ("cross", "door", "visit", "stand", "group")
+
+
+def leg_object(person: int, leg: int) -> int:
+    """The ``hit_object`` value of a beam that stopped on ``leg`` (0 or 1) of person ``person``."""
+    return PERSON_OBJECT_BASE + 2 * person + leg
+
+
+@dataclass(frozen=True)
+class Person:
+    """One person over a robot motion: their centre's path sampled every ``TIME_STEP_S`` and their legs.
+
+    ``phase`` is the gait cycle count integrated over the path, so the legs' swing follows the speed
+    of the moment; ``leg_radius_m`` and ``step_width_m`` are this person's build.
+    """
+
+    centres: np.ndarray  # float64[T, 2]
+    headings: np.ndarray  # float64[T]
+    speeds: np.ndarray  # float64[T]
+    phase: np.ndarray  # float64[T], gait cycles since t = 0
+    leg_radius_m: float
+    step_width_m: float
+
+    def _at(self, t_s: float) -> tuple[np.ndarray, float, float, float]:
+        i = min(max(t_s / TIME_STEP_S, 0.0), len(self.speeds) - 1.0)
+        lo = math.floor(i)
+        hi = min(lo + 1, len(self.speeds) - 1)
+        w = i - lo
+        centre = (1 - w) * self.centres[lo] + w * self.centres[hi]
+        dh = (self.headings[hi] - self.headings[lo] + math.pi) % (2 * math.pi) - math.pi
+        heading = float(self.headings[lo] + w * dh)
+        speed = float((1 - w) * self.speeds[lo] + w * self.speeds[hi])
+        phase = float((1 - w) * self.phase[lo] + w * self.phase[hi])
+        return centre, heading, speed, phase
+
+    def centre(self, t_s: float) -> tuple[float, float]:
+        """The midpoint between the legs at ``t_s``: the person's position in the truth."""
+        c, _, _, _ = self._at(t_s)
+        return float(c[0]), float(c[1])
+
+    def legs(self, t_s: float) -> list[tuple[float, float, float]]:
+        """The two leg circles (x, y, radius) at ``t_s``."""
+        centre, heading, speed, phase = self._at(t_s)
+        step = speed / (CADENCE_BASE + CADENCE_GAIN * speed)
+        forward = np.array([math.cos(heading), math.sin(heading)])
+        left = np.array([-forward[1], forward[0]])
+        out = []
+        for leg, side in ((0, 1.0), (1, -1.0)):
+            along = step * leg_offset((phase + 0.5 * leg) % 1.0)
+            xy = centre + along * forward + side * (self.step_width_m / 2.0) * left
+            out.append((float(xy[0]), float(xy[1]), self.leg_radius_m))
+        return out
+
+
+def leg_offset(cycle: float) -> float:
+    """A leg's fore-aft offset from the body centre in steps, at ``cycle`` ∈ [0, 1) of its gait cycle.
+
+    Stance: it slides back at the body's speed (two steps per cycle), so it stays put in the world.
+    Swing: it moves forward to the next footfall along a smoothstep, fastest mid-swing.
+    """
+    reach = STANCE_SHARE  # ± this many steps: a stance spans 2·STANCE_SHARE steps of body travel
+    if cycle < STANCE_SHARE:
+        return reach - 2.0 * cycle
+    u = (cycle - STANCE_SHARE) / (1.0 - STANCE_SHARE)
+    return -reach + 2.0 * reach * u * u * (3.0 - 2.0 * u)
+
+
+def _smooth(values: np.ndarray, window: int) -> np.ndarray:
+    """Moving average along axis 0 with edge padding (keeps the ends where they are)."""
+    if window <= 1:
+        return values
+    pad = window // 2
+    padded = np.concatenate([np.repeat(values[:1], pad, axis=0), values, np.repeat(values[-1:], pad, axis=0)])
+    kernel = np.ones(window) / window
+    if values.ndim == 1:
+        return np.convolve(padded, kernel, mode="valid")[: len(values)]
+    return np.stack(
+        [np.convolve(padded[:, k], kernel, mode="valid")[: len(values)] for k in range(2)], axis=1
+    )
+
+
+def _build(
+    points: Sequence[tuple[float, float]],
+    speeds: Sequence[float],
+    pauses: Sequence[float],
+    start_s: float,
+    duration_s: float,
+    leg_radius_m: float,
+    step_width_m: float,
+    initial_heading: float,
+) -> Person:
+    """A person who waits ``start_s`` at ``points[0]``, then walks each leg i at ``speeds[i]`` and
+    stands ``pauses[i]`` at point i + 1, standing at the last point once there."""
+    times = np.arange(0.0, duration_s + TIME_STEP_S, TIME_STEP_S)
+    # Knots in absolute time: before the first and after the last, np.interp holds the end points, so
+    # a person stands until ``start_s``, and one with a negative start is already on the way at t = 0.
+    knots_t = [start_s]
+    knots_xy = [points[0]]
+    t = start_s
+    for i in range(1, len(points)):
+        length = math.dist(points[i - 1], points[i])
+        t += length / max(speeds[i - 1], 1e-3)
+        knots_t.append(t)
+        knots_xy.append(points[i])
+        if pauses[i - 1] > 0:
+            t += pauses[i - 1]
+            knots_t.append(t)
+            knots_xy.append(points[i])
+    xy = np.asarray(knots_xy)
+    kt = np.asarray(knots_t)
+    raw = np.stack([np.interp(times, kt, xy[:, 0]), np.interp(times, kt, xy[:, 1])], axis=1)
+    centres = _smooth(raw, round(SMOOTHING_S / TIME_STEP_S) | 1)
+    velocity = np.gradient(centres, TIME_STEP_S, axis=0)
+    speed = np.hypot(velocity[:, 0], velocity[:, 1])
+    headings = np.empty(len(times))
+    heading = initial_heading
+    for i, (vx, vy) in enumerate(velocity):
+        if speed[i] > 0.05:
+            heading = math.atan2(vy, vx)
+        headings[i] = heading
+    cadence = CADENCE_BASE + CADENCE_GAIN * speed
+    phase = np.concatenate([[0.0], np.cumsum(0.5 * cadence[:-1] * TIME_STEP_S)])
+    return Person(centres, headings, speed, phase, leg_radius_m, step_width_m)
+
+
+def people_distances(
+    people: Sequence[Person], sensor_xy: tuple[float, float], directions: np.ndarray, t_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """First-hit distance of every beam on any leg at ``t_s`` (``inf`` where none) and the
+    :func:`leg_object` of the leg each beam hit (undefined where none)."""
+    circles = np.array([c for person in people for c in person.legs(t_s)], dtype=np.float64).reshape(-1, 3)
+    if len(circles) == 0:
+        return np.full(len(directions), np.inf), np.zeros(len(directions), dtype=np.int16)
+    per_leg = np.stack(
+        [ray_circle_distances(sensor_xy, directions, circles[k : k + 1]) for k in range(len(circles))], axis=1
+    )
+    nearest = per_leg.argmin(axis=1)
+    return per_leg.min(axis=1), (PERSON_OBJECT_BASE + nearest).astype(np.int16)
+
+
+# --- placement -------------------------------------------------------------------------------------
+
+
+def _door_frame(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """The doorway's outward normal and its direction along the wall, in the world frame."""
+    yaw = scenario.door.yaw
+    return np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+
+
+def _allowed(points: np.ndarray, scenario: Scenario) -> np.ndarray:
+    """Which centres are walkable: inside the room, or in the doorway's corridor and just outside it."""
+    inside = np.all(np.abs(points) <= INSIDE_HALF_M, axis=1)
+    normal, along = _door_frame(scenario)
+    out = points @ normal
+    side = np.abs(points @ along)
+    corridor = (out >= INSIDE_HALF_M - 0.01) & (out <= ROOM_HALF_M + OUTSIDE_DEPTH_M)
+    in_door = corridor & (side <= scenario.door.width_m / 2.0 - 0.17)
+    beyond = (out >= ROOM_HALF_M + 0.25) & (out <= ROOM_HALF_M + OUTSIDE_DEPTH_M) & (side <= 0.8)
+    clear = np.ones(len(points), dtype=bool)
+    for obj in scenario.objects:
+        clear &= obj.footprint.distance(points) >= FURNITURE_CLEARANCE_M
+    return (inside | in_door | beyond) & clear
+
+
+def _free_point(scenario: Scenario, rng: np.random.Generator) -> tuple[float, float]:
+    lim = INSIDE_HALF_M
+    return float(rng.uniform(-lim, lim)), float(rng.uniform(-lim, lim))
+
+
+def _door_points(
+    scenario: Scenario, rng: np.random.Generator
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """A point just outside the door and one in the doorway, both on one line across it."""
+    normal, along = _door_frame(scenario)
+    offset = float(rng.uniform(-1.0, 1.0)) * max(scenario.door.width_m / 2.0 - 0.2, 0.0)
+    outside = normal * (ROOM_HALF_M + float(rng.uniform(0.4, OUTSIDE_DEPTH_M - 0.05))) + along * offset
+    doorway = normal * ROOM_HALF_M + along * offset
+    return (float(outside[0]), float(outside[1])), (float(doorway[0]), float(doorway[1]))
+
+
+def _beside_furniture(scenario: Scenario, rng: np.random.Generator) -> tuple[float, float]:
+    """A standing spot 0.35–0.55 m off the desk's or the chair's footprint, where people stop."""
+    candidates = [o for o in scenario.objects if o.has_legs] or list(scenario.objects)
+    obj = candidates[int(rng.integers(0, len(candidates)))]
+    rect = obj.footprint
+    angle = float(rng.uniform(0.0, 2.0 * math.pi))
+    reach = float(np.hypot(*rect.size)) / 2.0 + float(rng.uniform(0.35, 0.55))
+    return (rect.center[0] + reach * math.cos(angle), rect.center[1] + reach * math.sin(angle))
+
+
+@dataclass(frozen=True)
+class _Plan:
+    points: list[tuple[float, float]]
+    speeds: list[float]
+    pauses: list[float]
+    start_s: float
+
+
+def _walking_speed(rng: np.random.Generator) -> float:
+    """Mostly a normal walk (0.8–1.6 m/s), sometimes a stroll (0.3–0.8 m/s)."""
+    return float(rng.uniform(0.8, MAX_SPEED_MPS)) if rng.random() < 0.7 else float(rng.uniform(0.3, 0.8))
+
+
+def _plan(behaviour: str, scenario: Scenario, duration_s: float, rng: np.random.Generator) -> _Plan:
+    speed = _walking_speed(rng)
+    start = float(rng.uniform(-2.0, 0.5 * duration_s))
+    if behaviour == "stand":
+        spot = _beside_furniture(scenario, rng) if rng.random() < 0.6 else _free_point(scenario, rng)
+        return _Plan([spot], [], [], 0.0)
+    if behaviour == "visit":  # walk to the desk or chair and stand there, or stop a while and go on
+        spot = _beside_furniture(scenario, rng)
+        points = [_free_point(scenario, rng), spot]
+        pauses = [float(rng.uniform(0.5, 3.0)) if rng.random() < 0.5 else duration_s]
+        if pauses[0] < duration_s:
+            points.append(_free_point(scenario, rng))
+            pauses.append(0.0)
+        return _Plan(points, [speed] * (len(points) - 1), pauses, start)
+    if behaviour == "door":  # in or out through the doorway
+        outside, doorway = _door_points(scenario, rng)
+        inner = [_free_point(scenario, rng) for _ in range(int(rng.integers(1, 3)))]
+        points = [outside, doorway, *inner]
+        if rng.random() < 0.5:
+            points.reverse()
+        return _Plan(points, [speed] * (len(points) - 1), [0.0] * (len(points) - 1), start)
+    # cross: a walk across the room, with a turn at one or two intermediate points
+    points = [_free_point(scenario, rng) for _ in range(int(rng.integers(2, 4)))]
+    pauses = [float(rng.uniform(0.5, 2.0)) if rng.random() < 0.2 else 0.0 for _ in points[1:]]
+    return _Plan(points, [speed] * (len(points) - 1), pauses, start)
+
+
+def _fits(
+    person: Person,
+    scenario: Scenario,
+    robot_xy: np.ndarray,
+    robot_dt_s: float,
+    others: Sequence[Person],
+) -> bool:
+    """Walkable everywhere, never closer than the clearances to the robot or to anyone placed."""
+    centres = person.centres
+    if not np.all(_allowed(centres, scenario)):
+        return False
+    t = np.arange(len(centres)) * TIME_STEP_S
+    index = np.minimum(np.round(t / robot_dt_s).astype(int), len(robot_xy) - 1)
+    if np.any(np.hypot(*(centres - robot_xy[index]).T) < ROBOT_CLEARANCE_M):
+        return False
+    return all(np.all(np.hypot(*(centres - other.centres).T) >= PEOPLE_CLEARANCE_M) for other in others)
+
+
+def _build_plan(plan: _Plan, duration_s: float, rng: np.random.Generator, lateral_m: float = 0.0) -> Person:
+    points = plan.points
+    if lateral_m and len(points) > 1:  # walk beside a companion: the same path, offset to one side
+        shifted = []
+        for i, point in enumerate(points):
+            a, b = points[max(i - 1, 0)], points[min(i + 1, len(points) - 1)]
+            d = np.subtract(b, a)
+            n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9)
+            shifted.append((point[0] + lateral_m * n[0], point[1] + lateral_m * n[1]))
+        points = shifted
+    radius = float(rng.uniform(0.04, 0.07)) if rng.random() < 0.85 else float(rng.uniform(0.07, 0.09))
+    return _build(
+        points,
+        plan.speeds,
+        plan.pauses,
+        plan.start_s,
+        duration_s,
+        leg_radius_m=radius,
+        step_width_m=float(rng.uniform(0.12, 0.22)) + 2 * (radius - 0.05),
+        initial_heading=float(rng.uniform(-math.pi, math.pi)),
+    )
+
+
+def sample_people(
+    scenario: Scenario,
+    robot_path: np.ndarray,
+    robot_dt_s: float,
+    duration_s: float,
+    max_people: int,
+    rng: np.random.Generator,
+) -> list[Person]:
+    """Between 0 and ``max_people`` people for one robot motion (``robot_path``: float64[T, ≥2], one row
+    every ``robot_dt_s``). Someone who does not fit after a few draws is left out, so a crowded room
+    gets fewer people; a group that does not fit whole loses its later members."""
+    if max_people <= 0:
+        return []
+    wanted = int(rng.integers(0, max_people + 1))
+    robot_xy = np.asarray(robot_path, dtype=np.float64)[:, :2]
+    placed: list[Person] = []
+    while len(placed) < wanted:
+        behaviour = BEHAVIOURS[int(rng.integers(0, len(BEHAVIOURS)))]
+        size = int(rng.integers(2, 4)) if behaviour == "group" else 1
+        size = min(size, wanted - len(placed))
+        group: list[Person] = []
+        for _ in range(PLACEMENT_TRIES):
+            plan = _plan("cross" if behaviour == "group" else behaviour, scenario, duration_s, rng)
+            leader = _build_plan(plan, duration_s, rng)
+            if not _fits(leader, scenario, robot_xy, robot_dt_s, placed):
+                continue
+            group = [leader]
+            for member in range(1, size):
+                side = 1.0 if member % 2 else -1.0
+                follower = _build_plan(plan, duration_s, rng, lateral_m=side * float(rng.uniform(0.5, 0.7)))
+                if _fits(follower, scenario, robot_xy, robot_dt_s, placed + group):
+                    group.append(follower)
+            break
+        if not group:
+            break
+        placed.extend(group)
+    return placed

@@ -1,0 +1,217 @@
+"""Simulated people (gait, placement, labels), sensor profiles, and the data sets they make."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.encoding import ANGLE_COLUMNS
+from services.simulator.labels import clip_to_field_of_view, label_scan
+from services.simulator.people import (
+    CADENCE_BASE,
+    CADENCE_GAIN,
+    INSIDE_HALF_M,
+    PEOPLE_CLEARANCE_M,
+    ROBOT_CLEARANCE_M,
+    STANCE_SHARE,
+    TIME_STEP_S,
+    Person,
+    _build,
+    leg_object,
+    people_distances,
+    sample_people,
+)
+from services.simulator.scenario import PERSON, sample_scenario
+from services.simulator.sensors import (
+    DEFAULT_SPEC,
+    PROFILES,
+    RANDOM_PROFILE,
+    draw_profile,
+    profile,
+    stack_stride,
+)
+
+
+def walker(speed: float = 1.3, duration_s: float = 6.0) -> Person:
+    """A person walking along +x from (-3, 0) at ``speed`` from t = 0."""
+    return _build([(-3.0, 0.0), (30.0, 0.0)], [speed], [0.0], -5.0, duration_s, 0.05, 0.16, 0.0)
+
+
+def test_a_walking_legs_stance_stays_put_and_the_legs_alternate() -> None:
+    person = walker()
+    cadence = CADENCE_BASE + CADENCE_GAIN * 1.3
+    cycle_s = 2.0 / cadence
+    for leg in (0, 1):
+        stances: list[list[float]] = [[]]
+        for t in np.arange(1.0, 1.0 + 2 * cycle_s, 0.01):
+            i = round(t / TIME_STEP_S)
+            phase = (person.phase[i] + 0.5 * leg) % 1.0
+            if 0.05 < phase < STANCE_SHARE - 0.05:  # well inside the stance
+                stances[-1].append(person.legs(t)[leg][0])
+            elif stances[-1]:
+                stances.append([])
+        stances = [run for run in stances if len(run) > 10]
+        assert len(stances) >= 1
+        for run in stances:
+            assert max(run) - min(run) < 0.03, "a planted foot does not slide"
+    # One stride (two steps) per cycle: each foot lands a stride ahead of where it stood.
+    step = 1.3 / cadence
+    assert step == pytest.approx(0.64, abs=0.01)
+    a, b = person.legs(2.0), person.legs(2.0 + cycle_s)
+    assert b[0][0] - a[0][0] == pytest.approx(1.3 * cycle_s, abs=0.05)
+    assert abs(a[0][1] - a[1][1]) == pytest.approx(0.16)  # side by side across the walking direction
+
+
+def test_a_standing_person_keeps_both_legs_still_side_by_side() -> None:
+    person = _build([(0.5, 0.5)], [], [], 0.0, 4.0, 0.06, 0.18, 0.3)
+    assert person.legs(0.0) == person.legs(3.9)
+    (x0, y0, r0), (x1, y1, _) = person.legs(1.0)
+    assert math.dist((x0, y0), (x1, y1)) == pytest.approx(0.18) and r0 == 0.06
+    assert person.centre(2.0) == pytest.approx((0.5, 0.5))
+
+
+def test_people_stay_walkable_and_clear_of_furniture_the_robot_and_each_other() -> None:
+    rng = np.random.default_rng(3)
+    robot = np.array([[-1.2, -1.2, 0.0]] * 50)
+    seen = 0
+    for index in range(6):
+        scenario = sample_scenario(index, seed=21)
+        for _ in range(8):
+            people = sample_people(scenario, robot, 0.1, 5.0, 4, rng)
+            assert len(people) <= 4
+            seen += len(people)
+            for k, person in enumerate(people):
+                c = person.centres
+                outside = np.any(np.abs(c) > INSIDE_HALF_M + 1e-9, axis=1)
+                normal = np.array([math.cos(scenario.door.yaw), math.sin(scenario.door.yaw)])
+                assert np.all(c[outside] @ normal > INSIDE_HALF_M - 0.02), "only the doorway leads out"
+                for obj in scenario.objects:
+                    assert np.all(obj.footprint.distance(c) >= 0.3 - 1e-9)
+                assert np.hypot(*(c - robot[0, :2]).T).min() >= ROBOT_CLEARANCE_M
+                for other in people[k + 1 :]:
+                    gap = np.hypot(*(c - other.centres).T).min()
+                    assert gap >= min(PEOPLE_CLEARANCE_M, 0.5) - 1e-9  # a companion walks 0.5-0.7 m aside
+    assert seen > 20
+    assert sample_people(sample_scenario(0, seed=21), robot, 0.1, 5.0, 0, rng) == []
+
+
+def test_each_beam_names_the_leg_it_hit() -> None:
+    person = _build([(2.0, 0.0)], [], [], 0.0, 1.0, 0.05, 0.2, 0.0)  # facing +x: legs at y = ±0.1
+    rays = np.array([[math.cos(a), math.sin(a)] for a in np.radians([0.0, 2.9, -2.9, 45.0])])
+    distances, legs = people_distances([person], (0.0, 0.0), rays, 0.0)
+    assert math.isinf(distances[0]) and math.isinf(distances[3])  # between the legs; far off
+    hit = {int(legs[1]), int(legs[2])}
+    assert hit == {leg_object(0, 0), leg_object(0, 1)}
+    assert distances[1] == pytest.approx(distances[2]) and 1.9 < distances[1] < 2.0
+
+
+def test_a_person_is_labelled_by_the_legs_the_beams_hit() -> None:
+    scenario = sample_scenario(0, seed=0)
+    pose = (-1.0, 0.0, 0.0)
+    legs = ((0.0, 0.1, 0.05), (0.0, -0.1, 0.05))
+    bearings = DEFAULT_SPEC.bearings_rad
+    ranges = np.full(len(bearings), np.inf)
+    hits = np.full(len(bearings), -2, dtype=np.int16)
+    ahead = [1, 2, 3, 4, 5]  # beams 1°-5° left: the left leg (y = +0.1 at 1 m is 5.7°)
+    hits[ahead] = leg_object(0, 0)
+    ranges[ahead] = 0.96
+    labels = label_scan(scenario, pose, bearings, ranges, hits, 3.5, "zero", (legs,))
+    person = [label for label in labels if label.class_id == PERSON]
+    assert len(person) == 1 and person[0].visible and person[0].beams_on_object == 5
+    ((x1, y1, x2, y2),) = person[0].boxes_px
+    assert 2 <= x1 < x2 <= 10, "only the seen leg spans the box"
+    near = math.hypot(1.0, 0.1)
+    assert y1 == math.floor((near - 0.05) * 63 / 4) and y2 == math.floor((near + 0.05) * 63 / 4) + 1
+    hits[ahead[1:]] = -2  # one beam is not enough
+    labels = label_scan(scenario, pose, bearings, ranges, hits, 3.5, "zero", (legs,))
+    assert not next(label for label in labels if label.class_id == PERSON).visible
+
+
+def test_an_arc_is_clipped_to_the_sensors_field_of_view() -> None:
+    spec = PROFILES["leg-tracker-180"]  # -90° … +90°
+    bearings = spec.bearings_rad
+    assert clip_to_field_of_view(0.0, -10.0, 10.0, bearings) == (-10.0, 10.0)
+    lo, hi = clip_to_field_of_view(90.0, 80.0, 100.0, bearings)  # type: ignore[misc]
+    assert lo == 80.0 and hi == pytest.approx(math.degrees(spec.angle_max))
+    assert clip_to_field_of_view(180.0, 170.0, 190.0, bearings) is None
+    assert clip_to_field_of_view(180.0, 170.0, 190.0, DEFAULT_SPEC.bearings_rad) == (170.0, 190.0)
+    lo, hi = clip_to_field_of_view(275.0, 265.0, 285.0, bearings)  # type: ignore[misc]
+    assert lo == pytest.approx(270.0, abs=0.5) and hi == 285.0  # -90° is 270°
+
+
+def test_profiles_follow_their_datasheets_and_stack_at_the_trained_period() -> None:
+    for name, spec in PROFILES.items():
+        assert spec.rate_hz > 0 and spec.range_min < spec.range_max, name
+        fov = math.degrees(spec.beams * spec.angle_increment)
+        assert 179.0 < fov < 361.0, name
+    assert PROFILES["lds-01"] == DEFAULT_SPEC
+    assert PROFILES["ust-10lx"].beams == 1081 and math.degrees(PROFILES["ust-10lx"].angle_min) == -135.0
+    assert stack_stride(40.0, 0.1) == 4 and stack_stride(10.0, 0.1) == 1 and stack_stride(5.5, 0.1) == 1
+    assert stack_stride(15.0, 0.1) == 2
+    rng = np.random.default_rng(0)
+    drawn = {draw_profile(RANDOM_PROFILE, rng)[0] for _ in range(200)}
+    assert drawn == set(PROFILES)
+    with pytest.raises(ValueError, match=r"unknown sensor 'hokuyo'.*lds-01"):
+        profile("hokuyo")
+    with pytest.raises(ValueError, match="rate_hz"):
+        replace(DEFAULT_SPEC, rate_hz=0.0)
+
+
+def _digest(root: Path) -> str:
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    text = "".join(f"{hashlib.sha256(p.read_bytes()).hexdigest()}  ./{p.relative_to(root)}\n" for p in files)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@pytest.mark.slow
+def test_the_papers_set_is_byte_for_byte_what_it_was(tmp_path: Path) -> None:
+    """`--people 0` with the LDS-01: the same files as the generator made before people and sensor
+    profiles existed (this digest was taken from that generator's output)."""
+    from training.dataset import DatasetConfig, generate_dataset
+
+    generate_dataset(DatasetConfig(out=tmp_path, scenarios=3, positions=2, seed=0), progress=False)
+    assert _digest(tmp_path) == "44748fe6b4a8317bd77f6be49905a88613543d042dad59dd5f88997b0d1aadff"
+
+
+@pytest.mark.slow
+def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
+    import json
+
+    from training.dataset import DatasetConfig, generate_dataset
+
+    config = DatasetConfig(
+        out=tmp_path / "a", scenarios=6, positions=4, seed=5, frame_stride=5, people=4, sensor="random"
+    )
+    summary = generate_dataset(config, progress=False)
+    assert (
+        "nc: 5" in (tmp_path / "a" / "data.yaml").read_text()
+        and "  4: person" in (tmp_path / "a" / "data.yaml").read_text()
+    )
+    boxes = summary["boxes_per_class"]
+    assert isinstance(boxes, dict) and sum(split["person"] for split in boxes.values()) > 10
+    sensors = [json.loads(line)["lidar"]["sensor"] for line in (tmp_path / "a" / "scenarios.jsonl").open()]
+    assert len(set(sensors)) >= 3 and set(sensors) <= set(PROFILES)
+    config_json = json.loads((tmp_path / "a" / "summary.json").read_text())["config"]
+    assert config_json["people"] == 4 and config_json["sensor"] == "random"
+    again = replace(config, out=tmp_path / "b", workers=2)
+    generate_dataset(again, progress=False)
+    assert _digest(tmp_path / "a") == _digest(tmp_path / "b"), "the same whatever the worker count"
+    # A narrow field of view leaves its dark columns unlabelled.
+    for line in (tmp_path / "a" / "scenarios.jsonl").open():
+        record = json.loads(line)
+        spec = PROFILES[record["lidar"]["sensor"]]
+        if spec.full_circle:
+            continue
+        first = math.degrees(spec.angle_min) % ANGLE_COLUMNS
+        last = math.degrees(spec.angle_max) % ANGLE_COLUMNS
+        for label in (tmp_path / "a" / "labels").glob(f"*/s{record['index']:04d}_*.txt"):
+            for row in label.read_text().splitlines():
+                _, xc, _, w, _ = (float(v) for v in row.split())
+                for x in ((xc - w / 2) * 384 + 0.5, (xc + w / 2) * 384 - 0.5):
+                    inside = (first <= x <= 360.0) or (0.0 <= x <= last + 1.0)
+                    assert inside, (label, row, first, last)
