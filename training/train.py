@@ -66,6 +66,9 @@ class TrainConfig:
     init: Path | None = None  # weights to start from (fine-tuning a shipped .pt), else random
     dfl_bins: int = DEFAULT_DFL_BINS  # the box branch's DFL bins (training.architectures)
     recipe: Path = SHIPPED_RECIPE  # its [train.ultralytics] arguments are this run's
+    amp: bool | None = None  # mixed precision: None uses it on a GPU (Ultralytics' check needs its hub)
+    plots: bool = True  # Ultralytics' training plots (they need polars)
+    cache: bool = False  # hold the decoded training images in RAM (worth it where cores are many)
 
     def __post_init__(self) -> None:
         check_arch(self.arch)
@@ -204,11 +207,13 @@ def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
         # Warm-up runs biases at 0.1, a rate meant for SGD from random weights; with AdamW it walks a
         # fine-tune's trained biases far off in the first hundred steps, so a fine-tune keeps lr0.
         **({"warmup_bias_lr": lr0} if config.init is not None else {}),
-        "amp": device != "cpu",  # AMP is a GPU feature; on the CPU it only triggers a download check
+        # AMP is a GPU feature; on the CPU it only triggers a download check.
+        "amp": config.amp if config.amp is not None else device != "cpu",
+        "cache": "ram" if config.cache else False,
         "project": str(config.out.parent.resolve()),
         "name": config.out.name,
         "exist_ok": True,
-        "plots": True,
+        "plots": config.plots,
         "verbose": True,
     }
 
@@ -245,24 +250,39 @@ class DivergenceWatch:
 
 
 class StopAfterEpoch:
-    """Ends this invocation after a given epoch while keeping the run's schedule (``--epochs``).
+    """Ends this invocation after a given epoch, or before an epoch that would end past a time budget,
+    while keeping the run's schedule (``--epochs``).
 
-    A CPU run of 30 epochs takes days; stopping at epoch N and resuming later follows the same cosine
-    learning-rate curve as one uninterrupted run, so two runs stopped at the same epoch compare fairly.
-    Ultralytics strips the optimizer from ``last.pt`` when a run ends, which would make it impossible
-    to resume: the full checkpoint is kept aside here and put back by :meth:`restore_last`.
+    A CPU run of 30 epochs takes days, and a rented accelerator comes in slices of minutes; stopping at
+    epoch N and resuming later follows the same cosine learning-rate curve as one uninterrupted run,
+    so two runs stopped at the same epoch compare fairly. Ultralytics strips the optimizer from
+    ``last.pt`` when a run ends, which would make it impossible to resume: the full checkpoint is kept
+    aside here and put back by :meth:`restore_last`.
     """
 
-    def __init__(self, epoch: int) -> None:
-        if epoch < 1:
+    def __init__(self, epoch: int | None = None, seconds: float | None = None) -> None:
+        if epoch is not None and epoch < 1:
             raise ValueError(f"stop_after must be >= 1 epoch, got {epoch}")
+        if seconds is not None and seconds <= 0:
+            raise ValueError(f"the time budget must be positive, got {seconds} s")
         self.epoch = epoch
+        self.seconds = seconds
+        self.started = time.monotonic()
+        self.epoch_ended = self.started
         self.kept: tuple[Path, Path] | None = None
 
+    def _reached(self, epoch: int) -> bool:
+        now = time.monotonic()
+        longest_epoch, self.epoch_ended = now - self.epoch_ended, now
+        if self.epoch is not None and epoch + 1 >= self.epoch:
+            return True
+        # Stop when the next epoch, as long as this one, would end past the budget.
+        return self.seconds is not None and now - self.started + longest_epoch > self.seconds
+
     def __call__(self, trainer: Any) -> None:
-        if self.kept is not None or int(trainer.epoch) + 1 < self.epoch:
+        if self.kept is not None or not self._reached(int(trainer.epoch)):
             return
-        log.info("epoch %d reached: stopping this invocation (resume to continue)", self.epoch)
+        log.info("epoch %d reached: stopping this invocation (resume to continue)", int(trainer.epoch) + 1)
         trainer.stop = True
         last = Path(trainer.last)
         if last.is_file():
@@ -314,6 +334,18 @@ def triscan_trainer() -> type:
     from ultralytics.utils.torch_utils import unwrap_model
 
     class TriscanTrainer(DetectionTrainer):
+        def read_results_csv(self) -> dict[str, list[float]]:
+            """The curve so far, as Ultralytics stores it in each checkpoint, read with the standard
+            library: Ultralytics reads it with polars, which a training host may not have."""
+            import csv
+
+            try:
+                with open(self.csv, newline="") as handle:
+                    rows = list(csv.DictReader(handle))
+            except OSError:
+                return {}
+            return {key.strip(): [float(row[key]) for row in rows] for key in (rows[0] if rows else {})}
+
         def build_dataset(self, img_path: str, mode: str = "train", batch: int | None = None) -> Any:
             if mode == "train":
                 return super().build_dataset(img_path, mode, batch)
@@ -379,6 +411,7 @@ def train(
     resume: bool = False,
     resume_from: Path | None = None,
     stop_after: int | None = None,
+    stop_after_s: float | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) one run and write ``train_summary.json`` beside its weights.
 
@@ -395,7 +428,11 @@ def train(
     device = pick_device(config.device)
     last = config.out / "weights" / "last.pt"
     watch = DivergenceWatch()
-    stopper = StopAfterEpoch(stop_after) if stop_after is not None else None
+    stopper = (
+        StopAfterEpoch(stop_after, stop_after_s)
+        if stop_after is not None or stop_after_s is not None
+        else None
+    )
     started = time.perf_counter()
     if resume and resume_from is not None and not last.is_file():
         seed_last_checkpoint(resume_from, last)
