@@ -41,6 +41,7 @@ from common.model_meta import (
     declared_classes,
     declared_invalid_rule,
     declared_padding,
+    declared_stack_period,
     is_end_to_end,
     is_free_dimension,
     model_classes,
@@ -171,6 +172,8 @@ class OnnxDetector:
         # A free batch axis (the ``-batch`` model files): ``detect_many`` runs several frames per call.
         self.batched: bool = batched
         self.invalid: InvalidRule = declared_invalid_rule(self._session, path)
+        # Seconds between the scans the model stacks (None: consecutive, whatever the sensor's rate).
+        self.stack_period_s: float | None = declared_stack_period(self._session, path)
         # The one home of this detector's thresholds, padding, class count and box grid.
         self.postprocessing = PostprocessSettings(
             conf_threshold,

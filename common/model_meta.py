@@ -11,6 +11,7 @@ file to read them is :func:`common.inference.model_facts`' job.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -27,18 +28,39 @@ from common.model_spec import (
     META_CLASSES,
     META_INVALID,
     META_PADDING,
+    META_STACK_PERIOD,
     BoxGrid,
 )
 
 
-def metadata_entries(*, padding: str, invalid: str, box_grid: str, classes: Sequence[str]) -> dict[str, str]:
+def metadata_entries(
+    *, padding: str, invalid: str, box_grid: str, classes: Sequence[str], stack_period_s: float | None = None
+) -> dict[str, str]:
     """The ``triscan.*`` entries an exported model carries, as the readers below expect them."""
-    return {
+    entries = {
         META_PADDING: padding,
         META_INVALID: invalid,
         META_BOX_GRID: box_grid,
         META_CLASSES: json.dumps(list(classes)),
     }
+    if stack_period_s is not None:
+        entries[META_STACK_PERIOD] = repr(float(stack_period_s))
+    return entries
+
+
+def declared_stack_period(session: ort.InferenceSession, path: Path | str) -> float | None:
+    """Seconds between the scans the model was trained to stack (``triscan.stack_period_s``); None for
+    a model that does not say, whose scans are stacked as they come."""
+    value = session.get_modelmeta().custom_metadata_map.get(META_STACK_PERIOD)
+    if value is None:
+        return None
+    try:
+        period = float(value)
+    except ValueError:
+        period = math.nan
+    if not period > 0.0 or not math.isfinite(period):
+        raise ValueError(f"{path} declares an invalid {META_STACK_PERIOD} {value!r}")
+    return period
 
 
 def _declared(
@@ -112,6 +134,7 @@ class ModelFacts(NamedTuple):
     padding: Padding  # ``zero`` for a model that does not say
     invalid: InvalidRule  # ``sentinel`` for a model that does not say
     takes_batches: bool  # a free batch axis (a ``-batch`` file)
+    stack_period_s: float | None = None  # seconds between stacked scans; None: as they come
 
     @classmethod
     def of_session(cls, session: ort.InferenceSession, path: Path | str) -> ModelFacts:
@@ -120,4 +143,5 @@ class ModelFacts(NamedTuple):
             padding=declared_padding(session, path) or "zero",
             invalid=declared_invalid_rule(session, path),
             takes_batches=bool(shape) and is_free_dimension(shape[0]),
+            stack_period_s=declared_stack_period(session, path),
         )

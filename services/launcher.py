@@ -148,7 +148,10 @@ def service_commands(
             *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
             *("--padding", padding),
         ],
-        "encoder": ["--padding", padding, "--invalid", facts.invalid],
+        "encoder": [
+            *("--padding", padding, "--invalid", facts.invalid),
+            *(("--stack-period-s", repr(facts.stack_period_s)) if facts.stack_period_s else ()),
+        ],
         "detector": [
             *(("--model", str(config.model)) if config.model else ()),
             *(("--batch", str(config.batch)) if config.batch is not None else ()),

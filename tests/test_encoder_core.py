@@ -185,3 +185,56 @@ def test_tensors_carry_the_invalid_rule_they_were_made_with() -> None:
     assert b.tensor.any()  # the valid 0.5 m returns are drawn under both rules
     with pytest.raises(ScanError, match="invalid must be one of"):
         EncoderCore("zero", invalid="drop")  # type: ignore[arg-type]
+
+
+def _stream(rate_hz: float, count: int) -> list[Scan]:
+    period_ns = round(1e9 / rate_hz)
+    return [
+        scan("r", seq, stamp_ns=1_000_000_000 + seq * period_ns, distance=1.0 + 0.01 * seq)
+        for seq in range(count)
+    ]
+
+
+def test_a_fast_sensor_is_stacked_at_the_models_period() -> None:
+    """A 40 Hz stream for a model trained on scans 0.1 s apart: every 4th scan is stacked."""
+    core = EncoderCore(stack_period_s=0.1)
+    tensors = [t for s in _stream(40.0, 60) if (t := core.push(s)) is not None]
+    assert tensors, "tensors come once the interval is learnt"
+    for tensor in tensors:
+        a, b, c = tensor.scan_seqs
+        assert b - a == 4 and c - b == 4
+        assert tensor.scan_stamps_ns[2] - tensor.scan_stamps_ns[1] == 4 * 25_000_000
+    assert core.counters.between_stacked >= 40
+    assert core.counters.gaps == 0
+    # The tensor is made of exactly the picked scans.
+    picked = {s.seq: s for s in _stream(40.0, 60)}
+    last = tensors[-1]
+    np.testing.assert_array_equal(last.tensor, expected_tensor(*(picked[q] for q in last.scan_seqs)))
+
+
+def test_without_a_period_or_from_a_slow_sensor_scans_are_stacked_as_they_come(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    plain = EncoderCore()
+    assert next(t.scan_seqs for s in _stream(40.0, 6) if (t := plain.push(s)) is not None) == (0, 1, 2)
+    slow = EncoderCore(stack_period_s=0.1)
+    with caplog.at_level("WARNING"):
+        seqs = [t.scan_seqs for s in _stream(5.5, 12) if (t := slow.push(s)) is not None]
+    assert seqs[0] == (0, 1, 2) and seqs[-1] == (9, 10, 11)
+    assert sum("stacking them as they come" in r.message for r in caplog.records) == 1, "logged once"
+
+
+def test_a_lost_scan_of_a_fast_sensor_is_a_gap_among_the_stacked_ones() -> None:
+    core = EncoderCore(stack_period_s=0.1)
+    stream = [s for s in _stream(40.0, 40) if s.seq != 21]
+    tensors = [t for s in stream if (t := core.push(s)) is not None]
+    assert core.counters.gaps == 0  # 21 was between stacked scans: nothing lost that mattered
+    assert all(t.scan_seqs[1] - t.scan_seqs[0] == 4 for t in tensors)
+    core = EncoderCore(stack_period_s=0.1)
+    stack = [t.scan_seqs for s in _stream(40.0, 40) if (t := core.push(s)) is not None]
+    lost = stack[-1][1]  # a scan that would be stacked
+    core = EncoderCore(stack_period_s=0.1)
+    for s in _stream(40.0, 40):
+        if s.seq != lost:
+            core.push(s)
+    assert core.counters.gaps == 1

@@ -23,6 +23,7 @@ from pathlib import Path
 from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS
 from common.model_meta import metadata_entries
 from common.model_spec import BOX_GRIDS, CLASS_NAMES, DEFAULT_BOX_GRID, META_PREFIX
+from services.simulator.defaults import SCAN_PERIOD_S
 from training.onnx_model import ExportError, provenance, save_checked, set_metadata
 from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
 
@@ -167,7 +168,12 @@ def export_onnx(
         model,
         {
             **metadata_entries(
-                padding=recorded_padding, invalid=recorded_invalid, box_grid=box_grid, classes=names
+                padding=recorded_padding,
+                invalid=recorded_invalid,
+                box_grid=box_grid,
+                classes=names,
+                # Every triscan data set stacks scans one simulator period apart (training.dataset).
+                stack_period_s=SCAN_PERIOD_S,
             ),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",

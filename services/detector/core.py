@@ -321,7 +321,10 @@ class InferencePipeline:
         self.core = DetectorCore(self.detectors[0])
         self.encoder = (
             EncoderCore(
-                self.core.detector.padding, invalid=self.core.detector.invalid, forget_after_s=forget_after_s
+                self.core.detector.padding,
+                invalid=self.core.detector.invalid,
+                forget_after_s=forget_after_s,
+                stack_period_s=self.core.detector.stack_period_s,
             )
             if from_scans
             else None

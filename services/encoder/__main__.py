@@ -34,9 +34,10 @@ def run(
     invalid: InvalidRule = "sentinel",
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
+    stack_period_s: float | None = None,
 ) -> EncoderCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
-    core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s)
+    core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s, stack_period_s=stack_period_s)
     with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
         tensors = runtime.robot_publishers(tensor_key)
 
@@ -64,8 +65,18 @@ def main(argv: list[str] | None = None) -> int:
         default="sentinel",
         help="invalid returns: sentinel row (paper) or empty; must match the detector's model",
     )
+    parser.add_argument(
+        "--stack-period-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stack scans this far apart, as the detector's model was trained (its triscan.stack_period_s); "
+        "default: consecutive scans",
+    )
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     args = parser.parse_args(argv)
+    if args.stack_period_s is not None and not args.stack_period_s > 0:
+        parser.error(f"--stack-period-s must be positive, got {args.stack_period_s}")
     configure_logging(args.verbose)
     run(
         settings_from_args(args),
@@ -74,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         invalid=args.invalid,
         forget_after_s=args.forget_after,
         duration_s=args.duration,
+        stack_period_s=args.stack_period_s,
     )
     return 0
 

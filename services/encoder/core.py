@@ -15,14 +15,20 @@ happened. So, per robot (robots never share a FIFO):
   tensor never run backwards.
 * **Silence**: a robot not heard from for ``forget_after_s`` is forgotten (its FIFO freed), so a fleet
   that changes over time does not leak memory; if it speaks again it starts a fresh stream.
+* **Stacking period**: a model is trained on scans a set time apart (``stack_period_s``, from its
+  metadata), since how far things move between the stacked scans is the cue it reads. From a faster
+  sensor only every k-th scan is stacked, k = round(period / the sensor's measured scan interval)
+  (every 4th of a 40 Hz sensor for a 0.1 s model, which also cuts its cost by 4), and "consecutive"
+  above means consecutive among those; a slower sensor is stacked as it comes, and that is logged once.
 """
 
 from __future__ import annotations
 
 import logging
+import statistics
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -45,6 +51,7 @@ class EncoderCounters:
     warming_up: int = 0  # scans held without a tensor: the first two of a stream
     gaps: int = 0
     restarts: int = 0
+    between_stacked: int = 0  # scans of a faster sensor left out to stack at the model's period
     forgotten_robots: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # reason → count
 
@@ -55,9 +62,13 @@ class EncoderCounters:
             "warming_up": self.warming_up,
             "gaps": self.gaps,
             "restarts": self.restarts,
+            "between_stacked": self.between_stacked,
             "forgotten_robots": self.forgotten_robots,
             "rejected": dict(self.rejected),
         }
+
+
+INTERVALS_KEPT = 9  # scan intervals the sensor's period is measured over (their median)
 
 
 @dataclass
@@ -66,11 +77,24 @@ class _Stream:
     seqs: list[int] = field(default_factory=list)  # of the scans in the FIFO, oldest first
     stamps_ns: list[int] = field(default_factory=list)
     last_seen_s: float = 0.0
+    last_stamp_ns: int | None = None  # of the last scan received, stacked or not
+    intervals_ns: deque[int] = field(default_factory=lambda: deque(maxlen=INTERVALS_KEPT))
+    slow_sensor_logged: bool = False
 
     def restart(self) -> None:
         self.stacker.reset()
         self.seqs.clear()
         self.stamps_ns.clear()
+
+    def stride(self, stamp_ns: int, period_s: float | None) -> int:
+        """Every how many scans of this robot's sensor to stack, learning its interval from ``stamp_ns``."""
+        if self.last_stamp_ns is not None and stamp_ns > self.last_stamp_ns:
+            self.intervals_ns.append(stamp_ns - self.last_stamp_ns)
+        self.last_stamp_ns = stamp_ns
+        if period_s is None or not self.intervals_ns:
+            return 1
+        interval_s = statistics.median(self.intervals_ns) / 1e9
+        return max(1, round(period_s / interval_s))
 
 
 class EncoderCore:
@@ -88,10 +112,14 @@ class EncoderCore:
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
         max_robots: int = DEFAULT_MAX_ROBOTS,
         clock: Callable[[], float] = time.monotonic,
+        stack_period_s: float | None = None,
     ) -> None:
         ScanStacker(padding, invalid)  # validates both names early, with the encoder's own message
+        if stack_period_s is not None and not stack_period_s > 0.0:
+            raise ValueError(f"stack_period_s must be positive or None, got {stack_period_s}")
         self.padding: Padding = padding
         self.invalid: InvalidRule = invalid
+        self.stack_period_s = stack_period_s  # None: stack consecutive scans, whatever their rate
         self.forget_after_s = forget_after_s
         self.max_robots = max_robots
         self.clock = clock
@@ -155,6 +183,21 @@ class EncoderCore:
             self.counters.forgotten_robots += len(silent)
             return silent
 
+    def _log_slow_sensor(self, stream: _Stream, robot_id: str) -> None:
+        """Say once per robot that its sensor scans slower than the model's trained period."""
+        if self.stack_period_s is None or stream.slow_sensor_logged or len(stream.intervals_ns) < 3:
+            return
+        interval_s = statistics.median(stream.intervals_ns) / 1e9
+        if interval_s > 1.25 * self.stack_period_s:
+            stream.slow_sensor_logged = True
+            log.warning(
+                "%s scans every %.0f ms, the model was trained on scans %.0f ms apart: stacking them as "
+                "they come (expect lower recall on moving things)",
+                robot_id,
+                interval_s * 1e3,
+                self.stack_period_s * 1e3,
+            )
+
     def _reject(self, reason: str, detail: str) -> None:
         self.counters.rejected[reason] += 1
         log.warning("scan rejected (%s): %s", reason, detail)
@@ -200,10 +243,18 @@ class EncoderCore:
                     last_seq,
                 )
                 stream.restart()
-            elif scan.seq > last_seq + 1:
+        stride = stream.stride(scan.stamp_ns, self.stack_period_s)
+        if stream.seqs:
+            last_seq = stream.seqs[-1]
+            if last_seq < scan.seq < last_seq + stride:
+                self.counters.between_stacked += 1
+                stream.last_seen_s = self.clock()
+                return None
+            if scan.seq > last_seq + stride:
                 self.counters.gaps += 1
                 log.debug("%s: gap, seq %d after %d: FIFO restarted", scan.robot_id, scan.seq, last_seq)
                 stream.restart()
+        self._log_slow_sensor(stream, scan.robot_id)
         try:
             tensor = stream.stacker.push_scan(
                 scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max
