@@ -42,7 +42,8 @@ from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
 from services.runtime import EXIT_WITH_PARENT_ENV
-from services.simulator.defaults import ROBOTS, SCAN_RATE_HZ, SIM_SEED
+from services.simulator.defaults import ROBOTS, SIM_PEOPLE, SIM_SEED
+from services.simulator.sensors import DEFAULT_PROFILE
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,9 @@ class UpConfig:
     """Everything ``triscan up`` starts; ``service_args`` are extra flags per service."""
 
     robots: int = ROBOTS
-    rate_hz: float = SCAN_RATE_HZ
+    rate_hz: float | None = None  # None: the sensor's own rate
+    sensor: str = DEFAULT_PROFILE
+    people: int = SIM_PEOPLE
     duration_s: float = 0.0  # 0: until Ctrl-C
     headless: bool = False
     rrd_path: Path | None = None  # headless recording (default: runs/triscan-<time>.rrd)
@@ -145,7 +148,9 @@ def service_commands(
     service_args = {
         REPLAY: [] if config.replay is None else replay_arguments(config.replay),
         "simulator": [
-            *("--robots", str(config.robots), "--rate", str(config.rate_hz), "--seed", str(config.seed)),
+            *("--robots", str(config.robots), "--seed", str(config.seed)),
+            *("--sensor", config.sensor, "--people", str(config.people)),
+            *(("--rate", str(config.rate_hz)) if config.rate_hz is not None else ()),
             *("--padding", padding),
         ],
         "encoder": [

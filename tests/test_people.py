@@ -215,3 +215,29 @@ def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
                 for x in ((xc - w / 2) * 384 + 0.5, (xc + w / 2) * 384 - 0.5):
                     inside = (first <= x <= 360.0) or (0.0 <= x <= last + 1.0)
                     assert inside, (label, row, first, last)
+
+
+def test_the_live_simulator_has_people_walking_and_labels_them() -> None:
+    from services.simulator.fleet import SimulatedFleet
+
+    with SimulatedFleet(1, people=3, scenario_period_s=20.0) as fleet:
+        steps = [fleet.step(k * 100_000_000)[0] for k in range(120)]
+    people = [[o for o in truth.objects if o.class_id == PERSON] for _, truth in steps]
+    assert all(len(p) == len(fleet.robots[0].people) for p in people) and len(people[0]) >= 1
+    assert sum(o.visible for p in people for o in p) > 20
+    first, last = people[0][0].center_xy, people[-1][0].center_xy
+    assert math.dist(first, last) > 0.3, "people walk"
+    robot = np.array([truth.robot_pose[:2] for _, truth in steps])
+    for k in range(len(steps)):
+        for person in people[k]:
+            assert math.dist(person.center_xy, robot[k]) >= ROBOT_CLEARANCE_M - 0.05
+
+
+def test_the_live_simulator_scans_with_a_profile() -> None:
+    from services.simulator.fleet import SimulatedFleet
+
+    spec = PROFILES["ust-10lx"]
+    with SimulatedFleet(1, rate_hz=spec.rate_hz, spec=spec) as fleet:
+        scan, truth = fleet.step(0)[0]
+    assert len(scan.ranges) == spec.beams and scan.angle_min == pytest.approx(spec.angle_min)
+    assert not any(o.class_id == PERSON for o in truth.objects)

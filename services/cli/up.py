@@ -13,8 +13,15 @@ from typing import Any
 from common.transport import add_zenoh_arguments
 from services.cli.command import Command
 from services.runtime import default_of
+from services.simulator.sensors import PROFILES
 
-SIMULATOR_ONLY_FLAGS = {"robots": "--robots", "rate_hz": "--rate", "seed": "--seed"}
+SIMULATOR_ONLY_FLAGS = {
+    "robots": "--robots",
+    "rate_hz": "--rate",
+    "seed": "--seed",
+    "people": "--people",
+    "sensor": "--sensor",
+}
 REPLAY_ONLY_FLAGS = {"topic": "--topic", "robot": "--robot", "speed": "--speed", "loop": "--loop"}
 
 
@@ -30,7 +37,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robots", type=int, default=None, help=f"simulated robots (default {up('robots')})")
     p.add_argument(
         "--rate", dest="rate_hz", type=float, default=None,
-        help=f"scans per second per robot (default {up('rate_hz'):g})",
+        help="scans per second per robot (default: the sensor's)",
+    )  # fmt: skip
+    p.add_argument(
+        "--sensor", default=None, choices=list(PROFILES), metavar="NAME",
+        help=f"the simulated LiDAR (default {up('sensor')}): one of {', '.join(PROFILES)}",
+    )  # fmt: skip
+    p.add_argument(
+        "--people", type=int, default=None, metavar="N",
+        help=f"people walking about each simulated room (default {up('people')}; 0: furniture only)",
     )  # fmt: skip
     p.add_argument(
         "--duration", type=float, default=up("duration_s"), help="stop after this many seconds (0: Ctrl-C)"

@@ -33,8 +33,16 @@ from services.runtime import (
     service_parser,
     stop_event_on_signals,
 )
-from services.simulator.defaults import ROBOT_ID_PREFIX, ROBOTS, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
+from services.simulator.defaults import (
+    ROBOT_ID_PREFIX,
+    ROBOTS,
+    SCAN_RATE_HZ,
+    SCENARIO_PERIOD_S,
+    SIM_PEOPLE,
+    SIM_SEED,
+)
 from services.simulator.fleet import SimulatedFleet
+from services.simulator.sensors import DEFAULT_PROFILE, PROFILES, profile
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -125,7 +133,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--robots", type=int, default=ROBOTS, help=f"number of simulated robots (default: {ROBOTS})"
     )
     parser.add_argument(
-        "--rate", type=float, default=SCAN_RATE_HZ, metavar="HZ", help="scans per second per robot"
+        "--rate",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help=f"scans per second per robot (default: the sensor's; the LDS-01's is {SCAN_RATE_HZ:g})",
+    )
+    parser.add_argument(
+        "--sensor",
+        default=DEFAULT_PROFILE,
+        choices=list(PROFILES),
+        metavar="NAME",
+        help=f"the simulated LiDAR: one of {', '.join(PROFILES)} (docs/sensors.md)",
+    )
+    parser.add_argument(
+        "--people",
+        type=int,
+        default=SIM_PEOPLE,
+        metavar="N",
+        help=f"people walking about each robot's room (default: {SIM_PEOPLE}; 0: furniture only)",
     )
     parser.add_argument("--seed", type=int, default=SIM_SEED, help="seed of worlds, motion and noise")
     parser.add_argument(
@@ -148,8 +174,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.robots < 1:
         parser.error("--robots must be >= 1")
-    if not (args.rate > 0.0 and math.isfinite(args.rate)):
+    if args.rate is not None and not (args.rate > 0.0 and math.isfinite(args.rate)):
         parser.error("--rate must be a positive number")
+    if args.people < 0:
+        parser.error("--people must be >= 0")
+    spec = profile(args.sensor)
     if args.duration < 0.0 or args.scenario_period < 0.0:
         parser.error("--duration and --scenario-period must be >= 0")
     try:
@@ -163,9 +192,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             robots=args.robots,
             seed=args.seed,
             scenario_period_s=args.scenario_period,
-            rate_hz=args.rate,
+            rate_hz=args.rate if args.rate is not None else spec.rate_hz,
             robot_id_prefix=args.robot_prefix,
             padding=args.padding,
+            spec=spec,
+            people=args.people,
         )
     except (ValueError, FileNotFoundError) as exc:
         log.error("%s", exc)

@@ -10,3 +10,4 @@ SCAN_PERIOD_S: Final[float] = 1.0 / SCAN_RATE_HZ
 SIM_SEED: Final[int] = 1  # the shipped models were trained on seed 0's worlds: seed 1 shows them unseen ones
 SCENARIO_PERIOD_S: Final[float] = 30.0  # seconds of simulated time per world in the live simulator
 ROBOT_ID_PREFIX: Final[str] = "robot"  # robot ids are robot0, robot1, ...
+SIM_PEOPLE: Final[int] = 3  # people walking about each live robot's room: the loop shows them by default

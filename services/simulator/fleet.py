@@ -23,17 +23,20 @@ from types import TracebackType
 
 import numpy as np
 
-from common.encoding import PADDINGS, Padding
+from common.encoding import PADDINGS, R_MAX_M, Padding
 from common.keys import validate_robot_id
 from common.messages import GroundTruth, Scan, TruthObject
 from common.model_spec import CLASS_NAMES
 from services.simulator.defaults import ROBOT_ID_PREFIX, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
 from services.simulator.labels import Box, ObjectLabel, label_scan
 from services.simulator.lidar import DEFAULT_SPEC, Lidar, LidarSpec
+from services.simulator.people import Person, sample_live_people
 from services.simulator.robot import Pose, follow_waypoints
 from services.simulator.scenario import (
+    PERSON,
     ROBOT_GRID_HALF_M,
     ROBOT_GRID_STEP_M,
+    Rect,
     Scenario,
     free_grid_cells,
     sample_robot_positions,
@@ -53,6 +56,8 @@ CRUISE_MPS = 0.1  # the data set's motion speed, so live scans look like the tra
 TURN_RADPS = 1.5
 WAYPOINT_TOLERANCE_M = 0.05
 FRAME_ID = "laser"
+PEOPLE_HORIZON_S = 60.0  # how far ahead people are planned when the world never changes
+PERSON_FOOTPRINT_M = 0.4  # the square a person's truth object draws, around the midpoint of the legs
 # 8-connected grid moves; a diagonal needs both orthogonal neighbours free so a route never cuts a corner.
 _MOVES: tuple[tuple[int, int, float], ...] = tuple(
     (di, dj, math.hypot(di, dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)
@@ -153,8 +158,10 @@ class SimulatedRobot:
     """One robot wandering in its own sequence of scenarios; :meth:`step` scans and moves one tick.
 
     Random streams, all derived from ``(seed, scenario index)`` so a world always plays out the same:
-    ``[seed, index, 3]`` start pose and goals, ``[seed, index, 4]`` LiDAR noise (the data set uses
-    streams 1 and 2 of the same scenario, so the live stream never replays a training motion).
+    ``[seed, index, 3]`` start pose and goals, ``[seed, index, 4]`` LiDAR noise, ``[seed, index, 7]``
+    people (the data set uses streams 1, 2, 5 and 6 of the same scenario, so the live stream never
+    replays a training motion). With ``people`` > 0, that many people walk about each world: they are
+    planned with the robot's route for the world's whole period, so they keep clear of the robot.
     """
 
     def __init__(
@@ -166,8 +173,14 @@ class SimulatedRobot:
         ticks_per_scenario: int | None,
         padding: Padding = "zero",
         spec: LidarSpec = DEFAULT_SPEC,
+        people: int = 0,
     ) -> None:
         self.robot_id = validate_robot_id(robot_id)
+        if people < 0:
+            raise ValueError(f"people must be >= 0, got {people}")
+        self.people_count = people
+        self.people: tuple[Person, ...] = ()
+        self._people_origin_seq = 0
         if robot_index < 0:
             raise ValueError(f"robot_index must be >= 0, got {robot_index}")
         if rate_hz <= 0.0:
@@ -224,11 +237,41 @@ class SimulatedRobot:
         self._pose = (float(start[0, 0]), float(start[0, 1]), heading)
         self._planned.clear()
         self.scenario_number = k
+        self.people = ()
+        if self.people_count > 0:
+            self._people_rng = np.random.default_rng(np.random.SeedSequence([self.seed, index, 7]))
+            self._plan_people()
         log.debug("%s: scenario %d, start pose %s", self.robot_id, index, self._pose)
 
-    def _plan_next_goal(self) -> deque[Pose]:
-        """Poses of the ticks that drive from here to a new random reachable goal (empty: stay put)."""
-        start = self.grid.nearest_free_cell(self._pose[:2])
+    def _plan_people(self) -> None:
+        """Plan the robot's route for the coming period, then people who walk about clear of it."""
+        ticks = self.ticks_per_scenario or round(PEOPLE_HORIZON_S / self.period_s)
+        pose = self._planned[-1] if self._planned else self._pose
+        while len(self._planned) < ticks:
+            more = self._plan_next_goal(pose)
+            if not more:
+                break
+            self._planned.extend(more)
+            pose = more[-1]
+        route = np.array([self._pose, *self._planned])
+        self.people = tuple(
+            sample_live_people(
+                self.scenario,
+                route,
+                self.period_s,
+                ticks * self.period_s,
+                self.people_count,
+                self._people_rng,
+            )
+        )
+        self._people_origin_seq = self.seq
+        self._people_until_seq = self.seq + ticks
+
+    def _plan_next_goal(self, pose: Pose | None = None) -> deque[Pose]:
+        """Poses of the ticks that drive from ``pose`` (here by default) to a new random reachable goal
+        (empty: stay put)."""
+        pose = self._pose if pose is None else pose
+        start = self.grid.nearest_free_cell(pose[:2])
         if start is None:  # pragma: no cover - see _enter_scenario
             return deque()
         distance, parent = self.grid.routes_from(start)
@@ -236,19 +279,19 @@ class SimulatedRobot:
         if len(reachable) == 0:
             log.debug("%s: no reachable free cell from %s, staying put", self.robot_id, start)
             return deque()
-        points = (reachable * ROBOT_GRID_STEP_M - ROBOT_GRID_HALF_M) - np.asarray(self._pose[:2])
+        points = (reachable * ROBOT_GRID_STEP_M - ROBOT_GRID_HALF_M) - np.asarray(pose[:2])
         far = reachable[np.hypot(points[:, 0], points[:, 1]) >= MIN_GOAL_DISTANCE_M]
         candidates = far if len(far) else reachable
         goal_i, goal_j = candidates[self.rng.integers(0, len(candidates))]
         goal = (int(goal_i), int(goal_j))
         waypoints = [self.grid.point_of(cell) for cell in _route_cells(parent, start, goal)]
         start_xy = self.grid.point_of(start)
-        if math.hypot(start_xy[0] - self._pose[0], start_xy[1] - self._pose[1]) > WAYPOINT_TOLERANCE_M:
+        if math.hypot(start_xy[0] - pose[0], start_xy[1] - pose[1]) > WAYPOINT_TOLERANCE_M:
             waypoints.insert(0, start_xy)  # back onto the grid first: the hops are only safe between cells
         # Generous: the route at cruise speed, plus a half turn in place at every corner.
         budget_s = 1.5 * float(distance[goal]) / CRUISE_MPS + len(waypoints) * math.pi / TURN_RADPS + 5.0
         poses = follow_waypoints(
-            self._pose,
+            pose,
             waypoints,
             cruise_mps=CRUISE_MPS,
             turn_radps=TURN_RADPS,
@@ -270,16 +313,21 @@ class SimulatedRobot:
             k = self.seq // self.ticks_per_scenario
             if k != self.scenario_number:
                 self._enter_scenario(k)
-        reading = self.lidar.scan(self._pose)
+        if self.people_count > 0 and self.seq >= self._people_until_seq:
+            self._plan_people()  # a world that never changes gets people for the next period
+        t_s = (self.seq - self._people_origin_seq) * self.period_s
+        reading = self.lidar.scan(self._pose, t_s=t_s, people=self.people)
         labels = label_scan(
             self.scenario,
             reading.lidar_pose,
             self._bearings_rad,
             reading.true_ranges,
             reading.hit_object,
-            self.spec.range_max,
+            min(self.spec.range_max, R_MAX_M),
             self.padding,
+            reading.people_legs,
         )
+        people = iter(range(len(self.people)))
         scan = Scan(
             robot_id=self.robot_id,
             seq=self.seq,
@@ -298,7 +346,12 @@ class SimulatedRobot:
             scenario_id=self.scenario.index,
             robot_pose=self._pose,
             lidar_pose=reading.lidar_pose,
-            objects=[self._truth_object(label) for label in labels],
+            objects=[
+                self._person_object(label, next(people), t_s)
+                if label.class_id == PERSON
+                else self._truth_object(label)
+                for label in labels
+            ],
         )
         self.seq += 1
         self._advance()
@@ -313,6 +366,23 @@ class SimulatedRobot:
             corners_xy=footprint.corners().astype(np.float32),
             center_xy=(float(footprint.center[0]), float(footprint.center[1])),
             yaw_rad=float(footprint.yaw),
+            visible=box is not None,
+            box_px=box,
+        )
+
+    def _person_object(self, label: ObjectLabel, index: int, t_s: float) -> TruthObject:
+        """A person's truth: the midpoint of the legs, facing the way they walk."""
+        person = self.people[index]
+        centre = person.centre(t_s)
+        heading = float(person._at(t_s)[1])
+        square = Rect(centre, (PERSON_FOOTPRINT_M, PERSON_FOOTPRINT_M), heading)
+        box = _whole_box(label.boxes_px) if label.visible else None
+        return TruthObject(
+            class_id=PERSON,
+            class_name=CLASS_NAMES[PERSON],
+            corners_xy=square.corners().astype(np.float32),
+            center_xy=centre,
+            yaw_rad=heading,
             visible=box is not None,
             box_px=box,
         )
@@ -333,6 +403,7 @@ class SimulatedFleet:
         robot_id_prefix: str = ROBOT_ID_PREFIX,
         padding: Padding = "zero",
         spec: LidarSpec = DEFAULT_SPEC,
+        people: int = 0,
     ) -> None:
         if robots < 1:
             raise ValueError(f"robots must be >= 1, got {robots}")
@@ -345,7 +416,9 @@ class SimulatedFleet:
         try:
             for index in range(robots):
                 robot_id = validate_robot_id(f"{robot_id_prefix}{index}")
-                self.robots.append(SimulatedRobot(robot_id, index, seed, rate_hz, ticks, padding, spec))
+                self.robots.append(
+                    SimulatedRobot(robot_id, index, seed, rate_hz, ticks, padding, spec, people)
+                )
         except Exception:
             self.close()
             raise

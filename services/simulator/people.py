@@ -350,3 +350,58 @@ def sample_people(
             break
         placed.extend(group)
     return placed
+
+
+def _segment_walkable(a: tuple[float, float], b: tuple[float, float], scenario: Scenario) -> bool:
+    """Whether a straight walk from ``a`` to ``b`` keeps to walkable centres (every 5 cm)."""
+    steps = max(2, int(math.dist(a, b) / 0.05) + 1)
+    points = np.linspace(a, b, steps)
+    return bool(np.all(_allowed(points, scenario)))
+
+
+def _wander(scenario: Scenario, duration_s: float, rng: np.random.Generator) -> _Plan:
+    """A long walk for the live simulator: from spot to spot (free floor, beside the desk or the chair,
+    out of the door and back in), standing a while at some, until ``duration_s`` is filled."""
+    if rng.random() < 0.3:
+        outside, doorway = _door_points(scenario, rng)
+        points, speeds, pauses = [outside, doorway], [_walking_speed(rng)], [0.0]
+    else:
+        points, speeds, pauses = [_free_point(scenario, rng)], [], []
+    elapsed = 0.0
+    while elapsed < duration_s + 2.0:
+        for _ in range(PLACEMENT_TRIES):
+            roll = rng.random()
+            target = _beside_furniture(scenario, rng) if roll < 0.3 else _free_point(scenario, rng)
+            if _segment_walkable(points[-1], target, scenario):
+                break
+        else:
+            break  # boxed in: this person stands where they are
+        speed = _walking_speed(rng)
+        pause = float(rng.uniform(1.0, 6.0)) if rng.random() < 0.35 else 0.0
+        elapsed += math.dist(points[-1], target) / speed + pause
+        points.append(target)
+        speeds.append(speed)
+        pauses.append(pause)
+    return _Plan(points, speeds, pauses, float(rng.uniform(-2.0, 0.0)))
+
+
+def sample_live_people(
+    scenario: Scenario,
+    robot_path: np.ndarray,
+    robot_dt_s: float,
+    duration_s: float,
+    count: int,
+    rng: np.random.Generator,
+) -> list[Person]:
+    """Up to ``count`` people who keep walking about the room for ``duration_s`` (the live simulator's
+    world period), clear of the robot's planned path and of each other; one who cannot be placed after
+    a few draws is left out."""
+    robot_xy = np.asarray(robot_path, dtype=np.float64)[:, :2]
+    placed: list[Person] = []
+    for _ in range(count):
+        for _ in range(PLACEMENT_TRIES):
+            person = _build_plan(_wander(scenario, duration_s, rng), duration_s, rng)
+            if _fits(person, scenario, robot_xy, robot_dt_s, placed):
+                placed.append(person)
+                break
+    return placed
