@@ -85,7 +85,9 @@ def pack(dataset: Path, out: Path) -> dict[str, int]:
 
 def _write_share(task: tuple[Path, list[str], list[np.ndarray], list[np.ndarray], list[str]]) -> int:
     out, names, deltas, bits, labels = task
-    for name, delta, mask, label in zip(names, deltas, bits, labels, strict=True):
+    for done, (name, delta, mask, label) in enumerate(zip(names, deltas, bits, labels, strict=True)):
+        if done and done % 10_000 == 0:
+            log.info("%d of %d images written", done, len(names))
         split, stem = name.split("/")
         index = np.cumsum(delta, dtype=np.int64)
         write_rgb_png(out / "images" / split / f"{stem}.png", decode_image(index, mask))
@@ -98,11 +100,13 @@ def unpack(packed: Path, out: Path, workers: int = 1) -> int:
     with np.load(io.BytesIO(lzma.decompress(packed.read_bytes()))) as data:
         if str(data["format"]) != FORMAT:
             raise ValueError(f"{packed} is not a {FORMAT} file")
+        # Each lookup in an NpzFile reads its array anew: read every array once.
         names = [str(n) for n in data["names"]]
-        ends = np.cumsum(data["counts"])
-        starts = ends - data["counts"]
-        deltas = [data["deltas"][a:b] for a, b in zip(starts, ends, strict=True)]
-        bits = [data["bits"][a:b] for a, b in zip(starts, ends, strict=True)]
+        counts, all_deltas, all_bits = data["counts"], data["deltas"], data["bits"]
+        ends = np.cumsum(counts)
+        starts = ends - counts
+        deltas = [all_deltas[a:b] for a, b in zip(starts, ends, strict=True)]
+        bits = [all_bits[a:b] for a, b in zip(starts, ends, strict=True)]
         labels = [str(t) for t in data["labels"]]
         for name, text in zip(data["metadata_names"], data["metadata"], strict=True):
             out.mkdir(parents=True, exist_ok=True)

@@ -40,13 +40,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--activation", required=True)
     parser.add_argument("--dfl-bins", type=int, required=True)
     parser.add_argument("--init", type=Path, help="weights to start a new run from")
+    parser.add_argument("--unpack-workers", type=int, default=1, help="processes writing the PNGs")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     started = time.monotonic()
     cores = os.cpu_count() or 1
     data = args.work / "data"
     if not (data / "data.yaml").is_file():
-        log.info("unpacked %d images", unpack(args.pack, data, workers=cores))
+        log.info("unpacking %s into %s", args.pack, data)
+        log.info("unpacked %d images", unpack(args.pack, data, workers=args.unpack_workers))
     budget_s = args.minutes * 60.0 - (time.monotonic() - started)
     config = TrainConfig(
         data=data / "data.yaml",

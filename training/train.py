@@ -19,6 +19,7 @@ import shlex
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -367,11 +368,18 @@ def use_all_cores(trainer: Any) -> None:
         torch.set_num_threads(os.cpu_count() or 1)
 
 
-def _add_callbacks(model: Any, watch: DivergenceWatch, stopper: StopAfterEpoch | None) -> None:
+def _add_callbacks(
+    model: Any,
+    watch: DivergenceWatch,
+    stopper: StopAfterEpoch | None,
+    on_epoch_end: Callable[[], None] | None = None,
+) -> None:
     model.add_callback("on_fit_epoch_end", watch)
     model.add_callback("on_train_start", use_all_cores)
     if stopper is not None:
         model.add_callback("on_fit_epoch_end", stopper)
+    if on_epoch_end is not None:
+        model.add_callback("on_fit_epoch_end", lambda trainer: on_epoch_end())
 
 
 def seed_last_checkpoint(resume_from: Path, last: Path) -> None:
@@ -412,6 +420,7 @@ def train(
     resume_from: Path | None = None,
     stop_after: int | None = None,
     stop_after_s: float | None = None,
+    on_epoch_end: Callable[[], None] | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) one run and write ``train_summary.json`` beside its weights.
 
@@ -439,7 +448,7 @@ def train(
     if resume and last.is_file():
         log.info("resuming from %s", last)
         model = YOLO(str(last))
-        _add_callbacks(model, watch, stopper)
+        _add_callbacks(model, watch, stopper, on_epoch_end)
         model.train(
             trainer=triscan_trainer(),
             resume=True,
@@ -452,7 +461,7 @@ def train(
         if resume:
             log.info("no %s yet: starting a new run", last)
         model = initial_model(config)
-        _add_callbacks(model, watch, stopper)
+        _add_callbacks(model, watch, stopper, on_epoch_end)
         model.train(trainer=triscan_trainer(), **recipe(config, device))
     if stopper is not None:
         stopper.restore_last()
