@@ -149,6 +149,7 @@ def fresh_samples(
     spec: LidarSpec | None = None,
     invalid: InvalidRule = "sentinel",
     clutter: int = 0,
+    people: int = 0,
 ) -> Iterator[EvalSample]:
     """Newly simulated scenarios, straight through ScanStacker: data no model has seen.
 
@@ -157,7 +158,8 @@ def fresh_samples(
     and ``invalid`` must be the model's own (:attr:`OnnxDetector.padding`, ``.invalid``). ``clutter``
     puts up to that many unlabelled poles, wall stubs and walking leg pairs into each motion, drawn
     from their own stream: the same worlds and motions with things in them that must not be detected
-    (a person's legs are not a chair), and which occlude what must.
+    (a pole is not a chair leg), and which occlude what must. ``people`` puts up to that many labelled
+    people into each motion.
     """
     from services.simulator.labels import arc_crosses_seam
     from services.simulator.lidar import DEFAULT_SPEC
@@ -179,6 +181,7 @@ def fresh_samples(
                 spec=spec or DEFAULT_SPEC,
                 clutter=clutter,
                 invalid=invalid,
+                people=people,
             )
             for sample in samples:
                 boxes = [box for label in sample.labels for box in label.boxes_px]
@@ -459,18 +462,34 @@ class FreshWorlds:
     positions: int
     frame_stride: int
     clutter: int = 0  # the most unlabelled clutter items per motion (fresh_samples)
+    people: int = 0  # the most people per motion (fresh_samples)
 
     def __post_init__(self) -> None:
         if self.clutter < 0:
             raise ValueError(f"clutter must be >= 0 items per motion, got {self.clutter}")
+        if self.people < 0:
+            raise ValueError(f"people must be >= 0 per motion, got {self.people}")
 
     def source(self, condition: str) -> str:
         """What metrics.json names as the source of these worlds under ``condition``."""
         clutter = f",clutter={self.clutter}" if self.clutter else ""
+        people = f",people={self.people}" if self.people else ""
         return (
-            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions}{clutter},"
+            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions}{clutter}{people},"
             f"noise={condition}"
         )
+
+
+SENSOR_SEPARATOR = ":"  # a condition of a sensor other than the LDS-01 is "<sensor>:<imperfections>"
+
+
+def condition_spec(condition: str) -> LidarSpec:
+    """The sensor of a condition: ``drop5`` (the LDS-01 with 5 % dropouts) or ``ust-10lx:drop5``."""
+    from services.simulator.lidar import with_imperfections
+    from services.simulator.sensors import DEFAULT_PROFILE, profile
+
+    sensor, _, noise = condition.rpartition(SENSOR_SEPARATOR)
+    return with_imperfections(noise, profile(sensor or DEFAULT_PROFILE))
 
 
 def condition_matrix(
@@ -489,9 +508,7 @@ def condition_matrix(
     same scans encoded their way. Each cell lands in ``out_dir/<condition>/<model stem>/metrics.json``;
     ``summary.json`` holds the grid.
     """
-    from services.simulator.lidar import with_imperfections
-
-    specs = {condition: with_imperfections(condition) for condition in conditions}  # bad names fail first
+    specs = {condition: condition_spec(condition) for condition in conditions}  # bad names fail first
     stems = [d.model_path.stem for d in detectors]
     if len(set(stems)) != len(stems):
         raise ValueError(f"two models share a file stem: {stems}")
@@ -503,7 +520,7 @@ def condition_matrix(
             samples = list(
                 fresh_samples(
                     worlds.seed, worlds.scenarios, worlds.positions, padding, worlds.frame_stride,
-                    spec=spec, invalid=invalid, clutter=worlds.clutter,
+                    spec=spec, invalid=invalid, clutter=worlds.clutter, people=worlds.people,
                 )
             )  # fmt: skip
             for stem, detector in zip(stems, detectors, strict=True):

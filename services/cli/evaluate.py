@@ -12,6 +12,7 @@ from pathlib import Path
 from common.encoding import PADDINGS
 from common.model_spec import BOX_GRIDS
 from services.cli.command import Command
+from services.simulator.sensors import PROFILES
 
 # The --fresh worlds' settings when no --preset gives them.
 FRESH_DEFAULTS: dict[str, object] = {"seed": 1000, "positions": 90, "frame_stride": 15, "noise": ["clean"]}
@@ -59,8 +60,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--clutter", type=int, default=0, metavar="N",
-        help="up to N unlabelled poles, wall stubs and walking leg pairs per --fresh motion: does the "
-        "model detect things that are not furniture?",
+        help="up to N unlabelled poles and wall stubs per --fresh motion: does the model detect things "
+        "that are none of its classes?",
+    )  # fmt: skip
+    p.add_argument(
+        "--people", type=int, default=0, metavar="N",
+        help="up to N walking or standing people (labelled 'person') per --fresh motion",
+    )  # fmt: skip
+    p.add_argument(
+        "--sensor", nargs="+", default=None, choices=[*PROFILES, "all"], metavar="NAME",
+        help="score --fresh worlds seen by these sensor profiles, one table row each ('all': every "
+        f"profile: {', '.join(PROFILES)}); default: the LDS-01",
     )  # fmt: skip
     p.add_argument(
         "--padding", choices=PADDINGS, default=None, help="padding of the tensors (default: the model's own)"
@@ -97,11 +107,13 @@ def _apply_preset(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     from common.inference import OnnxDetector
     from training.evaluate import (
+        SENSOR_SEPARATOR,
         VAL_CONF,
         VAL_IOU,
         VAL_MAX_DET,
         FreshWorlds,
         condition_matrix,
+        condition_spec,
         dataset_samples,
         evaluate,
         format_condition_table,
@@ -110,12 +122,18 @@ def run(args: argparse.Namespace) -> int:
     )
 
     _apply_preset(args)
-    worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride, args.clutter)
-    matrix = len(args.model) > 1 or len(args.noise) > 1
+    worlds = FreshWorlds(args.seed, args.fresh, args.positions, args.frame_stride, args.clutter, args.people)
+    sensors = list(PROFILES) if args.sensor == ["all"] else args.sensor
+    conditions = (
+        args.noise
+        if sensors is None
+        else [f"{sensor}{SENSOR_SEPARATOR}{noise}" for sensor in sensors for noise in args.noise]
+    )
+    matrix = len(args.model) > 1 or len(conditions) > 1
     if matrix and args.data is not None:
         raise ValueError("several --model or --noise values need --fresh worlds, not --data")
-    if args.clutter and args.data is not None:
-        raise ValueError("--clutter places clutter in --fresh worlds; a --data set has its own")
+    if (args.clutter or args.people or sensors) and args.data is not None:
+        raise ValueError("--clutter, --people and --sensor shape --fresh worlds; a --data set has its own")
     detectors = [
         OnnxDetector(
             model,
@@ -129,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         for model in args.model
     ]
     if matrix:
-        reports = condition_matrix(detectors, args.noise, worlds, args.out)
+        reports = condition_matrix(detectors, conditions, worlds, args.out)
         print(format_condition_table(reports))
         print(f"per cell: {args.out}/<condition>/<model>/metrics.json; grid: {args.out}/summary.json")
         return 0
@@ -143,13 +161,11 @@ def run(args: argparse.Namespace) -> int:
             )
         samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
     else:
-        from services.simulator.lidar import with_imperfections
-
-        noise = args.noise[0]
-        spec = with_imperfections(noise)  # a bad condition is a ValueError: one line, exit 2
+        noise = conditions[0]
+        spec = condition_spec(noise)  # a bad condition is a ValueError: one line, exit 2
         samples = fresh_samples(
             args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec,
-            invalid=detector.invalid, clutter=args.clutter,
+            invalid=detector.invalid, clutter=args.clutter, people=args.people,
         )  # fmt: skip
         source = worlds.source(noise)
     report = evaluate(detector, samples, args.out, source=source)
