@@ -193,6 +193,7 @@ class Sample:
     tensor: np.ndarray  # uint8[64, 384, 3], built by the run-time ScanStacker
     labels: list[ObjectLabel]
     lidar_pose: tuple[float, float, float]  # true pose of the sensor at scan t-1
+    people_legs: tuple[tuple[tuple[float, float, float], ...], ...] = ()  # each person's legs at t-1
 
 
 def plan_motions(scenario: Scenario, seed: int, positions: int) -> list[Motion]:
@@ -317,7 +318,7 @@ def simulate_samples(
                 middle.people_legs,
             )
             name = f"s{scenario.index:04d}_p{p_index:03d}_f{t:03d}"
-            yield Sample(name, p_index, t, tensor, labels, middle.lidar_pose)
+            yield Sample(name, p_index, t, tensor, labels, middle.lidar_pose, middle.people_legs)
 
 
 _WORLD: World | None = None
@@ -367,15 +368,18 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
         for label in sample.labels:
             result.boxes_per_class[label.class_id] += len(label.boxes_px)
         result.samples += 1
-        result.sample_records.append(
-            {
-                "image": f"images/{split}/{sample.name}.png",
-                "scenario": index,
-                "position": sample.position,
-                "frame": sample.frame,
-                "lidar_pose": [round(v, 6) for v in sample.lidar_pose],
-            }
-        )
+        record: dict[str, object] = {
+            "image": f"images/{split}/{sample.name}.png",
+            "scenario": index,
+            "position": sample.position,
+            "frame": sample.frame,
+            "lidar_pose": [round(v, 6) for v in sample.lidar_pose],
+        }
+        if config.people > 0:  # world-frame leg circles (x, y, r) of each person at scan t-1
+            record["people_legs"] = [
+                [[round(v, 4) for v in leg] for leg in legs] for legs in sample.people_legs
+            ]
+        result.sample_records.append(record)
     return result
 
 

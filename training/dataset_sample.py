@@ -48,6 +48,7 @@ class Sample:
     position: int
     frame: int
     padding: str
+    people_legs: tuple[tuple[tuple[float, float, float], ...], ...] = ()  # world frame, at scan t-1
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -189,4 +190,18 @@ def load_sample(dataset_dir: Path, *, sample: str | None = None, index: int = 0)
         position=int(record.get("position", -1)),
         frame=int(record.get("frame", -1)),
         padding=_padding_of(dataset_dir, tensor),
+        people_legs=_people_legs(record, samples_path),
     )
+
+
+def _people_legs(
+    record: dict[str, Any], samples_path: Path
+) -> tuple[tuple[tuple[float, float, float], ...], ...]:
+    """Each person's leg circles of a sample record (none in a set without people)."""
+    try:
+        return tuple(
+            tuple((float(x), float(y), float(r)) for x, y, r in legs)
+            for legs in record.get("people_legs", [])
+        )
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{samples_path}: malformed people_legs in {record.get('image')!r}") from exc

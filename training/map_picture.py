@@ -24,7 +24,7 @@ from common.encoding import (
     polar_to_xy,
 )
 from common.model_spec import CLASS_COLOURS, CLASS_NAMES
-from services.simulator.scenario import DOORFRAME, Rect, Scenario, enclosure_rects, room_wall_rects
+from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario, enclosure_rects, room_wall_rects
 from training.dataset_sample import Pose, Sample
 from training.picture_style import (
     AXIS,
@@ -116,6 +116,7 @@ def draw_map_picture(sample: Sample) -> Image.Image:
     image = _stamp_hits(image, sample)
     draw = ImageDraw.Draw(image)
     _draw_name_tags(draw, sample.scenario, small)
+    _draw_people_tags(draw, sample, small)
     _draw_robot(draw, sample.lidar_pose)
     _draw_scale_bar(draw, font)
     title = (
@@ -161,6 +162,12 @@ def _draw_scene(draw: ImageDraw.ImageDraw, sample: Sample) -> None:
                 _polygon(draw, leg, fill=colour, outline=colour)
         else:
             _polygon(draw, obj.footprint, fill=_dim(colour, 0.35), outline=colour, width=width)
+    person_colour = CLASS_COLOURS[PERSON]
+    for legs in sample.people_legs:
+        for x, y, r in legs:
+            u, v = world_to_map_px(np.array([x, y], dtype=np.float64))
+            radius = r * MAP_SIZE_PX / (2 * MAP_HALF_M)
+            draw.ellipse([u - radius, v - radius, u + radius, v + radius], outline=person_colour, width=2)
 
 
 def _polygon(draw: ImageDraw.ImageDraw, rect: Rect, **style: Any) -> None:
@@ -205,6 +212,14 @@ def _disk_offsets(radius: int) -> np.ndarray:
     du, dv = np.meshgrid(d, d, indexing="xy")
     inside = du**2 + dv**2 <= radius**2 + radius  # "+ radius": rounder small disks
     return np.stack([du[inside], dv[inside]], axis=-1)
+
+
+def _draw_people_tags(draw: ImageDraw.ImageDraw, sample: Sample, small: Font) -> None:
+    """A "person" tag above each person's legs."""
+    for legs in sample.people_legs:
+        points = world_to_map_px(np.array([leg[:2] for leg in legs], dtype=np.float64))
+        anchor = np.array([points[:, 0].mean(), points[:, 1].min() - 12.0])
+        _name_tag(draw, anchor, CLASS_NAMES[PERSON], small, CLASS_COLOURS[PERSON])
 
 
 def _draw_name_tags(draw: ImageDraw.ImageDraw, scenario: Scenario, small: Font) -> None:
@@ -292,6 +307,14 @@ def _map_legend(
     y += line + 4
     labelled = {b.class_id for b in sample.boxes}
     for class_id, name in enumerate(CLASS_NAMES):
+        if class_id == PERSON:
+            if not sample.people_legs:
+                continue  # a set without people
+            count = sum(b.class_id == PERSON for b in sample.boxes)
+            swatch_row(
+                CLASS_COLOURS[class_id], f"{name}: {count} of {len(sample.people_legs)} labelled (legs)"
+            )
+            continue
         state = "labelled" if class_id in labelled else "not labelled (< 2 beams)"
         swatch_row(CLASS_COLOURS[class_id], f"{name}: {state}")
     paragraph("Thick outline: labelled in this sample. Filled: legs, or the solid box.")
