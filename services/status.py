@@ -68,7 +68,10 @@ def collect_status(settings: ZenohSettings, wait_s: float = 2.5 * STATS_PERIOD_S
 def format_status(statuses: list[ServiceStatus]) -> str:
     """One line per service: alive, and its counters flattened (``rejected.not_msgpack=3``)."""
     if not statuses:
-        return "no triscan services found (check --connect)"
+        return (
+            "no triscan services found: point --connect at the address one listens on (triscan up's "
+            "--listen), or --discover to scout the LAN"
+        )
     lines = []
     for status in statuses:
         counters = {k: v for k, v in status.counters.items() if k not in {"service", "pid", "stamp_ns"}}
