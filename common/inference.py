@@ -96,11 +96,25 @@ def session_options(
     return options
 
 
+def load_session(
+    path: Path | str, sess_options: ort.SessionOptions, providers: list[str]
+) -> ort.InferenceSession:
+    """An ONNX Runtime session of ``path``; FileNotFoundError or ValueError in one line (onnxruntime's
+    own errors are a zoo of types, with the file name deep inside) when it is missing or not a model."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"ONNX model {path} not found: give --model an existing .onnx file")
+    try:
+        return ort.InferenceSession(str(path), sess_options=sess_options, providers=providers)
+    except Exception as exc:  # onnxruntime raises its own exception zoo for unreadable models
+        detail = " ".join(str(exc).split())
+        raise ValueError(
+            f"{path} is not a loadable ONNX model ({detail}): give --model a file `triscan export` wrote"
+        ) from exc
+
+
 def _unoptimised_session(path: Path | str) -> ort.InferenceSession:
     """A session only to read a model's metadata and signature: no graph optimisation, so it is cheap."""
-    return ort.InferenceSession(
-        str(path), sess_options=session_options(optimise=False), providers=["CPUExecutionProvider"]
-    )
+    return load_session(path, session_options(optimise=False), ["CPUExecutionProvider"])
 
 
 def model_facts(path: Path | str) -> ModelFacts:
@@ -142,8 +156,6 @@ class OnnxDetector:
         the model's ``triscan.box_grid`` (``none`` if absent); either value may be asked for, as it
         changes only the post-processing. ``spin_wait``: see :func:`session_options`."""
         path = Path(model_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model {path} not found")
         if not 0.0 <= conf_threshold <= 1.0:
             raise ValueError(f"conf_threshold must lie in [0, 1], got {conf_threshold}")
         if not 0.0 <= iou_threshold <= 1.0:
@@ -156,17 +168,11 @@ class OnnxDetector:
             raise ValueError(f"box_grid must be one of {BOX_GRIDS}, got {box_grid!r}")
         if intra_op_threads is not None and intra_op_threads < 1:
             raise ValueError(f"intra_op_threads must be >= 1, got {intra_op_threads}")
+        self._session = load_session(
+            path, session_options(intra_op_threads, spin_wait=spin_wait), providers or default_providers()
+        )
         self.model_path = path
         self.model_id = file_model_id(path)
-
-        try:
-            self._session = ort.InferenceSession(
-                str(path),
-                sess_options=session_options(intra_op_threads, spin_wait=spin_wait),
-                providers=providers or default_providers(),
-            )
-        except Exception as exc:  # onnxruntime raises its own exception zoo for unreadable models
-            raise ValueError(f"{path} is not a loadable ONNX model: {exc}") from exc
         self.providers: list[str] = self._session.get_providers()
         self._input_name, self._output_names, num_classes, self.num_anchors, batched = self._check_model(path)
         # A free batch axis (the ``-batch`` model files): ``detect_many`` runs several frames per call.

@@ -377,7 +377,14 @@ class StageTimings(WireModel):
 
 
 class Detections(Message):
-    """The detector's output for one tensor; ``scan_stamp_ns`` lets consumers measure end-to-end latency."""
+    """The detector's output for one tensor.
+
+    ``seq`` and ``scan_stamp_ns`` are the newest scan's (t), so ``stamp_ns - scan_stamp_ns`` is the
+    end-to-end latency. The boxes, though, are the middle scan's (t-1): the network is trained on its
+    labels, so ``x_m``/``y_m`` are in the laser frame where it stood at ``pose_stamp_ns``, which is
+    where a turning robot must look up its transform. It is optional on the wire (None when a producer
+    does not fill it), so messages without it still decode.
+    """
 
     KIND: ClassVar[str] = "detections"
 
@@ -385,6 +392,16 @@ class Detections(Message):
     timings: StageTimings
     model_id: str = Field(min_length=1, max_length=256)
     scan_stamp_ns: NonNegInt
+    pose_stamp_ns: NonNegInt | None = None
+
+    @model_validator(mode="after")
+    def _pose_is_not_newer(self) -> Detections:
+        if self.pose_stamp_ns is not None and self.pose_stamp_ns > self.scan_stamp_ns:
+            raise ValueError(
+                f"pose_stamp_ns ({self.pose_stamp_ns}) is the middle scan's and cannot be newer than "
+                f"scan_stamp_ns ({self.scan_stamp_ns})"
+            )
+        return self
 
 
 class TruthObject(WireModel):

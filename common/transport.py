@@ -1,9 +1,15 @@
 """Zenoh sessions for every triscan process: one set of flags, one way to open and close.
 
 Every service takes the same Zenoh flags (``--connect``, ``--listen``, ``--mode``, ``--zenoh-config``,
-``--no-multicast``), and falls back to a config file named by ``ZENOH_CONFIG``, as zenoh's own tools
-do. ``open_session`` is a context manager because a session with a callback subscriber keeps the
+``--discover``), and falls back to a config file named by ``ZENOH_CONFIG``, as zenoh's own tools do.
+``open_session`` is a context manager because a session with a callback subscriber keeps the
 interpreter alive at exit unless it is closed explicitly.
+
+A triscan process joins only the network it is pointed at: Zenoh's multicast scouting, which would
+connect it to every Zenoh peer that answers on the LAN (another ``triscan up`` on the host, a
+colleague's robot), is off unless ``--discover`` asks for it, whatever a config file says. Gossip
+scouting stays on: it only tells a peer about the peers of those it is already connected to, so
+``triscan status -e <launcher>`` reaches the launcher's children, and nothing beyond.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -23,7 +30,29 @@ log = logging.getLogger(__name__)
 
 ZENOH_CONFIG_ENV = "ZENOH_CONFIG"
 LOW_LATENCY_KEY = "transport/unicast/lowlatency"  # measured unsafe for triscan's messages: warned about
+MULTICAST_KEY = "scouting/multicast/enabled"
 MODES = ("peer", "client", "router")
+# <protocol>/<address>: zenoh's own check reports a missing protocol as a JSON5 error with a Rust path.
+_ENDPOINT_RE = re.compile(r"[a-z][a-z0-9+-]*/[^/\s].*")
+_RUST_LOCATION_RE = re.compile(r" at /\S+?\.rs:\d+\.?")
+
+
+class ZenohSetupError(ValueError):
+    """A Zenoh session that cannot be opened as asked (bad endpoint or entry, port in use); the text
+    says what to change, in one line."""
+
+
+def check_endpoint(endpoint: str) -> str:
+    """``endpoint`` if it reads ``<protocol>/<address>`` (``tcp/10.0.0.2:7447``), else ZenohSetupError."""
+    if not _ENDPOINT_RE.fullmatch(endpoint):
+        hint = f": write tcp/{endpoint}" if "/" not in endpoint else ""
+        raise ZenohSetupError(f"zenoh endpoint {endpoint!r} has no <protocol>/ in front{hint}")
+    return endpoint
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """A zenoh error's message without the Rust source locations it carries."""
+    return " ".join(_RUST_LOCATION_RE.sub("", str(exc)).split())
 
 
 @dataclass(frozen=True)
@@ -31,12 +60,14 @@ class ZenohSettings:
     """What a process needs to join the triscan Zenoh network.
 
     ``config_file`` is read first (JSON5, zenoh's own format); the explicit fields override it.
+    ``multicast_scouting`` (``--discover``) is off by default: peers come from ``connect`` and
+    ``listen`` (and the config file's endpoints) alone.
     """
 
     mode: str | None = None
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
-    multicast_scouting: bool | None = None
+    multicast_scouting: bool = False
     config_file: Path | None = None
     extra_json5: dict[str, Any] = field(default_factory=dict)  # config path (a/b/c) → value, e.g. for TLS
     # zenoh's own ``--cfg KEY:VALUE``: a config path and a JSON5 value, applied last, as given.
@@ -45,6 +76,8 @@ class ZenohSettings:
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
             raise ValueError(f"zenoh mode must be one of {MODES}, got {self.mode!r}")
+        for endpoint in (*self.connect, *self.listen):
+            check_endpoint(endpoint)
 
     @classmethod
     def loopback(cls, listen_port: int | None, connect_ports: Sequence[int] = ()) -> ZenohSettings:
@@ -67,8 +100,7 @@ class ZenohSettings:
             args += ["--connect", endpoint]
         for endpoint in self.listen:
             args += ["--listen", endpoint]
-        if self.multicast_scouting is False:
-            args.append("--no-multicast")
+        args.append("--discover" if self.multicast_scouting else "--no-multicast")
         for key, value in self.cfg:
             args += ["--cfg", f"{key}:{value}"]
         return args
@@ -83,7 +115,10 @@ class ZenohSettings:
         if config_file is not None:
             if not config_file.is_file():
                 raise FileNotFoundError(f"zenoh config file {config_file} not found")
-            config = zenoh.Config.from_file(str(config_file))
+            try:
+                config = zenoh.Config.from_file(str(config_file))
+            except zenoh.ZError as exc:
+                raise ZenohSetupError(f"zenoh config file {config_file}: {zenoh_error_text(exc)}") from exc
         else:
             config = zenoh.Config()
         if self.mode is not None:
@@ -92,15 +127,14 @@ class ZenohSettings:
             config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
         if self.listen:
             config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        if self.multicast_scouting is not None:
-            config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        config.insert_json5(MULTICAST_KEY, json.dumps(self.multicast_scouting))
         for key, value in self.extra_json5.items():
             config.insert_json5(key, json.dumps(value))
         for key, value in self.cfg:
             try:
                 config.insert_json5(key, value)
             except Exception as exc:  # zenoh raises its own error type for a bad path or value
-                raise ValueError(f"--cfg {key}:{value}: {exc}") from exc
+                raise ZenohSetupError(f"--cfg {key}:{value}: {zenoh_error_text(exc)}") from exc
         if config.get_json(LOW_LATENCY_KEY) == "true":
             log.warning(
                 "%s is on: that transport does not fragment and drops messages larger than its batch "
@@ -115,15 +149,31 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("zenoh")
     group.add_argument("--mode", choices=MODES, default=None, help="zenoh session mode (default: peer)")
     group.add_argument(
-        "--connect", "-e", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/192.168.1.10:7447"
+        "--connect",
+        "-e",
+        action="append",
+        default=[],
+        type=_endpoint_argument,
+        metavar="ENDPOINT",
+        help="e.g. tcp/192.168.1.10:7447",
     )
     group.add_argument(
-        "--listen", "-l", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447"
+        "--listen",
+        "-l",
+        action="append",
+        default=[],
+        type=_endpoint_argument,
+        metavar="ENDPOINT",
+        help="e.g. tcp/0.0.0.0:7447",
     )
-    group.add_argument(
-        "--no-multicast",
+    scouting = group.add_mutually_exclusive_group()
+    scouting.add_argument(
+        "--discover",
         action="store_true",
-        help="disable multicast scouting (use explicit --connect endpoints only)",
+        help="also find Zenoh peers by multicast scouting (default: only --connect, --listen, config file)",
+    )
+    scouting.add_argument(
+        "--no-multicast", action="store_true", help="no multicast scouting (the default; kept for scripts)"
     )
     group.add_argument(
         "--zenoh-config",
@@ -145,6 +195,13 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _endpoint_argument(text: str) -> str:
+    try:
+        return check_endpoint(text)
+    except ZenohSetupError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def parse_cfg_entry(text: str) -> tuple[str, str]:
     """``KEY:VALUE`` of zenoh's ``--cfg`` flag: a config path and a JSON5 value."""
     key, sep, value = text.partition(":")
@@ -158,7 +215,7 @@ def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
         mode=args.mode,
         connect=tuple(args.connect),
         listen=tuple(args.listen),
-        multicast_scouting=False if args.no_multicast else None,
+        multicast_scouting=args.discover,
         config_file=args.zenoh_config,
         cfg=tuple(args.cfg),
     )
@@ -166,14 +223,30 @@ def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
 
 @contextmanager
 def open_session(settings: ZenohSettings) -> Iterator[Any]:
-    """An open ``zenoh.Session`` that is always closed on the way out (even on an exception)."""
+    """An open ``zenoh.Session`` that is always closed on the way out (even on an exception).
+
+    A session zenoh refuses to open (a port in use, say) raises ZenohSetupError with what to do.
+    """
     import zenoh
 
-    session = zenoh.open(settings.to_config())
+    config = settings.to_config()
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ZenohSetupError(_open_advice(settings, zenoh_error_text(exc))) from exc
     try:
         yield session
     finally:
         session.close()
+
+
+def _open_advice(settings: ZenohSettings, error: str) -> str:
+    if "Address already in use" in error:
+        return (
+            f"cannot open the zenoh session: {error}: another process (another triscan up?) listens "
+            "there: stop it or pick another --listen"
+        )
+    return f"cannot open the zenoh session ({settings.mode or 'peer'} mode): {error}"
 
 
 def payload_bytes(sample: Any) -> bytes:

@@ -79,8 +79,9 @@ def main(config: zenoh.Config, robot_id: str, rate_hz: float, count: int, wait_s
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--connect", "-e", action="append", default=[], help="zenoh endpoint(s)")
+    parser.add_argument("--discover", action="store_true", help="also find zenoh peers by multicast scouting")
     parser.add_argument("--robot", default="myrobot", help="robot id: letters, digits, '_' and '-'")
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second")
     parser.add_argument("--count", type=int, default=0, help="stop after this many scans (0: never)")
@@ -88,8 +89,10 @@ if __name__ == "__main__":
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config = zenoh.Config()
+    # Only the peers it is pointed at, as every triscan process (common/transport.py): multicast
+    # scouting would join any Zenoh network on the LAN.
+    config.insert_json5("scouting/multicast/enabled", json.dumps(args.discover))
     if args.connect:
         config.insert_json5("connect/endpoints", json.dumps(args.connect))
-        config.insert_json5("scouting/multicast/enabled", "false")
     with contextlib.suppress(KeyboardInterrupt):
         main(config, args.robot, args.rate, args.count, args.wait)

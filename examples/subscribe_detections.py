@@ -58,10 +58,11 @@ def main(config: zenoh.Config, key: str, count: int, stop: threading.Event) -> N
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument(
         "--connect", "-e", action="append", default=[], help="zenoh endpoint(s) to connect to"
     )
+    parser.add_argument("--discover", action="store_true", help="also find zenoh peers by multicast scouting")
     parser.add_argument(
         "--zenoh-config", "-c", default=None, help="zenoh JSON5 config file (e.g. the secure mode's)"
     )
@@ -70,8 +71,10 @@ if __name__ == "__main__":
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
+    # Only the peers it is pointed at, as every triscan process (common/transport.py): multicast
+    # scouting would join any Zenoh network on the LAN.
+    config.insert_json5("scouting/multicast/enabled", json.dumps(args.discover))
     if args.connect:
         config.insert_json5("connect/endpoints", json.dumps(args.connect))
-        config.insert_json5("scouting/multicast/enabled", "false")
     with contextlib.suppress(KeyboardInterrupt):
         main(config, args.key, args.count, threading.Event())

@@ -32,6 +32,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
@@ -44,6 +45,7 @@ from services.runtime import (
     ServiceRuntime,
     configure_logging,
     default_of,
+    exit_code_of,
     service_parser,
     stop_event_on_signals,
 )
@@ -102,14 +104,31 @@ def robots_for(topics: Sequence[str], robot: str | None) -> dict[str, str]:
     return robots
 
 
-def _open_reader(bags: Sequence[Path]) -> Any:
+BAG_ADVICE: Final[str] = "give ROS 1 .bag files, or one ROS 2 bag (its folder, with metadata.yaml)"
+
+
+@contextmanager
+def _open_reader(bags: Sequence[Path]) -> Iterator[Any]:
+    """rosbags' reader of ``bags``, open; a path that is no bag is a ReplayError saying what is."""
     try:
-        from rosbags.highlevel import AnyReader
+        from rosbags.highlevel import AnyReader, AnyReaderError
 
         from services.ros2_bridge.ros_types import ros_types
     except ImportError as exc:
         raise ReplayError(f"replaying bags needs rosbags: pip install 'triscan[ros2]' ({exc})") from None
-    return AnyReader(list(bags), default_typestore=ros_types("jazzy").store)
+    missing = [str(bag) for bag in bags if not bag.exists()]
+    if missing:
+        raise FileNotFoundError(f"no such file or folder: {', '.join(missing)}: {BAG_ADVICE}")
+    names = ", ".join(map(str, bags))
+    try:
+        reader = AnyReader(list(bags), default_typestore=ros_types("jazzy").store)
+        reader.open()
+    except (AnyReaderError, OSError) as exc:
+        raise ReplayError(f"cannot read {names} as a bag ({exc}): {BAG_ADVICE}") from None
+    try:
+        yield reader
+    finally:
+        reader.close()
 
 
 def scan_connections(reader: Any, topics: Sequence[str]) -> list[Any]:
@@ -343,4 +362,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(exit_code_of(main))

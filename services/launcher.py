@@ -22,6 +22,7 @@ ends the run with 1.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
 import socket
@@ -35,15 +36,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import model_facts
+from common.inference import OnnxDetector, model_facts
 from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
 from common.transport import ZenohSettings, open_session
 from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
-from services.runtime import EXIT_WITH_PARENT_ENV
+from services.runtime import EXIT_WITH_PARENT_ENV, USAGE_EXIT
 from services.simulator.defaults import ROBOTS, SIM_PEOPLE, SIM_SEED
-from services.simulator.sensors import DEFAULT_PROFILE
+from services.simulator.sensors import DEFAULT_PROFILE, check_sensor
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +79,23 @@ class UpConfig:
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
     verbose: bool = False
     replay: ReplayConfig | None = None  # bags replayed instead of the simulator
+
+    def __post_init__(self) -> None:
+        """Refuse what a child would refuse, before any process starts (a child that exits on its
+        arguments is not restarted, but the others would already be running)."""
+        if self.robots < 1:
+            raise ValueError(f"--robots must be >= 1, got {self.robots}")
+        if self.rate_hz is not None and not (self.rate_hz > 0.0 and math.isfinite(self.rate_hz)):
+            raise ValueError(f"--rate must be a positive number of scans per second, got {self.rate_hz:g}")
+        if self.people < 0:
+            raise ValueError(f"--people must be >= 0, got {self.people}")
+        check_sensor(self.sensor)
+        if not (self.duration_s >= 0.0 and math.isfinite(self.duration_s)):
+            raise ValueError(f"--duration must be >= 0 seconds (0: until Ctrl-C), got {self.duration_s:g}")
+        if self.max_restarts < 0:
+            raise ValueError(f"--max-restarts must be >= 0, got {self.max_restarts}")
+        if self.batch is not None and self.batch < 1:
+            raise ValueError(f"--batch must be >= 1, got {self.batch}")
 
     @property
     def services(self) -> tuple[str, ...]:
@@ -274,11 +292,11 @@ class TrafficCounter:
 def up(config: UpConfig, stop: threading.Event) -> int:
     """Start, watch and stop the services; 0 on a clean stop (or a replay played through), 1 if a
     service kept dying, never came up, or the replay failed."""
-    if config.robots < 1:
-        raise ValueError(f"--robots must be >= 1, got {config.robots}")
     if config.replay is not None:
         robots = replay_robots(config.replay)  # a wrong bag or topic fails here, before anything starts
         log.info("replaying %s", ", ".join(f"{topic} as {robot}" for topic, robot in robots.items()))
+    model, _ = detector_model_and_batch(config.model, config.batch)
+    OnnxDetector(model, intra_op_threads=1)  # loaded as the detector will: a file it refuses fails here
     launcher_ports = [p for p in (_endpoint_port(e) for e in config.settings.listen) if p is not None]
     ports = dict(zip(config.services, free_tcp_ports(len(config.services)), strict=True))
     commands = service_commands(config, ports, launcher_ports[0] if launcher_ports else None)
@@ -368,6 +386,14 @@ def _restart_dead(children: dict[str, _Child], max_restarts: int) -> bool:
                 code,
                 len(child.restarts) + 1,
                 RESTART_WINDOW_S,
+            )
+            return False
+        if code == USAGE_EXIT:
+            log.error(
+                "%s exited with code %d: it refused its arguments or input (its message is above); "
+                "not restarting it",
+                child.name,
+                code,
             )
             return False
         child.restarts.append(now)

@@ -25,10 +25,16 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
-from typing import Any
+from typing import Any, NoReturn
 
 from common.keys import health_key, stats_key
-from common.transport import ZenohSettings, add_zenoh_arguments, open_session, payload_bytes
+from common.transport import (
+    ZenohSettings,
+    ZenohSetupError,
+    add_zenoh_arguments,
+    open_session,
+    payload_bytes,
+)
 
 log = logging.getLogger(__name__)
 
@@ -37,12 +43,23 @@ SUMMARY_PERIOD_S = 10.0  # a one-line summary in the log this often
 EXIT_WITH_PARENT_ENV = "TRISCAN_EXIT_WITH_PARENT"
 PARENT_POLL_S = 0.5
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+# argparse's exit code for refused arguments, and every service's for an input it cannot use (a
+# model that does not load, a port in use): ``triscan up`` reports such a child once, never restarts it.
+USAGE_EXIT = 2
+
+
+class TerseArgumentParser(argparse.ArgumentParser):
+    """A parser whose error is what is wrong and where the help is, two lines: argparse's full usage
+    (twenty lines for ``triscan up``) would bury the one that matters."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(USAGE_EXIT, f"{self.prog}: error: {message}\nusage: {self.prog} --help (every option)\n")
 
 
 def service_parser(module: str, description: str) -> argparse.ArgumentParser:
     """The parser of ``python -m <module>``: usage and errors name the command as it is typed, and a
     flag must be spelt out (an abbreviation is an error, not a guess)."""
-    return argparse.ArgumentParser(prog=f"python -m {module}", description=description, allow_abbrev=False)
+    return TerseArgumentParser(prog=f"python -m {module}", description=description, allow_abbrev=False)
 
 
 def add_service_arguments(parser: argparse.ArgumentParser, *, forget_after_s: float | None = None) -> None:
@@ -66,6 +83,18 @@ def default_of(owner: Callable[..., Any], name: str) -> Any:
     if default is inspect.Parameter.empty:
         raise ValueError(f"{owner.__qualname__}'s {name} has no default")
     return default
+
+
+def exit_code_of(main: Callable[[], int]) -> int:
+    """Run a service's ``main`` as ``python -m`` does: a Zenoh session that cannot open as asked (a
+    port in use, a bad config entry) or a missing file is one logged line and :data:`USAGE_EXIT`, not
+    a traceback."""
+    try:
+        return main()
+    except (ZenohSetupError, FileNotFoundError) as exc:
+        log.debug("refused", exc_info=True)
+        log.error("%s", exc)
+        return USAGE_EXIT
 
 
 def configure_logging(verbose: bool = False) -> None:

@@ -127,6 +127,7 @@ def test_detections_on_replayed_scans_find_the_labelled_objects(
         message = core.detect_many([tensor])[0]
         assert message.robot_id == "tb3" and message.seq == tensor.seq
         assert message.scan_stamp_ns == tensor.scan_stamps_ns[2]
+        assert message.pose_stamp_ns == tensor.scan_stamps_ns[1]  # the boxes are the middle scan's
         assert message.model_id == detector.model_id
         assert message.timings.encode_ms >= tensor.encode_ms and message.timings.inference_ms > 0
         assert decode_message(encode_message(message), Detections) == message

@@ -609,3 +609,14 @@ def test_structured_garbage_only_raises_message_error(msg: Message, data: st.Dat
 def test_unpacker_limits_reject_oversized_containers(body: dict[str, Any]) -> None:
     """No legal message has containers this big, so they are refused while unpacking, not validated."""
     expect_error(pack(body), Scan, "not_msgpack")
+
+
+def test_detections_carry_the_stamp_of_the_scan_their_boxes_belong_to() -> None:
+    """The boxes are the middle scan's: its stamp travels beside the newest scan's, never after it."""
+    message = make_detections(scan_stamp_ns=90, pose_stamp_ns=80)
+    assert decode_message(encode_message(message), Detections).pose_stamp_ns == 80
+    body = msgpack.unpackb(encode_message(make_detections()))
+    del body["pose_stamp_ns"]  # a producer that does not fill it
+    assert decode_message(msgpack.packb(body), Detections).pose_stamp_ns is None
+    with pytest.raises(ValidationError, match="cannot be newer than scan_stamp_ns"):
+        make_detections(scan_stamp_ns=90, pose_stamp_ns=91)

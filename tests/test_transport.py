@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
+import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -17,6 +19,7 @@ from common.transport import (
     settings_from_args,
 )
 from services.launcher import free_tcp_ports
+from tests.support.waiting import wait_for
 
 
 def parse(*argv: str) -> ZenohSettings:
@@ -129,3 +132,48 @@ def test_the_low_latency_transport_is_warned_about(caplog: pytest.LogCaptureFixt
         ).to_config()
     (record,) = caplog.records
     assert "transport/unicast/lowlatency" in record.getMessage() and "73 KB" in record.getMessage()
+
+
+def _two_sessions_meet(first: ZenohSettings, second: ZenohSettings, timeout_s: float) -> bool:
+    """Whether a publication of one session reaches the other within ``timeout_s`` (a key of their own,
+    so no other Zenoh peer on this host can answer for them)."""
+    key = f"triscan/t{uuid.uuid4().hex[:12]}/scan"
+    got: list[bytes] = []
+    with open_session(first) as a, open_session(second) as b:
+        a.declare_subscriber(key, lambda s: got.append(s.payload.to_bytes()))
+        publisher = b.declare_publisher(key)
+        wait_for(lambda: publisher.matching_status.matching, timeout_s)
+        publisher.put(b"hello")
+        wait_for(lambda: got, 1.0)
+    return got == [b"hello"]
+
+
+def test_sessions_not_pointed_at_each_other_never_meet_unless_asked_to_discover(
+    free_port: Callable[[], int],
+) -> None:
+    """The accidental join: two peers on one host, each listening on its own port, neither told of the
+    other. By default they stay apart; with --discover on both, multicast scouting joins them."""
+
+    def alone(discover: bool = False) -> ZenohSettings:
+        return ZenohSettings(
+            mode="peer", listen=(f"tcp/127.0.0.1:{free_port()}",), multicast_scouting=discover
+        )
+
+    assert (
+        parse().multicast_scouting is False and config_value(parse(), "scouting/multicast/enabled") is False
+    )
+    assert not _two_sessions_meet(alone(), alone(), timeout_s=3.0)
+    assert not _two_sessions_meet(alone(), alone(discover=True), timeout_s=3.0)  # one scouting is not enough
+    assert _two_sessions_meet(alone(discover=True), alone(discover=True), timeout_s=10.0)
+
+
+def test_discover_is_a_flag_that_survives_a_childs_argv() -> None:
+    settings = parse("--discover", "-e", "tcp/10.0.0.2:7447")
+    assert (
+        settings.multicast_scouting is True and config_value(settings, "scouting/multicast/enabled") is True
+    )
+    assert parse(*settings.to_cli()) == settings
+    with pytest.raises(SystemExit):
+        parse("--discover", "--no-multicast")
+    with pytest.raises(ValueError, match=r"write tcp/10\.0\.0\.2:7447"):
+        ZenohSettings(connect=("10.0.0.2:7447",))

@@ -26,7 +26,7 @@ from services.cli import (
     up,
 )
 from services.cli.command import Command
-from services.runtime import LOG_FORMAT
+from services.runtime import LOG_FORMAT, TerseArgumentParser
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ def chosen_command(argv: Sequence[str]) -> Command | None:
 
 def build_parser(chosen: Command | None = None) -> argparse.ArgumentParser:
     """``triscan``'s parser, with the arguments of ``chosen`` alone (the others are listed by name)."""
-    parser = argparse.ArgumentParser(prog="triscan", description=DESCRIPTION, allow_abbrev=False)
+    parser = TerseArgumentParser(prog="triscan", description=DESCRIPTION, allow_abbrev=False)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:

@@ -7,6 +7,7 @@ Its children need the sim and viz extras; the defaults of the simulator and repl
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -100,19 +101,14 @@ def _given(args: argparse.Namespace, flags: dict[str, str]) -> dict[str, object]
 
 
 def run(args: argparse.Namespace) -> int:
-    from common.transport import ZenohSettings, settings_from_args
+    from common.transport import settings_from_args
     from services.bag_replay import ReplayConfig
     from services.launcher import DEFAULT_LISTEN, UpConfig, up
     from services.runtime import stop_event_on_signals
 
     settings = settings_from_args(args)
     if not settings.listen and settings.config_file is None:
-        settings = ZenohSettings(
-            mode=settings.mode or "peer",
-            connect=settings.connect,
-            listen=(DEFAULT_LISTEN,),
-            multicast_scouting=False if settings.multicast_scouting is None else settings.multicast_scouting,
-        )
+        settings = replace(settings, mode=settings.mode or "peer", listen=(DEFAULT_LISTEN,))
     simulator_flags, replay_flags = _given(args, SIMULATOR_ONLY_FLAGS), _given(args, REPLAY_ONLY_FLAGS)
     replay = None
     if args.replay is not None:

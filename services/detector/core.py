@@ -18,10 +18,12 @@ import os
 import sys
 import threading
 import time
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
+
+import numpy as np
 
 from common.inference import OnnxDetector
 from common.keys import parse_key
@@ -146,6 +148,9 @@ class DetectorCounters:
         }
 
 
+LATENCY_WINDOW = 1000  # most frames a stats period's latency percentiles are taken over
+
+
 class DetectorCore:
     """Decodes tensor payloads and turns one tensor into one ``Detections`` message."""
 
@@ -153,6 +158,18 @@ class DetectorCore:
         self.detector = detector
         self.counters = DetectorCounters()
         self._lock = threading.Lock()  # counters are bumped from Zenoh and inference threads
+        self._latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
+
+    def take_latency(self) -> dict[str, float] | None:
+        """Scan-to-detection latency (the newest scan's stamp to publication, wall clock) of the frames
+        since the last call: p50, p99 and their count, for the stats; None when there were none."""
+        with self._lock:
+            latencies = np.array(self._latencies_ms)
+            self._latencies_ms.clear()
+        if not latencies.size:
+            return None
+        p50, p99 = np.percentile(latencies, (50, 99))
+        return {"p50": round(float(p50), 2), "p99": round(float(p99), 2), "frames": int(latencies.size)}
 
     def reject(self, reason: str, detail: str) -> None:
         with self._lock:
@@ -231,10 +248,13 @@ class DetectorCore:
         arrival: Arrival,
         started_ns: int,
     ) -> Detections:
+        stamp_ns = time.time_ns()
+        with self._lock:
+            self._latencies_ms.append((stamp_ns - tensor.scan_stamps_ns[2]) / 1e6)
         return Detections(
             robot_id=tensor.robot_id,
             seq=tensor.seq,
-            stamp_ns=time.time_ns(),
+            stamp_ns=stamp_ns,
             detections=detections,
             timings=StageTimings(
                 encode_ms=timings.encode_ms + tensor.encode_ms,
@@ -245,6 +265,7 @@ class DetectorCore:
             ),
             model_id=self.detector.model_id,
             scan_stamp_ns=tensor.scan_stamps_ns[2],
+            pose_stamp_ns=tensor.scan_stamps_ns[1],  # the boxes are the middle scan's
         )
 
 
@@ -374,8 +395,9 @@ class InferencePipeline:
 
     def housekeeping(self) -> dict[str, object]:
         """The service's once-a-second chore: with ``from_scans`` forget the encoder's silent robots;
-        return the counters for the stats."""
+        return the counters for the stats, with the latency of the frames since the last call."""
         counters: dict[str, object] = self.core.counters.to_dict()
+        counters["latency_ms"] = self.core.take_latency()
         if self.encoder is not None:
             self.encoder.forget_silent()
             counters["encoder"] = self.encoder.snapshot()

@@ -19,6 +19,7 @@ from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
     configure_logging,
+    exit_code_of,
     service_parser,
     stop_event_on_signals,
 )
@@ -91,4 +92,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(exit_code_of(main))

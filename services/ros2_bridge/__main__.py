@@ -25,6 +25,7 @@ from services.runtime import (
     add_service_arguments,
     configure_logging,
     default_of,
+    exit_code_of,
     service_parser,
     stop_event_on_signals,
 )
@@ -155,4 +156,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(exit_code_of(main))

@@ -30,6 +30,7 @@ from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
     configure_logging,
+    exit_code_of,
     service_parser,
     stop_event_on_signals,
 )
@@ -206,4 +207,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(exit_code_of(main))

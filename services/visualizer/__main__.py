@@ -30,7 +30,13 @@ from common.transport import (
     add_zenoh_arguments,
     settings_from_args,
 )
-from services.runtime import ServiceRuntime, configure_logging, service_parser, stop_event_on_signals
+from services.runtime import (
+    ServiceRuntime,
+    configure_logging,
+    exit_code_of,
+    service_parser,
+    stop_event_on_signals,
+)
 from services.visualizer.core import APPLICATION_ID, RerunVisualizer, VisualizerStats
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -201,4 +207,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(exit_code_of(main))
