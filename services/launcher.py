@@ -7,7 +7,9 @@ depends on the local network or an external router. The launcher is one more pee
 children's liveliness tokens (``triscan/@health/<service>/<pid>``), restarts a child that dies (with a
 clear log line and a cap on restarts), and stops them all on Ctrl-C or after ``--duration``. Its own
 session takes the user's Zenoh flags, so other apps (``examples/subscribe_detections.py``, ROS 2
-bridges) join through it.
+bridges) join through it. Every ``SUMMARY_PERIOD_S`` and at the end it logs what the loop found, per
+robot and class, against the simulator's truth (:mod:`services.run_summary`); the services' own
+periodic counters then go to the debug log (``--verbose``), their final ones stay.
 
 With ``--replay BAG...`` the scans come from recorded bags (``python -m services.bag_replay``) instead
 of the simulator. A bag is finite, so the replay is started last, once the encoder, detector and
@@ -35,13 +37,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import model_facts
-from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
-from common.transport import ZenohSettings, open_session
+from common.inference import model_class_names, model_facts
+from common.keys import (
+    ALL_DETECTIONS,
+    ALL_HEALTH,
+    ALL_TRUTH,
+    DETECTIONS,
+    SCAN,
+    parse_health_key,
+    parse_key,
+    wildcard_key,
+)
+from common.messages import Detections, GroundTruth, MessageError, decode_message
+from common.model_spec import default_model_path
+from common.transport import ZenohSettings, open_session, payload_bytes
 from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
-from services.runtime import EXIT_WITH_PARENT_ENV
+from services.run_summary import RunSummary
+from services.runtime import EXIT_WITH_PARENT_ENV, PERIODIC_SUMMARY_ENV, SUMMARY_PERIOD_S
 from services.simulator.defaults import ROBOTS, SCAN_RATE_HZ, SIM_SEED
 
 log = logging.getLogger(__name__)
@@ -279,6 +293,7 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     restartable = {name: child for name, child in children.items() if child is not replay_child}
     health = HealthBoard()
     traffic = TrafficCounter()
+    summary = RunSummary(model_class_names(config.model or default_model_path()))
     exit_code = 0
     with open_session(config.settings) as session:
         watcher = session.liveliness().declare_subscriber(ALL_HEALTH, health.on_sample, history=True)
@@ -286,13 +301,20 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             session.declare_subscriber(wildcard_key(topic), traffic.counter(topic))
             for topic in (SCAN, DETECTIONS)
         ]
+        counters += [
+            session.declare_subscriber(key, summary_feeder(summary, kind))
+            for key, kind in ((ALL_TRUTH, GroundTruth), (ALL_DETECTIONS, Detections))
+        ]
         for child in restartable.values():
             child.start()
-        started = time.monotonic()
+        started = last_table = time.monotonic()
         ready = False
         try:
             while not stop.wait(0.2):
                 now = time.monotonic()
+                if now - last_table >= SUMMARY_PERIOD_S:
+                    log.info("%s", summary.table(now - started))
+                    last_table = now
                 if not ready:
                     missing = set(children) - health.alive()
                     if replay_child is not None and replay_child.process is None and missing == {REPLAY}:
@@ -321,12 +343,26 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             watcher.undeclare()
             for counter in counters:
                 counter.undeclare()
+    log.info("%s", summary.table(time.monotonic() - started))
     log.info("%s", traffic.summary())
     rrd = commands.get("visualizer", [])
     if "--save" in rrd:
         path = rrd[rrd.index("--save") + 1]
         log.info("recording: %s (view it with `rerun %s`)", path, path)
     return exit_code
+
+
+def summary_feeder(summary: RunSummary, kind: type[GroundTruth] | type[Detections]) -> Any:
+    """A Zenoh callback feeding ``kind`` messages to ``summary``; a bad payload is left to the services,
+    which count it."""
+
+    def feed(sample: Any) -> None:
+        try:
+            summary.update(decode_message(payload_bytes(sample), kind))
+        except MessageError:
+            return
+
+    return feed
 
 
 def _end_of_replay(code: int, traffic: TrafficCounter) -> int:
@@ -374,6 +410,7 @@ def child_environment() -> dict[str, str]:
     """The children import ``services``/``common`` from this checkout even when it is not installed."""
     env = dict(os.environ)
     env[EXIT_WITH_PARENT_ENV] = "1"  # a child whose launcher was killed -9 stops instead of lingering
+    env[PERIODIC_SUMMARY_ENV] = "debug"  # the launcher's table replaces the services' periodic counters
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
     return env
