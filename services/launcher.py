@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +41,7 @@ from common.inference import model_class_names, model_facts
 from common.keys import (
     ALL_DETECTIONS,
     ALL_HEALTH,
+    ALL_TENSORS,
     ALL_TRUTH,
     DETECTIONS,
     SCAN,
@@ -48,7 +49,7 @@ from common.keys import (
     parse_key,
     wildcard_key,
 )
-from common.messages import Detections, GroundTruth, MessageError, decode_message
+from common.messages import Detections, GroundTruth, Message, MessageError, StackedTensor, decode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.bag_replay import SERVICE as REPLAY
@@ -89,6 +90,11 @@ class UpConfig:
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
     verbose: bool = False
     replay: ReplayConfig | None = None  # bags replayed instead of the simulator
+    snapshot_dir: Path | None = None  # the newest frame's pictures, redrawn every few seconds
+
+    def __post_init__(self) -> None:
+        if self.snapshot_dir is not None and self.replay is not None:
+            raise ValueError("--snapshot draws the simulator's worlds and truth: it cannot go with --replay")
 
     @property
     def services(self) -> tuple[str, ...]:
@@ -294,6 +300,21 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     health = HealthBoard()
     traffic = TrafficCounter()
     summary = RunSummary(model_class_names(config.model or default_model_path()))
+    feeds: dict[str, tuple[type[Message], list[Callable[[Any], None]]]] = {
+        ALL_TRUTH: (GroundTruth, [summary.update]),
+        ALL_DETECTIONS: (Detections, [summary.update]),
+    }
+    snapshots = None
+    if config.snapshot_dir is not None:
+        from training.snapshots import SNAPSHOT_PERIOD_S, LiveFrames  # the sim extra, which up needs
+
+        snapshots = LiveFrames(config.seed)
+        log.info(
+            "every %.0f s: each robot's newest frame as PNGs in %s", SNAPSHOT_PERIOD_S, config.snapshot_dir
+        )
+        feeds[ALL_TENSORS] = (StackedTensor, [])
+        for _, consumers in feeds.values():
+            consumers.append(snapshots.update)
     exit_code = 0
     with open_session(config.settings) as session:
         watcher = session.liveliness().declare_subscriber(ALL_HEALTH, health.on_sample, history=True)
@@ -302,12 +323,12 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             for topic in (SCAN, DETECTIONS)
         ]
         counters += [
-            session.declare_subscriber(key, summary_feeder(summary, kind))
-            for key, kind in ((ALL_TRUTH, GroundTruth), (ALL_DETECTIONS, Detections))
+            session.declare_subscriber(key, message_feeder(kind, consumers))
+            for key, (kind, consumers) in feeds.items()
         ]
         for child in restartable.values():
             child.start()
-        started = last_table = time.monotonic()
+        started = last_table = last_snapshot = time.monotonic()
         ready = False
         try:
             while not stop.wait(0.2):
@@ -315,6 +336,9 @@ def up(config: UpConfig, stop: threading.Event) -> int:
                 if now - last_table >= SUMMARY_PERIOD_S:
                     log.info("%s", summary.table(now - started))
                     last_table = now
+                if snapshots is not None and now - last_snapshot >= SNAPSHOT_PERIOD_S:
+                    _write_snapshots(snapshots, config.snapshot_dir)
+                    last_snapshot = now
                 if not ready:
                     missing = set(children) - health.alive()
                     if replay_child is not None and replay_child.process is None and missing == {REPLAY}:
@@ -352,17 +376,26 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     return exit_code
 
 
-def summary_feeder(summary: RunSummary, kind: type[GroundTruth] | type[Detections]) -> Any:
-    """A Zenoh callback feeding ``kind`` messages to ``summary``; a bad payload is left to the services,
-    which count it."""
+def message_feeder(kind: type[Message], consumers: list[Callable[[Any], None]]) -> Callable[[Any], None]:
+    """A Zenoh callback decoding ``kind`` messages once for all ``consumers``; a bad payload is left to
+    the services, which count it."""
 
     def feed(sample: Any) -> None:
         try:
-            summary.update(decode_message(payload_bytes(sample), kind))
+            message = decode_message(payload_bytes(sample), kind)
         except MessageError:
             return
+        for consume in consumers:
+            consume(message)
 
     return feed
+
+
+def _write_snapshots(snapshots: Any, out_dir: Path | None) -> None:
+    assert out_dir is not None  # snapshots exist only with a snapshot_dir
+    written = snapshots.write(out_dir)
+    if written:
+        log.debug("snapshot: %s", ", ".join(map(str, written)))
 
 
 def _end_of_replay(code: int, traffic: TrafficCounter) -> int:
