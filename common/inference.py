@@ -124,6 +124,13 @@ def model_facts(path: Path | str) -> ModelFacts:
     return ModelFacts.of_session(_unoptimised_session(path), path)
 
 
+def model_class_names(path: Path | str) -> tuple[str, ...]:
+    """The classes a model predicts (a prefix of the project's list), from one cheap metadata session,
+    so that a launcher can score the loop on the model's own classes without loading it."""
+    session = _unoptimised_session(path)
+    return model_classes(declared_classes(session), int(session.get_outputs()[0].shape[1]) - 4, Path(path))
+
+
 def default_providers() -> list[str]:
     """CUDA when this onnxruntime build has it (CPU stays as fallback for unsupported nodes), else CPU."""
     if "CUDAExecutionProvider" in ort.get_available_providers():

@@ -30,14 +30,43 @@ log = logging.getLogger("publish_scans")
 SCHEMA_VERSION = 1
 
 
+# A stand-in room, ray-cast in closed form: solids as axis-aligned rectangles (x_min, y_min, x_max, y_max),
+# metres, with the sizes of the simulator's furniture (docs/encoding-and-simulator.md): chairs and desks
+# are four legs under a top the scan plane passes beneath, the box is solid.
+def _legs(cx: float, cy: float, width: float, depth: float, leg: float) -> list[tuple[float, ...]]:
+    hx, hy = (width - leg) / 2, (depth - leg) / 2
+    return [
+        (cx + dx - leg / 2, cy + dy - leg / 2, cx + dx + leg / 2, cy + dy + leg / 2)
+        for dx in (-hx, hx)
+        for dy in (-hy, hy)
+    ]
+
+
+WALLS = [(-2.1, -2.1, 2.1, -2.0), (-2.1, 2.0, 2.1, 2.1), (-2.1, -2.0, -2.0, 2.0), (2.0, -2.0, 2.1, 2.0)]
+DESK = _legs(1.2, 0.6, 0.8, 1.6, 0.05)
+BOX = [(-1.4, -1.3, -1.0, -0.7)]
+CHAIR = _legs(0.2, -1.2, 0.4, 0.4, 0.03)
+SOLIDS = np.array(WALLS + DESK + BOX + CHAIR)
+BEAMS, RANGE_MIN, RANGE_MAX = 360, 0.12, 3.5  # an LDS-01-like sensor
+_noise = np.random.default_rng(0)
+
+
 def read_scan(t: float) -> tuple[float, float, float, float, np.ndarray]:
-    """A stand-in sensor: an LDS-01-like sweep (360 beams) of a 3 x 4 m room turning slowly around it."""
-    beams = 360
-    angles = -math.pi + np.arange(beams) * (2 * math.pi / beams) + 0.2 * t
-    # distance to the walls of an axis-aligned 3 x 4 m box centred on the sensor
-    with np.errstate(divide="ignore"):
-        ranges = np.minimum(np.abs(1.5 / np.cos(angles)), np.abs(2.0 / np.sin(angles)))
-    return -math.pi, 2 * math.pi / beams, 0.12, 3.5, ranges.astype("<f4")
+    """A stand-in sensor: a 360-beam sweep of a 4 x 4 m room with a desk, a box and a chair, from a robot
+    driving back and forth along the room's x axis at 0.1 m/s (the detector reads motion across three
+    scans, as on a real robot)."""
+    x = -0.6 + abs((0.1 * t) % 2.0 - 1.0)  # between -0.6 and 0.4 m, facing +x
+    angles = -math.pi + np.arange(BEAMS) * (2 * math.pi / BEAMS)
+    directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):  # slab test of every beam against every solid
+        near = (SOLIDS[None, :, :2] - (x, 0.0)) / directions
+        far = (SOLIDS[None, :, 2:] - (x, 0.0)) / directions
+    enter = np.nanmax(np.minimum(near, far), axis=2)
+    leave = np.nanmin(np.maximum(near, far), axis=2)
+    ranges = np.where((leave >= enter) & (leave > 0), enter, np.inf).min(axis=1)
+    ranges = ranges + _noise.normal(0.0, 0.005, BEAMS)
+    ranges[ranges > RANGE_MAX] = np.inf  # no return, as drivers report it
+    return -math.pi, 2 * math.pi / BEAMS, RANGE_MIN, RANGE_MAX, ranges.astype("<f4")
 
 
 def scan_payload(robot_id: str, seq: int, stamp_ns: int, frame_id: str, t: float) -> bytes:

@@ -7,7 +7,9 @@ depends on the local network or an external router. The launcher is one more pee
 children's liveliness tokens (``triscan/@health/<service>/<pid>``), restarts a child that dies (with a
 clear log line and a cap on restarts), and stops them all on Ctrl-C or after ``--duration``. Its own
 session takes the user's Zenoh flags, so other apps (``examples/subscribe_detections.py``, ROS 2
-bridges) join through it.
+bridges) join through it. Every ``SUMMARY_PERIOD_S`` and at the end it logs what the loop found, per
+robot and class, against the simulator's truth (:mod:`services.run_summary`); the services' own
+periodic counters then go to the debug log (``--verbose``), their final ones stay.
 
 With ``--replay BAG...`` the scans come from recorded bags (``python -m services.bag_replay``) instead
 of the simulator. A bag is finite, so the replay is started last, once the encoder, detector and
@@ -31,18 +33,31 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.inference import OnnxDetector, model_facts
-from common.keys import ALL_HEALTH, DETECTIONS, SCAN, parse_health_key, parse_key, wildcard_key
-from common.transport import ZenohSettings, open_session
+from common.inference import OnnxDetector, model_class_names, model_facts
+from common.keys import (
+    ALL_DETECTIONS,
+    ALL_HEALTH,
+    ALL_TENSORS,
+    ALL_TRUTH,
+    DETECTIONS,
+    SCAN,
+    parse_health_key,
+    parse_key,
+    wildcard_key,
+)
+from common.messages import Detections, GroundTruth, Message, MessageError, StackedTensor, decode_message
+from common.model_spec import default_model_path
+from common.transport import ZenohSettings, open_session, payload_bytes
 from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
-from services.runtime import EXIT_WITH_PARENT_ENV, USAGE_EXIT
+from services.run_summary import RunSummary
+from services.runtime import EXIT_WITH_PARENT_ENV, PERIODIC_SUMMARY_ENV, SUMMARY_PERIOD_S, USAGE_EXIT
 from services.simulator.defaults import ROBOTS, SIM_PEOPLE, SIM_SEED
 from services.simulator.sensors import DEFAULT_PROFILE, check_sensor
 
@@ -79,6 +94,7 @@ class UpConfig:
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
     verbose: bool = False
     replay: ReplayConfig | None = None  # bags replayed instead of the simulator
+    snapshot_dir: Path | None = None  # the newest frame's pictures, redrawn every few seconds
 
     def __post_init__(self) -> None:
         """Refuse what a child would refuse, before any process starts (a child that exits on its
@@ -96,6 +112,8 @@ class UpConfig:
             raise ValueError(f"--max-restarts must be >= 0, got {self.max_restarts}")
         if self.batch is not None and self.batch < 1:
             raise ValueError(f"--batch must be >= 1, got {self.batch}")
+        if self.snapshot_dir is not None and self.replay is not None:
+            raise ValueError("--snapshot draws the simulator's worlds and truth: it cannot go with --replay")
 
     @property
     def services(self) -> tuple[str, ...]:
@@ -305,6 +323,22 @@ def up(config: UpConfig, stop: threading.Event) -> int:
     restartable = {name: child for name, child in children.items() if child is not replay_child}
     health = HealthBoard()
     traffic = TrafficCounter()
+    summary = RunSummary(model_class_names(config.model or default_model_path()))
+    feeds: dict[str, tuple[type[Message], list[Callable[[Any], None]]]] = {
+        ALL_TRUTH: (GroundTruth, [summary.update]),
+        ALL_DETECTIONS: (Detections, [summary.update]),
+    }
+    snapshots = None
+    if config.snapshot_dir is not None:
+        from training.snapshots import SNAPSHOT_PERIOD_S, LiveFrames  # the sim extra, which up needs
+
+        snapshots = LiveFrames(config.seed)
+        log.info(
+            "every %.0f s: each robot's newest frame as PNGs in %s", SNAPSHOT_PERIOD_S, config.snapshot_dir
+        )
+        feeds[ALL_TENSORS] = (StackedTensor, [])
+        for _, consumers in feeds.values():
+            consumers.append(snapshots.update)
     exit_code = 0
     with open_session(config.settings) as session:
         watcher = session.liveliness().declare_subscriber(ALL_HEALTH, health.on_sample, history=True)
@@ -312,13 +346,23 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             session.declare_subscriber(wildcard_key(topic), traffic.counter(topic))
             for topic in (SCAN, DETECTIONS)
         ]
+        counters += [
+            session.declare_subscriber(key, message_feeder(kind, consumers))
+            for key, (kind, consumers) in feeds.items()
+        ]
         for child in restartable.values():
             child.start()
-        started = time.monotonic()
+        started = last_table = last_snapshot = time.monotonic()
         ready = False
         try:
             while not stop.wait(0.2):
                 now = time.monotonic()
+                if now - last_table >= SUMMARY_PERIOD_S:
+                    log.info("%s", summary.table(now - started))
+                    last_table = now
+                if snapshots is not None and now - last_snapshot >= SNAPSHOT_PERIOD_S:
+                    _write_snapshots(snapshots, config.snapshot_dir)
+                    last_snapshot = now
                 if not ready:
                     missing = set(children) - health.alive()
                     if replay_child is not None and replay_child.process is None and missing == {REPLAY}:
@@ -347,12 +391,35 @@ def up(config: UpConfig, stop: threading.Event) -> int:
             watcher.undeclare()
             for counter in counters:
                 counter.undeclare()
+    log.info("%s", summary.table(time.monotonic() - started))
     log.info("%s", traffic.summary())
     rrd = commands.get("visualizer", [])
     if "--save" in rrd:
         path = rrd[rrd.index("--save") + 1]
         log.info("recording: %s (view it with `rerun %s`)", path, path)
     return exit_code
+
+
+def message_feeder(kind: type[Message], consumers: list[Callable[[Any], None]]) -> Callable[[Any], None]:
+    """A Zenoh callback decoding ``kind`` messages once for all ``consumers``; a bad payload is left to
+    the services, which count it."""
+
+    def feed(sample: Any) -> None:
+        try:
+            message = decode_message(payload_bytes(sample), kind)
+        except MessageError:
+            return
+        for consume in consumers:
+            consume(message)
+
+    return feed
+
+
+def _write_snapshots(snapshots: Any, out_dir: Path | None) -> None:
+    assert out_dir is not None  # snapshots exist only with a snapshot_dir
+    written = snapshots.write(out_dir)
+    if written:
+        log.debug("snapshot: %s", ", ".join(map(str, written)))
 
 
 def _end_of_replay(code: int, traffic: TrafficCounter) -> int:
@@ -408,6 +475,7 @@ def child_environment() -> dict[str, str]:
     """The children import ``services``/``common`` from this checkout even when it is not installed."""
     env = dict(os.environ)
     env[EXIT_WITH_PARENT_ENV] = "1"  # a child whose launcher was killed -9 stops instead of lingering
+    env[PERIODIC_SUMMARY_ENV] = "debug"  # the launcher's table replaces the services' periodic counters
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
     return env

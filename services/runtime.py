@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 STATS_PERIOD_S = 1.0
 SUMMARY_PERIOD_S = 10.0  # a one-line summary in the log this often
 EXIT_WITH_PARENT_ENV = "TRISCAN_EXIT_WITH_PARENT"
+# "debug": the periodic summaries go to the debug log (``--verbose``), the one at the end stays. Set by
+# ``triscan up``, whose own table says what the loop finds; a service started by hand keeps them.
+PERIODIC_SUMMARY_ENV = "TRISCAN_PERIODIC_SUMMARY"
 PARENT_POLL_S = 0.5
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 # argparse's exit code for refused arguments, and every service's for an input it cannot use (a
@@ -54,6 +57,11 @@ class TerseArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(USAGE_EXIT, f"{self.prog}: error: {message}\nusage: {self.prog} --help (every option)\n")
+
+
+def periodic_summary_level() -> int:
+    """The log level of a service's periodic summary line (:data:`PERIODIC_SUMMARY_ENV`)."""
+    return logging.DEBUG if os.environ.get(PERIODIC_SUMMARY_ENV) == "debug" else logging.INFO
 
 
 def service_parser(module: str, description: str) -> argparse.ArgumentParser:
@@ -318,7 +326,7 @@ class ServiceRuntime:
             self.publish_stats(counters)
             now = time.monotonic()
             if now - last_summary >= SUMMARY_PERIOD_S:
-                log.info("%s: %s", self.service, counters)
+                log.log(periodic_summary_level(), "%s: %s", self.service, counters)
                 last_summary = now
             if self.should_stop():
                 break

@@ -26,6 +26,9 @@ from training.evaluate import (
 
 @pytest.fixture(scope="module")
 def ultralytics_offline(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Ultralytics, to compare with: only with the train extra."""
+    pytest.importorskip("torch")
+    pytest.importorskip("ultralytics")
     from training.offline import configure_offline
 
     configure_offline(tmp_path_factory.mktemp("yolo"))
@@ -141,9 +144,7 @@ def test_seam_subset_keeps_seam_objects_and_their_class_predictions() -> None:
     assert not seam_subset(unknown, box_iou(boxes, preds), pred_classes)[0].any()
 
 
-def test_evaluate_scores_a_missed_seam_object_when_the_model_finds_nothing(
-    tmp_path: Path, ultralytics_offline: None
-) -> None:
+def test_evaluate_scores_a_missed_seam_object_when_the_model_finds_nothing(tmp_path: Path) -> None:
     """An empty scan with a seam-crossing label: no predictions at all is a miss, not a crash."""
     from common.inference import OnnxDetector
     from common.model_spec import default_model_path
@@ -159,7 +160,7 @@ def test_evaluate_scores_a_missed_seam_object_when_the_model_finds_nothing(
     assert report.seam_crossing is not None and report.seam_crossing["instances"] == 1
 
 
-def test_map_by_iou_threshold_splits_the_average(tmp_path: Path, ultralytics_offline: None) -> None:
+def test_map_by_iou_threshold_splits_the_average(tmp_path: Path) -> None:
     """mAP@0.5:0.95 is the mean of the ten thresholds' mAP; each is at most the one below it."""
     from common.inference import OnnxDetector
     from common.model_spec import CLASS_NAMES, default_model_path

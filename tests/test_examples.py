@@ -1,4 +1,5 @@
-"""``examples/publish_scans.py`` (a driver with only zenoh, msgpack and numpy) feeds a real detector.
+"""``examples/publish_scans.py`` (a driver with only zenoh, msgpack and numpy) feeds a real detector, and
+``examples/detect_in_process.py`` runs detection without Zenoh.
 
 The example writes the Scan wire format by hand; this test decodes every scan it publishes with the
 project's own validating decoder and checks that a ``services.detector --from-scans`` process answers
@@ -12,6 +13,7 @@ must decode), once to the detector alone (every scan from the third on must be a
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -27,11 +29,10 @@ from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports, stop_processes
 from tests.support.waiting import wait_for
 
-pytestmark = [pytest.mark.slow, pytest.mark.integration]
-
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = "exbot"
 SCANS = 40
+FURNITURE = {"chair", "box", "desk"}  # what the examples' stand-in room holds
 
 
 def run_example(port: int, robot: str) -> None:
@@ -45,6 +46,21 @@ def run_example(port: int, robot: str) -> None:
     assert example.returncode == 0, example.stdout + example.stderr
 
 
+def test_detect_in_process_example_finds_the_stand_in_rooms_furniture() -> None:
+    """Run as the README shows it; every line after the stack fills names what it found and where."""
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "detect_in_process.py")],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert [int(line.split()[0]) for line in lines] == list(range(2, 30))
+    found = {word for line in lines for word in line.split() if word in FURNITURE}
+    assert found == FURNITURE and all(" at (" in line and ") m" in line for line in lines[5:])
+
+
+@pytest.mark.slow
+@pytest.mark.integration
 def test_publish_scans_example_writes_the_scan_wire_format() -> None:
     (test_port,) = free_tcp_ports(1)
     scans: list[Scan] = []
@@ -72,16 +88,20 @@ def test_publish_scans_example_writes_the_scan_wire_format() -> None:
         assert scans[0].ranges.shape == (360,) and scans[0].frame_id == "laser"
 
 
+@pytest.mark.slow
+@pytest.mark.integration
 def test_publish_scans_example_gets_every_scan_answered_by_a_detector() -> None:
     test_port, detector_port = free_tcp_ports(2)
     detector = start_loopback_service("services.detector", detector_port, [test_port], "--from-scans")
     answered: set[int] = set()
+    classes: set[str] = set()
     lock = threading.Lock()
 
     def on_detections(sample: Any) -> None:
         message = decode_message(payload_bytes(sample), Detections)
         with lock:
             answered.add(message.seq)
+            classes.update(d.class_name for d in message.detections)
 
     try:
         with open_session(ZenohSettings.loopback(test_port)) as session:
@@ -94,6 +114,7 @@ def test_publish_scans_example_gets_every_scan_answered_by_a_detector() -> None:
         stop_processes({"detector": detector}, grace_s=20)
     with lock:
         assert answered == set(range(2, SCANS))  # a tensor from the third scan on, every one answered
+        assert classes == FURNITURE  # the stand-in room's furniture is found, and nothing else
 
 
 def detector_ready(session: Any) -> bool:

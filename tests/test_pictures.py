@@ -246,3 +246,49 @@ def test_missing_files_are_named(dataset: Path, tmp_path: Path) -> None:
     (broken / label).unlink()
     with pytest.raises(FileNotFoundError, match=label.name):
         render_sample(broken, tmp_path / "out", sample=label.stem, index=0, scale=3)
+
+
+def test_the_models_boxes_are_dashed_in_their_class_colour_and_tagged_under(dataset: Path) -> None:
+    import dataclasses
+
+    from training.dataset_sample import load_sample
+    from training.raster_picture import DetectedBox, draw_raster_picture
+
+    scale = 3
+    sample = dataclasses.replace(load_sample(dataset, index=0), boxes=())  # the model's box alone
+    box = DetectedBox(1, 150.0, 20.0, 200.0, 40.0, 0.87)
+    picture = np.asarray(draw_raster_picture(sample, scale, [box]).convert("RGB"))
+    ox, oy = RASTER_ORIGIN
+    left, right = ox + round(box.x1 * scale), ox + round(box.x2 * scale) - 1
+    top, bottom = oy + round(box.y1 * scale), oy + round(box.y2 * scale) - 1
+    colour = np.array(CLASS_COLOURS[box.class_id])
+    for side, line in {"top": picture[top, left:right], "left": picture[top:bottom, left]}.items():
+        share = np.all(line == colour, axis=-1).mean()
+        assert 0.3 <= share <= 0.7, f"{side} edge {share:.0%} in colour: not dashed"
+    under = picture[bottom + 2 : bottom + 15, left : left + 60]
+    assert np.all(under == colour, axis=-1).any(), "no tag under the box"
+    above = picture[top - 14 : top - 2, left : left + 60]
+    assert not np.all(above == colour, axis=-1).any(), "a label-style tag above the model's box"
+
+
+def test_show_with_a_model_draws_what_the_detector_finds(dataset: Path, tmp_path: Path) -> None:
+    from common.model_spec import default_model_path
+    from training.dataset_sample import load_sample
+    from training.evaluate import box_iou
+    from training.pictures import model_boxes
+
+    index = richest_sample(dataset)
+    sample = load_sample(dataset, index=index)
+    found = model_boxes(default_model_path(), sample.tensor, sample.padding)
+    labels = yolo_boxes(dataset, records(dataset)[index])
+    assert found, "the shipped model finds nothing in a labelled sample"
+    for box in found:
+        same_class = np.array([b[1:] for b in labels if b[0] == box.class_id]).reshape(-1, 4)
+        ious = box_iou(np.array([[box.x1, box.y1, box.x2, box.y2]]), same_class)
+        assert ious.size and ious.max() > 0.5, f"a {box.class_id} box on no label of its class"
+    argv = ["show", "--dataset", str(dataset), "--index", str(index)]
+    assert cli_main([*argv, "--out", str(tmp_path / "plain")]) == 0
+    assert cli_main([*argv, "--out", str(tmp_path / "model"), "--model", str(default_model_path())]) == 0
+    name = Path(records(dataset)[index]["image"]).stem
+    plain, with_model = (pixels(tmp_path / d / f"{name}_raster.png") for d in ("plain", "model"))
+    assert plain.shape != with_model.shape or np.any(plain != with_model)

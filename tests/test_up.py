@@ -140,6 +140,12 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
     text = "".join(lines)
     assert launcher.returncode == 0, text[-4000:]
     assert "all services up" in text, text[-4000:]
+    # The final table: every robot, with recall figures against the truth (services.run_summary).
+    final = text[text.rindex("detections after") :]
+    assert all(f"  robot{i}: " in final for i in range(ROBOTS)), final
+    rows = [line.split() for line in final.splitlines() if line.startswith("    ")]
+    recalls = [row[3] for row in rows if len(row) == 5 and row[0] != "class" and row[3] != "-"]
+    assert recalls and max(float(value) for value in recalls) >= 0.5, final
     # The example app (zenoh + msgpack only) joined through the launcher's endpoint and printed 5.
     printed = [line for line in example_output.decode().splitlines() if "after the scan" in line]
     assert example.returncode == 0 and len(printed) >= 5, example_output.decode()[-2000:]

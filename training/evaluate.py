@@ -3,9 +3,10 @@
 Predictions come from :class:`common.inference.OnnxDetector`, the decoder and NMS the detector
 service runs, fed with the run-time tensor (a data set's PNGs are byte-for-byte ScanStacker output, a
 test proves it; ``--fresh`` simulates new scenarios straight through ScanStacker instead). The metric
-arithmetic is Ultralytics' own (``ap_per_class`` via ``DetMetrics``, its ``ConfusionMatrix``), and
-predictions are matched to labels with the same greedy policy as its validator, so the figures can be
-compared with ``yolo val`` — a test checks they agree within 0.01.
+arithmetic is Ultralytics' (``ap_per_class``, ported to numpy in :mod:`training.detection_metrics` so
+that scoring needs no torch), and predictions are matched to labels with the same greedy policy as its
+validator, so the figures can be compared with ``yolo val`` — a test checks they agree within 0.01.
+The confusion matrix and the curves are drawn by Ultralytics, when the ``train`` extra is installed.
 
 Two additions serve the ``zero`` vs ``wrap`` ablation (README, "The encoding"):
 
@@ -21,7 +22,7 @@ Two additions serve the ``zero`` vs ``wrap`` ablation (README, "The encoding"):
 
 from __future__ import annotations
 
-import functools
+import importlib.util
 import json
 import logging
 from collections.abc import Iterator
@@ -35,6 +36,7 @@ from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, InvalidRule,
 from common.inference import OnnxDetector
 from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, FURNITURE_CLASSES, MAX_DETECTIONS
 from common.postprocess import unwrap_seam_duplicates
+from training.detection_metrics import DetectionMetrics, box_iou
 from training.png import read_tensor_png
 
 if TYPE_CHECKING:
@@ -200,24 +202,6 @@ def fresh_samples(
                 )
 
 
-@functools.cache
-def _ultralytics_bbox_ioa() -> Any:
-    """Ultralytics' numpy box overlap, imported once and offline (its settings are written only then)."""
-    from training.offline import configure_offline
-
-    configure_offline()
-    from ultralytics.utils.metrics import bbox_ioa
-
-    return bbox_ioa
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise IoU, float64[len(a), len(b)], of xyxy boxes: Ultralytics' own numpy IoU
-    (``bbox_ioa(..., iou=True)``), so matching uses the arithmetic of the validator it is compared with."""
-    bbox_ioa = _ultralytics_bbox_ioa()
-    return bbox_ioa(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64), iou=True)
-
-
 def circular_box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU on the circle: the best of ``b`` as it is and moved by ±360 columns (the same bearings)."""
     shift = np.array([ANGLE_COLUMNS, 0.0, ANGLE_COLUMNS, 0.0])
@@ -285,7 +269,7 @@ def match_predictions(
 def _stats(
     correct: np.ndarray, scores: np.ndarray, classes: np.ndarray, true_classes: np.ndarray, name: str
 ) -> dict[str, Any]:
-    """One image's entry for Ultralytics' ``DetMetrics.update_stats``."""
+    """One image's entry for ``DetectionMetrics.update_stats`` (Ultralytics' ``DetMetrics``')."""
     return {
         "tp": correct,
         "conf": scores.astype(np.float64),
@@ -304,19 +288,16 @@ def evaluate(
     source: str,
     plots: bool = True,
 ) -> EvalReport:
-    """Run every sample through the detector and write metrics.json (+ plots) into ``out_dir``."""
-    from training.offline import configure_offline
-
-    configure_offline()
-    from ultralytics.utils.metrics import ConfusionMatrix, DetMetrics
-
+    """Run every sample through the detector and write metrics.json (+ plots, with the ``train``
+    extra) into ``out_dir``."""
     # A model is scored on the classes it predicts: a four-class model on a set with people is judged
     # on the furniture, its people labels set aside.
     model_classes: tuple[str, ...] = getattr(detector, "class_names", CLASS_NAMES)
     names = dict(enumerate(model_classes))
-    metrics = DetMetrics(names=names)
-    seam_metrics = DetMetrics(names=names)
-    confusion = ConfusionMatrix(names=names)
+    metrics = DetectionMetrics(names)
+    seam_metrics = DetectionMetrics(names)
+    plots = plots and _can_plot()
+    confusion = _ultralytics_confusion_matrix(names) if plots else None
     wrap = detector.padding == "wrap"
     report = EvalReport(
         model_id=detector.model_id, source=source, padding=detector.padding, box_grid=detector.box_grid
@@ -340,13 +321,14 @@ def evaluate(
         correct = match_predictions(classes, sample.classes, iou)
         metrics.update_stats(_stats(correct, scores, classes, sample.classes, sample.name))
         seam_instances += _update_seam_stats(seam_metrics, sample, iou, scores, classes)
-        confusion.process_batch(*_confusion_batch(sample, boxes, scores, classes))
+        if confusion is not None:
+            confusion.process_batch(*_confusion_batch(sample, boxes, scores, classes))
         report.images += 1
         report.instances += len(sample.classes)
     if report.images == 0:
         raise ValueError(f"{source}: no samples to evaluate")
     out_dir.mkdir(parents=True, exist_ok=True)
-    metrics.process(save_dir=out_dir, plot=plots)
+    metrics.process()
     report.overall = _figures(metrics.mean_results())
     for class_index in metrics.ap_class_index:
         report.per_class[names[int(class_index)]] = {
@@ -355,11 +337,12 @@ def evaluate(
         }
     report.map_by_iou, report.ap_by_iou_per_class = _ap_by_iou(metrics)
     if seam_instances:
-        seam_metrics.process(save_dir=out_dir, plot=False)
+        seam_metrics.process()
         report.seam_crossing = {"instances": seam_instances, **_figures(seam_metrics.mean_results())}
     report.mean_timings_ms = {k: v / report.images for k, v in timing_sums.items()}
-    if plots:
+    if confusion is not None:
         confusion.plot(normalize=True, save_dir=out_dir)
+        _plot_curves(metrics, out_dir)
         report.files = {
             "confusion_matrix": str(out_dir / "confusion_matrix_normalized.png"),
             "recall_confidence": str(out_dir / "BoxR_curve.png"),
@@ -377,9 +360,44 @@ def _of_classes(sample: EvalSample, count: int) -> EvalSample:
     return EvalSample(sample.name, sample.tensor, sample.boxes[keep], sample.classes[keep], crosses)
 
 
-def _ap_by_iou(metrics: Any) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
-    """Ultralytics' AP table (class × the ten IoU thresholds) as the mean per threshold, and per class."""
-    table = np.asarray(metrics.box.all_ap, dtype=np.float64).reshape(len(metrics.ap_class_index), -1)
+def _can_plot() -> bool:
+    """Whether the ``train`` extra (Ultralytics and torch) is here to draw the plots; said once if not."""
+    if all(importlib.util.find_spec(name) is not None for name in ("ultralytics", "torch")):
+        return True
+    log.info("no plots or confusion matrix: they need the train extra (pip install 'triscan[train]')")
+    return False
+
+
+def _ultralytics_confusion_matrix(names: dict[int, str]) -> Any:
+    from training.offline import configure_offline
+
+    configure_offline()
+    from ultralytics.utils.metrics import ConfusionMatrix
+
+    return ConfusionMatrix(names=names)
+
+
+def _plot_curves(metrics: DetectionMetrics, out_dir: Path) -> None:
+    """Ultralytics' four curves (``Box{PR,F1,P,R}_curve.png``), as its ``ap_per_class(plot=True)`` draws."""
+    from ultralytics.utils.metrics import plot_mc_curve, plot_pr_curve
+
+    c = metrics.curves
+    assert c is not None  # process() ran
+    if not len(c.classes):
+        return
+    names = {i: metrics.names[k] for i, k in enumerate(c.classes) if k in metrics.names}
+    plot_pr_curve(c.x, c.prec_values, c.all_ap, out_dir / "BoxPR_curve.png", names)
+    for curve, ylabel, stem in (
+        (c.f1_curve, "F1", "F1"),
+        (c.p_curve, "Precision", "P"),
+        (c.r_curve, "Recall", "R"),
+    ):
+        plot_mc_curve(c.x, curve, out_dir / f"Box{stem}_curve.png", names, ylabel=ylabel)
+
+
+def _ap_by_iou(metrics: DetectionMetrics) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+    """The AP table (class × the ten IoU thresholds) as the mean per threshold, and per class."""
+    table = np.asarray(metrics.all_ap, dtype=np.float64).reshape(len(metrics.ap_class_index), -1)
     labels = [f"{iou:.2f}" for iou in np.linspace(0.5, 0.95, table.shape[1])]
     overall = dict(zip(labels, (float(v) for v in table.mean(axis=0)), strict=True)) if len(table) else {}
     per_class = {
@@ -390,7 +408,11 @@ def _ap_by_iou(metrics: Any) -> tuple[dict[str, float], dict[str, dict[str, floa
 
 
 def _update_seam_stats(
-    seam_metrics: Any, sample: EvalSample, iou: np.ndarray, scores: np.ndarray, classes: np.ndarray
+    seam_metrics: DetectionMetrics,
+    sample: EvalSample,
+    iou: np.ndarray,
+    scores: np.ndarray,
+    classes: np.ndarray,
 ) -> int:
     """Score the sample's seam-crossing objects alone into ``seam_metrics``; return how many labels."""
     label_in, pred_in = seam_subset(sample, iou, classes)
@@ -423,7 +445,7 @@ def _confusion_batch(
 
 
 def _figures(results: Any) -> dict[str, float]:
-    """Ultralytics' (P, R, mAP@0.5, mAP@0.5:0.95) as the named floats of metrics.json."""
+    """(P, R, mAP@0.5, mAP@0.5:0.95) as the named floats of metrics.json."""
     precision, recall, map50, map50_95 = (float(v) for v in results)
     return {"precision": precision, "recall": recall, "mAP50": map50, "mAP50-95": map50_95}
 

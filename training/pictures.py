@@ -21,7 +21,7 @@ from pathlib import Path
 
 from training.dataset_sample import load_sample
 from training.map_picture import draw_map_picture
-from training.raster_picture import draw_raster_picture
+from training.raster_picture import DetectedBox, draw_raster_picture
 
 log = logging.getLogger(__name__)
 
@@ -29,11 +29,18 @@ MAX_SCALE = 16  # 384 · 16 = 6144 px wide; beyond that the picture is just big,
 
 
 def render_sample(
-    dataset_dir: Path, out_dir: Path, *, sample: str | None, index: int, scale: int
+    dataset_dir: Path,
+    out_dir: Path,
+    *,
+    sample: str | None,
+    index: int,
+    scale: int,
+    model: Path | None = None,
 ) -> tuple[Path, Path]:
     """Write ``<name>_raster.png`` and ``<name>_map.png`` for one sample; return their paths.
 
-    ``sample`` (image path, file name or stem) wins over ``index`` (line of samples.jsonl).
+    ``sample`` (image path, file name or stem) wins over ``index`` (line of samples.jsonl). With
+    ``model`` (an ONNX file) the raster also shows that model's boxes on the sample, dashed.
     """
     if not 1 <= scale <= MAX_SCALE:
         raise ValueError(f"scale must be between 1 and {MAX_SCALE}, got {scale}")
@@ -43,7 +50,8 @@ def render_sample(
     raster_png = out_dir / f"{chosen.name}_raster.png"
     map_png = out_dir / f"{chosen.name}_map.png"
     # Draw both before writing either, so a failure never leaves half a pair behind.
-    raster_picture, map_picture = draw_raster_picture(chosen, scale), draw_map_picture(chosen)
+    found = () if model is None else model_boxes(model, chosen.tensor, chosen.padding)
+    raster_picture, map_picture = draw_raster_picture(chosen, scale, found), draw_map_picture(chosen)
     raster_picture.save(raster_png)
     map_picture.save(map_png)
     log.info(
@@ -56,3 +64,19 @@ def render_sample(
         map_png,
     )
     return raster_png, map_png
+
+
+def model_boxes(model: Path, tensor: object, padding: str) -> tuple[DetectedBox, ...]:
+    """The boxes the run-time detector (its default thresholds) finds in one tensor of ``padding``."""
+    import numpy as np
+
+    from common.inference import OnnxDetector
+
+    detector = OnnxDetector(model)
+    if detector.padding != padding:
+        raise ValueError(f"{model} reads {detector.padding!r} padding, the sample has {padding!r}")
+    boxes, scores, classes, _ = detector.detect_boxes(np.asarray(tensor))
+    return tuple(
+        DetectedBox(int(c), *(float(v) for v in box), float(score))
+        for box, score, c in zip(boxes, scores, classes, strict=True)
+    )

@@ -8,6 +8,9 @@ wrong channel order or a mirrored bearing shows at a glance.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 from PIL import Image, ImageDraw
 
@@ -44,10 +47,26 @@ RASTER_RIGHT_MARGIN = 24
 RANGE_TICKS_M = (0, 1, 2, 3, 4)
 BEARING_TICKS_DEG = tuple(range(0, ANGLE_COLUMNS, 45))
 LEGEND_LINE_PX = 20
+DASH_PX = 6  # the model's boxes are dashed, the labels solid
 
 
-def draw_raster_picture(sample: Sample, scale: int) -> Image.Image:
+@dataclass(frozen=True)
+class DetectedBox:
+    """One box the model found, in raster pixels (as ``Detection.box_px``), with its score."""
+
+    class_id: int
+    x1: float
+    y1: float
+    x2: float
+    y2: float
+    score: float
+
+
+def draw_raster_picture(sample: Sample, scale: int, detections: Sequence[DetectedBox] = ()) -> Image.Image:
     """The network's input as a picture: magnified RGB raster, axes, label boxes and a legend.
+
+    ``detections`` (the model's boxes) are drawn dashed beside the solid labels, tagged under the box
+    with class and score, so the two never hide each other's tags.
 
     Pixels are magnified by ``scale`` (nearest neighbour) and, for display only, grown by one screen
     pixel: a single lit raster pixel is otherwise hard to see at any sensible size. Boxes are drawn on
@@ -74,6 +93,10 @@ def draw_raster_picture(sample: Sample, scale: int) -> Image.Image:
     legend_width = canvas_w - ox - 16
     # Lay the legend out once off-screen to learn its height, then draw it for real.
     legend_items = _raster_legend_items(sample)
+    if detections:
+        legend_items.append(
+            (None, f"dashed: the model's {len(detections)} boxes, tagged under them with their score")
+        )
     probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
     legend_bottom = legend_flow(probe, legend_items, (0, 0), legend_width, font, LEGEND_LINE_PX)
     canvas_h = oy + height_px + 46 + legend_bottom + 16
@@ -82,6 +105,7 @@ def draw_raster_picture(sample: Sample, scale: int) -> Image.Image:
     image = _paste_lit_pixels(image, sample.tensor, scale)
     draw = ImageDraw.Draw(image)
     _draw_label_boxes(draw, sample.boxes, scale, small, canvas_w)
+    _draw_detected_boxes(draw, detections, scale, small, canvas_w)
     draw.text((ox, 12), title, font=title_font, fill=TEXT)
     draw.text((ox, oy + height_px + 24), caption, font=small, fill=MUTED)
     legend_flow(draw, legend_items, (ox, oy + height_px + 46), legend_width, font, LEGEND_LINE_PX)
@@ -156,6 +180,39 @@ def _draw_label_boxes(
         tag_left = min(left, canvas_w - tag_w - 2)
         draw.rectangle([tag_left, top - 15, tag_left + tag_w, top - 1], fill=colour)
         draw.text((tag_left + 3, top - 15), name, font=small, fill=BACKGROUND)
+
+
+def _draw_detected_boxes(
+    draw: ImageDraw.ImageDraw, boxes: Sequence[DetectedBox], scale: int, small: Font, canvas_w: int
+) -> None:
+    """Each of the model's boxes dashed in its class colour, tagged with class and score under it."""
+    line_width = 2 if scale >= 3 else 1
+    for box in boxes:
+        colour = CLASS_COLOURS[box.class_id]
+        left, top, right, bottom = _screen_rect(box, scale)
+        for x in range(left, right + 1, 2 * DASH_PX):
+            draw.line([x, top, min(x + DASH_PX - 1, right), top], fill=colour, width=line_width)
+            draw.line([x, bottom, min(x + DASH_PX - 1, right), bottom], fill=colour, width=line_width)
+        for y in range(top, bottom + 1, 2 * DASH_PX):
+            draw.line([left, y, left, min(y + DASH_PX - 1, bottom)], fill=colour, width=line_width)
+            draw.line([right, y, right, min(y + DASH_PX - 1, bottom)], fill=colour, width=line_width)
+        tag = f"{CLASS_NAMES[box.class_id]} {box.score:.2f}"
+        tag_left = min(left, canvas_w - round(text_width(small, tag)) - 8)  # kept inside the canvas
+        draw.rectangle(
+            [tag_left, bottom + 1, tag_left + text_width(small, tag) + 6, bottom + 15], fill=BACKGROUND
+        )
+        draw.text((tag_left + 3, bottom + 1), tag, font=small, fill=colour)
+
+
+def _screen_rect(box: DetectedBox, scale: int) -> tuple[int, int, int, int]:
+    """A raster box's (left, top, right, bottom) picture pixels: its exact bounds, magnified."""
+    ox, oy = RASTER_ORIGIN
+    return (
+        ox + round(box.x1 * scale),
+        oy + round(box.y1 * scale),
+        ox + round(box.x2 * scale) - 1,
+        oy + round(box.y2 * scale) - 1,
+    )
 
 
 def _raster_legend_items(sample: Sample) -> list[tuple[Colour | None, str]]:

@@ -60,6 +60,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
     p.add_argument(
+        "--snapshot", type=Path, default=None, metavar="DIR",
+        help="every few seconds, write each robot's newest frame as PNGs (raster with boxes, top-down map)",
+    )  # fmt: skip
+    p.add_argument(
         "--batch",
         type=int,
         default=None,
@@ -130,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
         settings=settings,
         verbose=args.verbose,
         replay=replay,
+        snapshot_dir=args.snapshot,
         **simulator_flags,  # type: ignore[arg-type]
     )
     return up(config, stop_event_on_signals())

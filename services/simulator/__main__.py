@@ -31,6 +31,7 @@ from services.runtime import (
     add_service_arguments,
     configure_logging,
     exit_code_of,
+    periodic_summary_level,
     service_parser,
     stop_event_on_signals,
 )
@@ -71,8 +72,12 @@ class RateSummary:
             f"{robot_id} {count} ({count / max(elapsed, 1e-9):.1f} Hz)"
             for robot_id, count in self._since_last.items()
         )
-        log.info(
-            "last %.1f s: scans published %s; skipped ticks so far %d", elapsed, rates, self.skipped_ticks
+        log.log(
+            logging.INFO if force else periodic_summary_level(),
+            "last %.1f s: scans published %s; skipped ticks so far %d",
+            elapsed,
+            rates,
+            self.skipped_ticks,
         )
         self._since_last = dict.fromkeys(self._since_last, 0)
         self._last_log = now
