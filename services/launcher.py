@@ -41,7 +41,7 @@ from common.transport import ZenohSettings, open_session
 from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
-from services.runtime import EXIT_WITH_PARENT_ENV
+from services.runtime import EXIT_WITH_PARENT_ENV, default_of
 from services.simulator.defaults import ROBOTS, SCAN_RATE_HZ, SIM_SEED
 
 log = logging.getLogger(__name__)
@@ -190,6 +190,8 @@ def replay_arguments(replay: ReplayConfig) -> list[str]:
         args += ["--robot", replay.robot]
     if replay.loop:
         args.append("--loop")
+    if replay.odom_topic != default_of(ReplayConfig, "odom_topic"):
+        args += ["--odom-topic", replay.odom_topic]
     return args
 
 

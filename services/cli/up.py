@@ -15,7 +15,13 @@ from services.cli.command import Command
 from services.runtime import default_of
 
 SIMULATOR_ONLY_FLAGS = {"robots": "--robots", "rate_hz": "--rate", "seed": "--seed"}
-REPLAY_ONLY_FLAGS = {"topic": "--topic", "robot": "--robot", "speed": "--speed", "loop": "--loop"}
+REPLAY_ONLY_FLAGS = {
+    "topic": "--topic",
+    "robot": "--robot",
+    "speed": "--speed",
+    "loop": "--loop",
+    "odom_topic": "--odom-topic",
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -76,6 +82,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"playback speed (default {default_of(ReplayConfig, 'speed'):g})",
     )
     replay.add_argument("--loop", action="store_true", default=None, help="replay until stopped")
+    replay.add_argument(
+        "--odom-topic",
+        default=None,
+        help="Odometry or /tf topic of the robot's pose (default: /odom, else /tf; none: no odometry)",
+    )
     add_zenoh_arguments(p)
 
 

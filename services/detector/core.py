@@ -245,6 +245,7 @@ class DetectorCore:
             ),
             model_id=self.detector.model_id,
             scan_stamp_ns=tensor.scan_stamps_ns[2],
+            odom=tensor.odom,
         )
 
 
