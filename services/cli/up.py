@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
 
 COMMAND = Command(
     "up",
-    "the full simulation loop: simulator, encoder, detector, visualizer as four processes",
+    "the full simulation loop: simulator, encoder, detector, tracker, visualizer as five processes",
     add_arguments,
     run,
     extras=("sim", "viz"),
