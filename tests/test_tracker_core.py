@@ -253,3 +253,13 @@ def test_bad_samples_are_counted_by_reason_and_good_ones_still_served() -> None:
     assert core.counters.rejected == {"bad_key": 1, "not_msgpack": 1, "robot_id_mismatch": 1}
     snapshot = core.snapshot()
     assert snapshot["received"] == 4 and snapshot["published"] == 1 and snapshot["tracks"] == 1
+
+
+def test_triscan_status_shows_the_trackers_counters() -> None:
+    from services.status import ServiceStatus, format_status
+
+    core = TrackerCore()
+    core.update(message(0, [det(2.0, 0.0)], pose(0.0, 0.0, 0.0)))
+    core.update(message(1, [det(2.0, 0.0)], pose(2.0, 0.0, 0.0)))
+    line = format_status([ServiceStatus("tracker", "123", True, core.snapshot())])
+    assert line.startswith("tracker") and "resets.odom_jump=1" in line and "tracks=1" in line
