@@ -26,7 +26,8 @@ SCAN: Final[str] = "scan"
 TENSOR: Final[str] = "tensor"
 DETECTIONS: Final[str] = "detections"
 TRUTH: Final[str] = "truth"
-TOPICS: Final[tuple[str, ...]] = (SCAN, TENSOR, DETECTIONS, TRUTH)
+TRACKS: Final[str] = "tracks"
+TOPICS: Final[tuple[str, ...]] = (SCAN, TENSOR, DETECTIONS, TRUTH, TRACKS)
 
 _CHUNK_RE: Final[re.Pattern[str]] = re.compile(ROBOT_ID_PATTERN)
 
@@ -87,6 +88,11 @@ def truth_key(robot_id: str, *, prefix: str = PREFIX) -> str:
     return _key(robot_id, TRUTH, prefix)
 
 
+def tracks_key(robot_id: str, *, prefix: str = PREFIX) -> str:
+    """Key on which the tracker publishes the tracks of ``robot_id``."""
+    return _key(robot_id, TRACKS, prefix)
+
+
 def wildcard_key(topic: str, *, prefix: str = PREFIX) -> str:
     """Key expression matching ``topic`` for every robot, so one service can serve a whole fleet."""
     if topic not in TOPICS:
@@ -98,6 +104,7 @@ ALL_SCANS: Final[str] = wildcard_key(SCAN)
 ALL_TENSORS: Final[str] = wildcard_key(TENSOR)
 ALL_DETECTIONS: Final[str] = wildcard_key(DETECTIONS)
 ALL_TRUTH: Final[str] = wildcard_key(TRUTH)
+ALL_TRACKS: Final[str] = wildcard_key(TRACKS)
 
 
 def parse_key(key: str, *, prefix: str = PREFIX) -> tuple[str, str]:

@@ -42,10 +42,20 @@ from pydantic_core import core_schema
 from common.keys import validate_robot_id
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS, TENSOR_SHAPE
 
-SCHEMA_VERSION: Final[int] = 1
+SCHEMA_VERSION: Final[int] = 2
+"""The newest schema this build writes and reads; it also reads every older one down to version 1.
+
+Version 2 added fields without changing any: ``odom`` (the robot's pose) on scans, tensors and
+detections, and the ``tracks`` message. A message built without an explicit version gets, and travels
+as, the *lowest* version that holds it, so a version-1 reader keeps reading every message without
+odometry, and the first one with odometry reaches it as "schema_version 2 is not supported (this
+build speaks 1)" rather than as an unknown field.
+"""
+SUPPORTED_SCHEMA_VERSIONS: Final[tuple[int, ...]] = (1, 2)
 MAX_PAYLOAD_BYTES: Final[int] = 4 * 1024 * 1024
 MAX_BEAMS: Final[int] = 8192
 MAX_TRUTH_OBJECTS: Final[int] = 64
+MAX_TRACKS: Final[int] = MAX_DETECTIONS
 
 # Unpacker limits: no legitimate message comes near them, and they stop a small hostile payload from
 # declaring a huge container that msgpack would pre-allocate before noticing the data is missing.
@@ -261,10 +271,44 @@ class WireModel(BaseModel):
         return all(_values_equal(getattr(self, n), getattr(other, n)) for n in type(self).model_fields)
 
 
+def _speaks() -> str:
+    return ", ".join(map(str, SUPPORTED_SCHEMA_VERSIONS))
+
+
+class Odometry(WireModel):
+    """The robot's pose in an odometry frame when its scan was taken: ``nav_msgs/Odometry``'s pose in 2D.
+
+    The pose is of the robot (``base_link``), as odometry reports it; consumers treat the laser as
+    sitting at the robot's origin, which a mount offset of a few centimetres keeps well inside any
+    tracking gate. Non-finite values are accepted on the wire, as in ``ranges``: a diverged filter
+    reports NaN and the scan it came with is still good, so the encoder and the tracker refuse the pose
+    (and count it), never the scan.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=True)
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    frame_id: str = Field(default="odom", min_length=1, max_length=256)
+    stamp_ns: NonNegInt
+
+    @property
+    def finite(self) -> bool:
+        return math.isfinite(self.x_m) and math.isfinite(self.y_m) and math.isfinite(self.yaw_rad)
+
+
 class Message(WireModel):
-    """A top-level message: one Zenoh sample. ``KIND`` names it on the wire."""
+    """A top-level message: one Zenoh sample. ``KIND`` names it on the wire.
+
+    ``MIN_VERSION`` is the schema version that introduced the kind, ``FIELD_VERSIONS`` the version
+    that introduced each optional field: a field left ``None`` is not written at all, so a message
+    that uses nothing newer is built, and travels, as the older version (:data:`SCHEMA_VERSION`).
+    """
 
     KIND: ClassVar[str] = ""
+    MIN_VERSION: ClassVar[int] = 1
+    FIELD_VERSIONS: ClassVar[dict[str, int]] = {}
 
     schema_version: int = SCHEMA_VERSION
     robot_id: RobotId
@@ -274,9 +318,27 @@ class Message(WireModel):
     @field_validator("schema_version")
     @classmethod
     def _known_version(cls, v: int) -> int:
-        if v != SCHEMA_VERSION:
-            raise ValueError(f"schema_version {v} is not supported (this build speaks {SCHEMA_VERSION})")
+        if v not in SUPPORTED_SCHEMA_VERSIONS:
+            raise ValueError(f"schema_version {v} is not supported (this build speaks {_speaks()})")
         return v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _lowest_version(cls, data: Any) -> Any:
+        # A message built without an explicit version gets the lowest that holds it (see SCHEMA_VERSION).
+        if isinstance(data, dict) and "schema_version" not in data:
+            used = [v for name, v in cls.FIELD_VERSIONS.items() if data.get(name) is not None]
+            data = {**data, "schema_version": max([cls.MIN_VERSION, *used])}
+        return data
+
+    @model_validator(mode="after")
+    def _fields_exist_in_version(self) -> Message:
+        if self.schema_version < self.MIN_VERSION:
+            raise ValueError(f"{self.KIND} messages need schema_version >= {self.MIN_VERSION}")
+        for name, version in self.FIELD_VERSIONS.items():
+            if getattr(self, name) is not None and self.schema_version < version:
+                raise ValueError(f"{name} needs schema_version >= {version}, got {self.schema_version}")
+        return self
 
 
 class Scan(Message):
@@ -286,6 +348,7 @@ class Scan(Message):
     """
 
     KIND: ClassVar[str] = "scan"
+    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2}
 
     angle_min: float
     angle_increment: float
@@ -293,6 +356,7 @@ class Scan(Message):
     range_max: float
     ranges: RangesArray
     frame_id: str = Field(default="laser", min_length=1, max_length=256)
+    odom: Odometry | None = None  # the robot's pose when the scan was taken, if the source knows it
 
     @field_validator("angle_increment")
     @classmethod
@@ -320,6 +384,7 @@ class StackedTensor(Message):
     """Three consecutive rasters stacked as the network input (channel 0 = t-2, 1 = t-1, 2 = t)."""
 
     KIND: ClassVar[str] = "tensor"
+    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2}
 
     tensor: TensorArray
     padding: Literal["zero", "wrap"]
@@ -327,6 +392,7 @@ class StackedTensor(Message):
     scan_seqs: tuple[NonNegInt, NonNegInt, NonNegInt]
     scan_stamps_ns: tuple[NonNegInt, NonNegInt, NonNegInt]
     encode_ms: NonNegFloat = 0.0  # the encoder's time for the newest scan (raster + stack), for Detections
+    odom: Odometry | None = None  # of the newest scan (scan t), copied from it
 
     @model_validator(mode="after")
     def _seq_is_newest(self) -> StackedTensor:
@@ -387,11 +453,13 @@ class Detections(Message):
     """
 
     KIND: ClassVar[str] = "detections"
+    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2}
 
     detections: list[Detection] = Field(max_length=MAX_DETECTIONS)
     timings: StageTimings
     model_id: str = Field(min_length=1, max_length=256)
     scan_stamp_ns: NonNegInt
+    odom: Odometry | None = None  # of scan t, copied from the tensor
     pose_stamp_ns: NonNegInt | None = None
 
     @model_validator(mode="after")
@@ -401,6 +469,61 @@ class Detections(Message):
                 f"pose_stamp_ns ({self.pose_stamp_ns}) is the middle scan's and cannot be newer than "
                 f"scan_stamp_ns ({self.scan_stamp_ns})"
             )
+        return self
+
+
+TrackState = Literal["tentative", "confirmed", "coasting"]
+TrackFrame = Literal["odom", "laser"]
+
+
+class Track(WireModel):
+    """One tracked object (services.tracker): a stable id, a smoothed class and a velocity.
+
+    ``x_m``/``y_m`` are in the laser frame of the scan the tracks were updated from; ``odom_x_m`` /
+    ``odom_y_m`` in the odometry frame when the scan carried odometry, else ``None``; the velocity is
+    in the tracks' ``frame``.
+    """
+
+    track_id: NonNegInt
+    class_id: ClassId
+    class_name: str
+    score: Annotated[float, Field(ge=0.0, le=1.0)]
+    x_m: float
+    y_m: float
+    odom_x_m: float | None = None
+    odom_y_m: float | None = None
+    vx_mps: float
+    vy_mps: float
+    age_s: NonNegFloat
+    hits: NonNegInt
+    misses: NonNegInt
+    state: TrackState
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Track:
+        _check_class(self.class_id, self.class_name)
+        if (self.odom_x_m is None) != (self.odom_y_m is None):
+            raise ValueError("odom_x_m and odom_y_m come together")
+        return self
+
+
+class Tracks(Message):
+    """The tracker's state for one robot after one detections message (``seq`` is that message's)."""
+
+    KIND: ClassVar[str] = "tracks"
+    MIN_VERSION: ClassVar[int] = 2
+
+    scan_stamp_ns: NonNegInt
+    frame: TrackFrame
+    tracks: list[Track] = Field(max_length=MAX_TRACKS)
+
+    @model_validator(mode="after")
+    def _odom_matches_frame(self) -> Tracks:
+        with_odom = [t.odom_x_m is not None for t in self.tracks]
+        if self.frame == "laser" and any(with_odom):
+            raise ValueError("laser-frame tracks carry no odom_x_m/odom_y_m")
+        if self.frame == "odom" and not all(with_odom):
+            raise ValueError("odom-frame tracks carry odom_x_m/odom_y_m")
         return self
 
 
@@ -439,7 +562,7 @@ class GroundTruth(Message):
 
 
 MESSAGE_TYPES: Final[dict[str, type[Message]]] = {
-    cls.KIND: cls for cls in (Scan, StackedTensor, Detections, GroundTruth)
+    cls.KIND: cls for cls in (Scan, StackedTensor, Detections, GroundTruth, Tracks)
 }
 
 M = TypeVar("M", bound=Message)
@@ -454,7 +577,8 @@ def encode_message(msg: Message) -> bytes:
     if not isinstance(msg, Message) or type(msg).KIND not in MESSAGE_TYPES:
         raise TypeError(f"only top-level messages can be encoded, got {type(msg).__name__}")
     body: dict[str, Any] = {"kind": type(msg).KIND}
-    body.update(msg.model_dump())
+    unset = {name for name in type(msg).FIELD_VERSIONS if getattr(msg, name) is None}
+    body.update(msg.model_dump(exclude=unset))
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -504,12 +628,12 @@ def decode_message(payload: bytes | bytearray | memoryview, expected: type[M]) -
     version = body.pop("schema_version", None)
     if version is None:
         raise MessageError(
-            "schema_version", f"{kind}: schema_version is missing (this build speaks {SCHEMA_VERSION})"
+            "schema_version", f"{kind}: schema_version is missing (this build speaks {_speaks()})"
         )
-    if type(version) is not int or version != SCHEMA_VERSION:
+    if type(version) is not int or version not in SUPPORTED_SCHEMA_VERSIONS:
         raise MessageError(
             "schema_version",
-            f"{kind}: schema_version {version!r} is not supported (this build speaks {SCHEMA_VERSION})",
+            f"{kind}: schema_version {version!r} is not supported (this build speaks {_speaks()})",
         )
     got_kind = body.pop("kind", None)
     if got_kind != kind:

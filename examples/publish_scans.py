@@ -28,6 +28,7 @@ import zenoh
 log = logging.getLogger("publish_scans")
 
 SCHEMA_VERSION = 1
+ODOM_SCHEMA_VERSION = 2  # a scan that carries odometry (the tracker keeps still objects still with it)
 
 
 # A stand-in room, ray-cast in closed form: solids as axis-aligned rectangles (x_min, y_min, x_max, y_max),
@@ -69,24 +70,31 @@ def read_scan(t: float) -> tuple[float, float, float, float, np.ndarray]:
     return -math.pi, 2 * math.pi / BEAMS, RANGE_MIN, RANGE_MAX, ranges.astype("<f4")
 
 
+def read_odometry(t: float) -> tuple[float, float, float] | None:
+    """Your robot's pose (x, y, yaw) in its odometry frame, or None without: this one turns in place."""
+    return 0.0, 0.0, 0.2 * t
+
+
 def scan_payload(robot_id: str, seq: int, stamp_ns: int, frame_id: str, t: float) -> bytes:
     angle_min, angle_increment, range_min, range_max, ranges = read_scan(t)
-    return msgpack.packb(
-        {
-            "kind": "scan",
-            "schema_version": SCHEMA_VERSION,
-            "robot_id": robot_id,
-            "seq": seq,
-            "stamp_ns": stamp_ns,
-            "angle_min": angle_min,
-            "angle_increment": angle_increment,
-            "range_min": range_min,
-            "range_max": range_max,
-            "ranges": {"dtype": "<f4", "shape": [len(ranges)], "data": ranges.tobytes()},
-            "frame_id": frame_id,
-        },
-        use_bin_type=True,
-    )
+    body = {
+        "kind": "scan",
+        "schema_version": SCHEMA_VERSION,
+        "robot_id": robot_id,
+        "seq": seq,
+        "stamp_ns": stamp_ns,
+        "angle_min": angle_min,
+        "angle_increment": angle_increment,
+        "range_min": range_min,
+        "range_max": range_max,
+        "ranges": {"dtype": "<f4", "shape": [len(ranges)], "data": ranges.tobytes()},
+        "frame_id": frame_id,
+    }
+    pose = read_odometry(t)
+    if pose is not None:
+        odom = {"x_m": pose[0], "y_m": pose[1], "yaw_rad": pose[2], "frame_id": "odom", "stamp_ns": stamp_ns}
+        body.update(schema_version=ODOM_SCHEMA_VERSION, odom=odom)
+    return msgpack.packb(body, use_bin_type=True)
 
 
 def main(config: zenoh.Config, robot_id: str, rate_hz: float, count: int, wait_s: float) -> None:

@@ -41,9 +41,11 @@ def main(config: zenoh.Config, key: str, count: int, stop: threading.Event) -> N
         if not isinstance(message, dict) or message.get("kind") != "detections":
             log.warning("skipping %s: not a detections message", sample.key_expr)
             return
-        if message.get("schema_version") != 1:
+        if message.get("schema_version") not in (1, 2):  # 2 adds the robot's pose (`odom`), nothing else
             log.warning(
-                "skipping %s: schema %s, this reader knows 1", sample.key_expr, message.get("schema_version")
+                "skipping %s: schema %s, this reader knows 1 and 2",
+                sample.key_expr,
+                message.get("schema_version"),
             )
             return
         log.info("%s", describe(message))

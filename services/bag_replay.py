@@ -12,6 +12,10 @@ recordings (a file or its directory).
   kept. With ``--loop`` each pass shifts the stamps by the bag's length, so they keep increasing and
   the encoder sees one continuous stream. LaserScans the bridge would refuse are counted by reason and
   skipped (the same rules as :mod:`services.ros2_bridge.laser_scan`).
+* **Odometry**: each scan carries the robot's newest pose from ``nav_msgs/Odometry`` on ``/odom``, or,
+  without it, from ``/tf`` (odom → base_link), when the bags hold either; ``--odom-topic`` names
+  another topic (of either type), ``--odom-topic none`` replays without. Poses refused (NaN, stale)
+  are counted under ``odometry`` in the stats (:mod:`services.ros2_bridge.odometry`).
 * **Pace**: messages go out at their recorded (bag) times divided by ``--speed``.
 * **As a service** (``python -m services.bag_replay``, which ``triscan up --replay`` starts instead of
   the simulator): it holds the health token ``triscan/@health/replay/<pid>`` while it plays and
@@ -41,6 +45,13 @@ from common.keys import scan_key, validate_robot_id
 from common.messages import Scan, encode_message
 from common.transport import ZenohSettings, add_zenoh_arguments, settings_from_args
 from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
+from services.ros2_bridge.odometry import (
+    ODOMETRY,
+    TF_MESSAGE,
+    OdometryPairing,
+    odometry_of_message,
+    odometry_of_tf,
+)
 from services.runtime import (
     ServiceRuntime,
     configure_logging,
@@ -55,6 +66,9 @@ log = logging.getLogger(__name__)
 SERVICE: Final[str] = "replay"  # its health token and stats name
 DEFAULT_ROBOT: Final[str] = "replay"
 DEFAULT_WAIT_S: Final[float] = 10.0
+ODOM_AUTO: Final[str] = "auto"  # /odom (nav_msgs/Odometry) if the bags have it, else /tf, else none
+ODOM_NONE: Final[str] = "none"
+_ODOM_DEFAULTS: Final[tuple[tuple[str, str], ...]] = (("/odom", ODOMETRY), ("/tf", TF_MESSAGE))
 _NOT_IN_ID: Final[re.Pattern[str]] = re.compile(r"[^A-Za-z0-9_-]+")
 
 
@@ -70,6 +84,7 @@ class ReplayConfig:
     speed: float = 1.0
     loop: bool = False
     progress: bool = True
+    odom_topic: str = ODOM_AUTO
 
     def __post_init__(self) -> None:
         if not self.bags:
@@ -84,6 +99,8 @@ class ReplaySummary:
     passes: int = 0
     robots: dict[str, str] = field(default_factory=dict)  # topic → robot id
     rejected: Counter[str] = field(default_factory=Counter)
+    odometry: OdometryPairing = field(default_factory=OdometryPairing)
+    odom_topic: str | None = None
 
 
 def robot_id_of_topic(topic: str) -> str:
@@ -149,6 +166,26 @@ def scan_connections(reader: Any, topics: Sequence[str]) -> list[Any]:
     return scans
 
 
+def odom_connection(reader: Any, odom_topic: str) -> Any | None:
+    """The connection the poses come from (see :data:`ODOM_AUTO`), or None to replay without them."""
+    if odom_topic == ODOM_NONE:
+        return None
+    usable = [c for c in reader.connections if c.msgtype in (ODOMETRY, TF_MESSAGE)]
+    if odom_topic != ODOM_AUTO:
+        named = [c for c in usable if c.topic == odom_topic]
+        if not named:
+            raise ReplayError(
+                f"no nav_msgs/Odometry or tf2_msgs/TFMessage topic {odom_topic!r} in the bags; they have "
+                f"{sorted({c.topic for c in usable}) or 'none'}"
+            )
+        return named[0]
+    for topic, msgtype in _ODOM_DEFAULTS:
+        for connection in usable:
+            if connection.topic == topic and connection.msgtype == msgtype:
+                return connection
+    return None
+
+
 def replay(
     config: ReplayConfig,
     publish: Callable[[str, bytes], None],
@@ -167,9 +204,14 @@ def replay(
     with _open_reader(config.bags) as reader:
         connections = scan_connections(reader, config.topics)
         summary.robots = robots_for(sorted({c.topic for c in connections}), config.robot)
+        odom = odom_connection(reader, config.odom_topic)
+        if odom is not None:
+            summary.odom_topic = odom.topic
+            connections = [*connections, odom]
+            log.info("odometry from %s (%s)", odom.topic, odom.msgtype)
         next_seq = dict.fromkeys(summary.robots.values(), 0)
         span_ns = reader.end_time - reader.start_time + 1
-        total = sum(c.msgcount for c in connections)
+        total = sum(c.msgcount for c in connections if c.topic != summary.odom_topic)
         bar = _progress(None if config.loop else total, config.progress)
         try:
             while not stop.is_set():
@@ -209,6 +251,9 @@ def _one_pass(
         delay = started + (log_time_ns - first_ns) / 1e9 / config.speed - clock()
         if delay > 0:
             sleep(delay)
+        if connection.topic == summary.odom_topic:
+            _update_odometry(summary.odometry, reader.deserialize(raw, connection.msgtype), stamp_offset_ns)
+            continue
         robot_id = summary.robots[connection.topic]
         try:
             scan = to_triscan_scan(fields_of_message(reader.deserialize(raw, connection.msgtype)), robot_id,
@@ -220,7 +265,16 @@ def _one_pass(
         if stamp_offset_ns:
             scan = scan.model_copy(update={"stamp_ns": scan.stamp_ns + stamp_offset_ns})
         next_seq[robot_id] += 1
-        yield scan
+        yield summary.odometry.attach(scan)
+
+
+def _update_odometry(pairing: OdometryPairing, message: Any, stamp_offset_ns: int) -> None:
+    pose = odometry_of_tf(message) if hasattr(message, "transforms") else odometry_of_message(message)
+    if pose is None:  # a /tf message about other frames
+        return
+    if stamp_offset_ns:
+        pose = pose.model_copy(update={"stamp_ns": pose.stamp_ns + stamp_offset_ns})
+    pairing.update(pose)
 
 
 class _NoBar:
@@ -298,6 +352,7 @@ def summary_counters(summary: ReplaySummary) -> dict[str, object]:
         "passes": summary.passes,
         "robots": len(summary.robots),
         "rejected": dict(summary.rejected),
+        "odometry": summary.odometry.counters(),
     }
 
 
@@ -320,6 +375,12 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--loop", action="store_true", help="start over at the end, until stopped")
     parser.add_argument(
+        "--odom-topic",
+        default=ODOM_AUTO,
+        help="nav_msgs/Odometry or tf2_msgs/TFMessage topic of the robot's pose "
+        f"(default {ODOM_AUTO}: /odom, else /tf; {ODOM_NONE}: no odometry)",
+    )
+    parser.add_argument(
         "--wait", type=float, default=DEFAULT_WAIT_S, help="seconds to wait for a subscriber first"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -334,6 +395,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         speed=args.speed,
         loop=args.loop,
         progress=not args.no_progress,
+        odom_topic=args.odom_topic,
     )
 
 

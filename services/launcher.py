@@ -1,6 +1,6 @@
-"""``triscan up``: the whole simulation loop as four separate processes on this machine.
+"""``triscan up``: the whole simulation loop as five separate processes on this machine.
 
-simulator → encoder → detector → visualizer, each its own Python process talking Zenoh peer to peer
+simulator → encoder → detector → tracker → visualizer, each its own Python process talking Zenoh peer to peer
 over loopback: every child listens on its own 127.0.0.1 port and is given every other child's port
 (and the launcher's) as explicit ``--connect`` endpoints, with multicast scouting off, so nothing
 depends on the local network or an external router. The launcher is one more peer: it watches the
@@ -57,14 +57,20 @@ from services.bag_replay import SERVICE as REPLAY
 from services.bag_replay import ReplayConfig, replay_robots
 from services.detector.batch_cap import detector_model_and_batch
 from services.run_summary import RunSummary
-from services.runtime import EXIT_WITH_PARENT_ENV, PERIODIC_SUMMARY_ENV, SUMMARY_PERIOD_S, USAGE_EXIT
+from services.runtime import (
+    EXIT_WITH_PARENT_ENV,
+    PERIODIC_SUMMARY_ENV,
+    SUMMARY_PERIOD_S,
+    USAGE_EXIT,
+    default_of,
+)
 from services.simulator.defaults import ROBOTS, SIM_PEOPLE, SIM_SEED
 from services.simulator.sensors import DEFAULT_PROFILE, check_sensor
 
 log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # where other apps on this machine join the loop
-SERVICES = ("simulator", "encoder", "detector", "visualizer")
+SERVICES = ("simulator", "encoder", "detector", "tracker", "visualizer")
 MODULES = {REPLAY: "services.bag_replay"}  # a child's module, where it is not services.<name>
 STOP_GRACE_S = 5.0
 READY_TIMEOUT_S = 60.0
@@ -197,6 +203,7 @@ def service_commands(
             *(("--model", str(config.model)) if config.model else ()),
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
         ],
+        "tracker": [],
         "visualizer": sink,
     }
     commands = {}
@@ -234,6 +241,8 @@ def replay_arguments(replay: ReplayConfig) -> list[str]:
         args += ["--robot", replay.robot]
     if replay.loop:
         args.append("--loop")
+    if replay.odom_topic != default_of(ReplayConfig, "odom_topic"):
+        args += ["--odom-topic", replay.odom_topic]
     return args
 
 

@@ -148,3 +148,106 @@ def test_replay_refuses_what_it_cannot_do(tmp_path: Path, capsys: pytest.Capture
     with pytest.raises(ReplayError, match="no LaserScan topic"):
         replay(ReplayConfig(bags=(bag,), topics=("/chatter",), progress=False), lambda k, p: None)
     assert cli_main(["replay", str(bag), "--robot", "r1", "--no-multicast", "--wait", "0"]) == 2
+
+
+def _stamp(store: Any, ns: int) -> Any:
+    return store.types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+
+
+def _header(store: Any, ns: int, frame_id: str) -> Any:
+    fields: dict[str, Any] = {"stamp": _stamp(store, ns), "frame_id": frame_id}
+    if "seq" in {name for name, _ in store.fielddefs["std_msgs/msg/Header"][1]}:
+        fields["seq"] = 0
+    return store.types["std_msgs/msg/Header"](**fields)
+
+
+def _pose_parts(store: Any, i: int) -> tuple[float, float, Any]:
+    """The robot's pose at tick i: driving along x, turning slowly; tick 3 is NaN (a diverged filter)."""
+    x = float("nan") if i == 3 else 0.1 * i
+    yaw = 0.05 * i
+    quaternion = store.types["geometry_msgs/msg/Quaternion"](
+        x=0.0, y=0.0, z=np.sin(yaw / 2), w=np.cos(yaw / 2)
+    )
+    return x, yaw, quaternion
+
+
+def _odom_message(store: Any, i: int, ns: int) -> Any:
+    t = store.types
+    x, _, quaternion = _pose_parts(store, i)
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=x, y=0.5, z=0.0), orientation=quaternion
+    )
+    twist = t["geometry_msgs/msg/Twist"](
+        linear=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        angular=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+    )
+    return t["nav_msgs/msg/Odometry"](
+        header=_header(store, ns, "odom"),
+        child_frame_id="base_link",
+        pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
+
+
+def _tf_message(store: Any, i: int, ns: int) -> Any:
+    t = store.types
+    x, _, quaternion = _pose_parts(store, i)
+
+    def transform(parent: str, child: str, tx: float) -> Any:
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=_header(store, ns, parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=tx, y=0.5, z=0.0), rotation=quaternion
+            ),
+        )
+
+    # Another frame pair first: only odom → base_link is the robot's pose.
+    return t["tf2_msgs/msg/TFMessage"](
+        transforms=[transform("base_link", "laser", 9.0), transform("odom", "base_link", x)]
+    )
+
+
+@pytest.mark.parametrize(("fmt", "source"), [("bag", "/odom"), ("mcap", "/odom"), ("mcap", "/tf")])
+def test_replay_pairs_each_scan_with_the_newest_pose_and_refuses_nan(
+    tmp_path: Path, fmt: str, source: str
+) -> None:
+    if fmt == "bag":
+        store, serialize = get_typestore(Stores.ROS1_NOETIC), None
+        path = tmp_path / "odom.bag"
+        writer: Any = Rosbag1Writer(path)
+    else:
+        store, serialize = get_typestore(Stores.ROS2_JAZZY), None
+        path = tmp_path / "odom_mcap"
+        writer = Rosbag2Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    serialize = store.serialize_ros1 if fmt == "bag" else store.serialize_cdr
+    msgtype = "nav_msgs/msg/Odometry" if source == "/odom" else "tf2_msgs/msg/TFMessage"
+    make = _odom_message if source == "/odom" else _tf_message
+    with writer:
+        scans = writer.add_connection("/scan", LASER_SCAN, typestore=store)
+        poses = writer.add_connection(source, msgtype, typestore=store)
+        for i in range(SCANS):
+            ns = T0_NS + i * PERIOD_NS
+            writer.write(
+                poses, ns - 1_000_000, serialize(make(store, i, ns - 1_000_000), msgtype)
+            )  # 1 ms before
+            writer.write(scans, ns, serialize(_scan_message(store, i, "laser"), LASER_SCAN))
+    out: list[Scan] = []
+    summary = replay(
+        ReplayConfig(bags=(path,), speed=100.0, progress=False),
+        lambda key, payload: out.append(decode_message(payload, Scan)),
+    )
+    assert summary.odom_topic == source and summary.published == SCANS
+    assert summary.odometry.counters() == {"attached": SCANS, "refused": {"not_finite": 1}}
+    for i, scan in enumerate(out):
+        assert scan.odom is not None and scan.odom.frame_id == "odom"
+        expected = i - 1 if i == 3 else i  # the NaN pose is refused: the scan keeps the one before
+        assert scan.odom.x_m == pytest.approx(0.1 * expected) and scan.odom.y_m == pytest.approx(0.5)
+        assert scan.odom.yaw_rad == pytest.approx(0.05 * expected)
+        assert scan.odom.stamp_ns == T0_NS + expected * PERIOD_NS - 1_000_000
+    plain = replay(
+        ReplayConfig(bags=(path,), speed=100.0, progress=False, odom_topic="none"), lambda k, p: None
+    )
+    assert plain.odom_topic is None and plain.odometry.attached == 0
+    with pytest.raises(ReplayError, match="no nav_msgs/Odometry"):
+        replay(ReplayConfig(bags=(path,), progress=False, odom_topic="/scan"), lambda k, p: None)

@@ -11,7 +11,7 @@ import pytest
 
 from common.inference import OnnxDetector
 from common.keys import tensor_key
-from common.messages import Detections, StackedTensor, decode_message, encode_message
+from common.messages import Detections, Odometry, StackedTensor, decode_message, encode_message
 from common.model_spec import SHIPPED_FP32_MODEL, batch_variant_path
 from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
 from services.encoder.core import EncoderCore
@@ -194,9 +194,21 @@ def test_a_batch_gives_each_robot_what_it_would_get_alone(
             one.scan_stamp_ns,
         )
         assert batched.detections == one.detections
+        assert batched.odom is None  # these tensors carry no odometry
     # One shared call: every frame of the batch reports the same inference time.
     assert len({m.timings.inference_ms for m in together}) == 1
     assert core.detect_many([]) == [] and core.counters.inference_calls == 1
+
+
+def test_the_detections_carry_the_tensors_odometry(
+    detector: OnnxDetector, replayed_tensors: list[tuple[StackedTensor, list]]
+) -> None:
+    tensor = replayed_tensors[0][0]
+    odom = Odometry(x_m=3.0, y_m=-1.0, yaw_rad=0.5, frame_id="odom", stamp_ns=tensor.stamp_ns)
+    with_odom = StackedTensor(**{**tensor.model_dump(), "schema_version": 2, "odom": odom})
+    message = DetectorCore(detector).detect_many([with_odom])[0]
+    assert message.odom == odom and message.schema_version == 2
+    assert decode_message(encode_message(message), Detections).odom == odom
 
 
 def test_default_threads_leave_a_core_to_the_encoder_in_the_same_process() -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.encoding import ScanError, ScanStacker, encode_scan
-from common.messages import Scan, StackedTensor, decode_message, encode_message
+from common.messages import Odometry, Scan, StackedTensor, decode_message, encode_message
 from services.encoder.core import EncoderCore
 
 DEG = math.radians(1.0)
@@ -238,3 +238,23 @@ def test_a_lost_scan_of_a_fast_sensor_is_a_gap_among_the_stacked_ones() -> None:
         if s.seq != lost:
             core.push(s)
     assert core.counters.gaps == 1
+
+
+def with_odom(s: Scan, odom: Odometry) -> Scan:
+    return Scan(**{**s.model_dump(exclude={"schema_version"}), "odom": odom})
+
+
+def test_odometry_of_the_newest_scan_travels_into_the_tensor_and_a_nan_pose_is_refused_alone() -> None:
+    core = EncoderCore("zero")
+    poses = [Odometry(x_m=0.1 * i, y_m=0.0, yaw_rad=0.0, stamp_ns=i) for i in range(3)]
+    out = [core.push(with_odom(scan("r1", i), poses[i])) for i in range(3)]
+    tensor = out[2]
+    assert tensor is not None and tensor.odom == poses[2]
+    assert decode_message(encode_message(tensor), StackedTensor).odom == poses[2]
+    nan_pose = Odometry(x_m=float("nan"), y_m=0.0, yaw_rad=0.0, stamp_ns=3)
+    payload = encode_message(with_odom(scan("r1", 3), nan_pose))
+    kept = core.handle_payload(payload, "r1")
+    assert kept is not None and kept.odom is None and kept.seq == 3
+    assert core.counters.odom_not_finite == 1 and not core.counters.rejected
+    without = core.push(scan("r1", 4))
+    assert without is not None and without.odom is None

@@ -86,6 +86,7 @@ def test_publish_scans_example_writes_the_scan_wire_format() -> None:
         assert not bad, bad[:3]
         assert [s.seq for s in scans] == list(range(SCANS)) and {s.robot_id for s in scans} == {ROBOT}
         assert scans[0].ranges.shape == (360,) and scans[0].frame_id == "laser"
+        assert all(s.odom is not None and s.odom.frame_id == "odom" for s in scans)  # the stand-in's pose
 
 
 @pytest.mark.slow

@@ -9,6 +9,7 @@ from common.keys import (
     ALL_DETECTIONS,
     ALL_SCANS,
     ALL_TENSORS,
+    ALL_TRACKS,
     ALL_TRUTH,
     PREFIX,
     ROBOT_ID_MAX_LEN,
@@ -17,6 +18,7 @@ from common.keys import (
     parse_key,
     scan_key,
     tensor_key,
+    tracks_key,
     truth_key,
     validate_robot_id,
     wildcard_key,
@@ -29,6 +31,7 @@ def test_builders_follow_spec_layout() -> None:
     assert tensor_key("tb3_0") == "triscan/tb3_0/tensor"
     assert detections_key("tb3_0") == "triscan/tb3_0/detections"
     assert truth_key("tb3_0") == "triscan/tb3_0/truth"
+    assert tracks_key("tb3_0") == "triscan/tb3_0/tracks"
 
 
 def test_wildcards() -> None:
@@ -36,6 +39,7 @@ def test_wildcards() -> None:
     assert ALL_TENSORS == "triscan/*/tensor"
     assert ALL_DETECTIONS == "triscan/*/detections"
     assert ALL_TRUTH == "triscan/*/truth"
+    assert ALL_TRACKS == "triscan/*/tracks"
     assert wildcard_key("scan", prefix="lab/triscan") == "lab/triscan/*/scan"
     with pytest.raises(ValueError, match="unknown topic"):
         wildcard_key("lidar")
@@ -83,9 +87,13 @@ def test_validate_robot_id_type() -> None:
 
 @pytest.mark.parametrize("topic", TOPICS)
 def test_parse_key_inverts_builders(topic: str) -> None:
-    builder = {"scan": scan_key, "tensor": tensor_key, "detections": detections_key, "truth": truth_key}[
-        topic
-    ]
+    builder = {
+        "scan": scan_key,
+        "tensor": tensor_key,
+        "detections": detections_key,
+        "truth": truth_key,
+        "tracks": tracks_key,
+    }[topic]
     assert parse_key(builder("tb3-1")) == ("tb3-1", topic)
     assert parse_key(builder("r", prefix="lab/triscan"), prefix="lab/triscan") == ("r", topic)
 
@@ -116,4 +124,4 @@ def test_parse_key_respects_prefix() -> None:
 
 
 def test_topics_are_the_spec_topics() -> None:
-    assert set(keys.TOPICS) == {"scan", "tensor", "detections", "truth"}
+    assert set(keys.TOPICS) == {"scan", "tensor", "detections", "truth", "tracks"}

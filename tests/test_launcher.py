@@ -20,7 +20,7 @@ def test_free_ports_are_distinct() -> None:
 
 
 def test_every_child_listens_on_its_own_port_and_connects_to_all_others() -> None:
-    ports = dict(zip(SERVICES, (7001, 7002, 7003, 7004), strict=True))
+    ports = dict(zip(SERVICES, (7001, 7002, 7003, 7004, 7005), strict=True))
     commands = service_commands(UpConfig(headless=True, rrd_path=Path("x.rrd")), ports, 7447)
     assert set(commands) == set(SERVICES)
     for name, command in commands.items():
@@ -36,7 +36,7 @@ def test_every_child_listens_on_its_own_port_and_connects_to_all_others() -> Non
 
 
 def test_viewer_choices() -> None:
-    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    ports = dict(zip(SERVICES, (1, 2, 3, 4, 5), strict=True))
     assert "--serve-web" in service_commands(UpConfig(viewer="web"), ports, None)["visualizer"]
     assert "--spawn" in service_commands(UpConfig(viewer="spawn"), ports, None)["visualizer"]
     assert "visualizer" not in service_commands(UpConfig(viewer="none"), ports, None)
@@ -51,7 +51,7 @@ def test_encoder_padding_and_invalid_rule_follow_the_model(tmp_path: Path) -> No
     model.metadata_props.add(key="triscan.invalid", value="empty")
     wrap_model = tmp_path / "wrap.onnx"
     onnx.save(model, str(wrap_model))
-    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    ports = dict(zip(SERVICES, (1, 2, 3, 4, 5), strict=True))
     commands = service_commands(UpConfig(model=wrap_model, viewer="none"), ports, None)
     assert flag_values(commands["encoder"], "--padding") == ["wrap"]
     assert flag_values(commands["encoder"], "--invalid") == ["empty"]
@@ -66,7 +66,7 @@ def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything
 
     from services.launcher import up
 
-    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    ports = dict(zip(SERVICES, (1, 2, 3, 4, 5), strict=True))
     assert flag_values(service_commands(UpConfig(viewer="none"), ports, None)["detector"], "--batch") == []
     batched = service_commands(UpConfig(viewer="none", batch=8), ports, None)["detector"]
     assert flag_values(batched, "--batch") == ["8"] and flag_values(batched, "--model") == []
@@ -83,10 +83,10 @@ def test_a_replay_replaces_the_simulator_and_gets_its_flags(tmp_path: Path) -> N
     bags = (tmp_path / "a.bag", tmp_path / "b.bag")
     replay = ReplayConfig(bags=bags, topics=("/front/scan",), robot="r7", speed=2.5, loop=True)
     config = UpConfig(viewer="none", replay=replay)
-    assert config.services == ("replay", "encoder", "detector", "visualizer")
-    ports = dict(zip(config.services, (1, 2, 3, 4), strict=True))
+    assert config.services == ("replay", "encoder", "detector", "tracker", "visualizer")
+    ports = dict(zip(config.services, (1, 2, 3, 4, 5), strict=True))
     commands = service_commands(config, ports, None)
-    assert set(commands) == {"replay", "encoder", "detector"}
+    assert set(commands) == {"replay", "encoder", "detector", "tracker"}
     command = commands["replay"]
     assert command[1:5] == ["-m", "services.bag_replay", str(bags[0]), str(bags[1])]
     assert flag_values(command, "--topic") == ["/front/scan"] and flag_values(command, "--robot") == ["r7"]

@@ -19,15 +19,19 @@ from common.messages import (
     MAX_DETECTIONS,
     MAX_PAYLOAD_BYTES,
     SCHEMA_VERSION,
+    SUPPORTED_SCHEMA_VERSIONS,
     TENSOR_SHAPE,
     Detection,
     Detections,
     GroundTruth,
     Message,
     MessageError,
+    Odometry,
     Scan,
     StackedTensor,
     StageTimings,
+    Track,
+    Tracks,
     TruthObject,
     decode_message,
     encode_message,
@@ -145,6 +149,46 @@ def make_truth(**overrides: Any) -> GroundTruth:
     return GroundTruth(**fields)
 
 
+def make_odom(**overrides: Any) -> Odometry:
+    fields: dict[str, Any] = {"x_m": 1.5, "y_m": -0.25, "yaw_rad": 0.3, "stamp_ns": 88}
+    fields.update(overrides)
+    return Odometry(**fields)
+
+
+def track(**overrides: Any) -> Track:
+    fields: dict[str, Any] = {
+        "track_id": 7,
+        "class_id": 4,
+        "class_name": "person",
+        "score": 0.8,
+        "x_m": 1.0,
+        "y_m": 0.5,
+        "odom_x_m": 2.0,
+        "odom_y_m": 1.5,
+        "vx_mps": 0.4,
+        "vy_mps": -0.1,
+        "age_s": 1.2,
+        "hits": 12,
+        "misses": 0,
+        "state": "confirmed",
+    }
+    fields.update(overrides)
+    return Track(**fields)
+
+
+def make_tracks(**overrides: Any) -> Tracks:
+    fields: dict[str, Any] = {
+        "robot_id": "tb3_0",
+        "seq": 12,
+        "stamp_ns": 100,
+        "scan_stamp_ns": 90,
+        "frame": "odom",
+        "tracks": [track(), track(track_id=8, class_id=0, class_name="chair", state="tentative")],
+    }
+    fields.update(overrides)
+    return Tracks(**fields)
+
+
 def body_of(msg: Message) -> dict[str, Any]:
     """The unpacked wire map, to forge payloads that differ from a valid one in exactly one place."""
     return msgpack.unpackb(encode_message(msg), raw=False)
@@ -172,7 +216,19 @@ def expect_error(payload: Any, expected: type[Message], reason: str, *fragments:
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("factory", [make_scan, make_tensor, make_detections, make_truth])
+@pytest.mark.parametrize(
+    "factory",
+    [
+        make_scan,
+        make_tensor,
+        make_detections,
+        make_truth,
+        make_tracks,
+        lambda: make_scan(odom=make_odom()),
+        lambda: make_tensor(odom=make_odom(frame_id="odom_combined")),
+        lambda: make_detections(odom=make_odom()),
+    ],
+)
 def test_round_trip_is_exact(factory: Callable[[], Message]) -> None:
     msg = factory()
     decoded = decode_message(encode_message(msg), type(msg))
@@ -212,7 +268,7 @@ def test_truth_corners_round_trip() -> None:
 def test_wire_map_has_kind_version_and_array_maps() -> None:
     body = body_of(make_scan())
     assert body["kind"] == "scan"
-    assert body["schema_version"] == SCHEMA_VERSION
+    assert body["schema_version"] == 1  # nothing newer in it: a version-1 reader still reads it
     assert body["ranges"]["dtype"] == "<f4"
     assert body["ranges"]["shape"] == [360]
     assert isinstance(body["ranges"]["data"], bytes) and len(body["ranges"]["data"]) == 1440
@@ -294,7 +350,8 @@ def test_model_is_decoupled_from_callers_array() -> None:
         ({"angle_increment": 2 * DEG}, "field of view"),
         ({"robot_id": "a/b"}, "robot_id"),
         ({"seq": -1}, "seq"),
-        ({"schema_version": 2}, "schema_version"),
+        ({"schema_version": 3}, "schema_version"),
+        ({"schema_version": 1, "odom": make_odom()}, "odom needs schema_version >= 2"),
         ({"frame_id": ""}, "frame_id"),
     ],
 )
@@ -361,6 +418,59 @@ def test_models_are_frozen_and_forbid_extra() -> None:
         make_scan(intensities=np.ones(360, dtype=np.float32))
 
 
+def test_messages_travel_as_the_lowest_version_that_holds_them() -> None:
+    """Odometry and tracks are version 2; everything else stays readable by a version-1 build."""
+    assert SCHEMA_VERSION == max(SUPPORTED_SCHEMA_VERSIONS) == 2
+    for plain in (make_scan(), make_tensor(), make_detections(), make_truth()):
+        body = body_of(plain)
+        assert body["schema_version"] == 1 and "odom" not in body
+    for newer in (make_scan(odom=make_odom()), make_detections(odom=make_odom()), make_tracks()):
+        assert body_of(newer)["schema_version"] == 2
+    assert body_of(make_scan(odom=make_odom()))["odom"] == {
+        "x_m": 1.5,
+        "y_m": -0.25,
+        "yaw_rad": 0.3,
+        "frame_id": "odom",
+        "stamp_ns": 88,
+    }
+    # A version-2 payload without odometry (another build chose to write 2) is read as such.
+    assert decode_message(with_field(make_scan(), schema_version=2), Scan).schema_version == 2
+
+
+def test_old_readers_refuse_odometry_by_version_not_by_field() -> None:
+    """What a version-1 build does with a version-2 payload: its check names the version."""
+    payload = encode_message(make_scan(odom=make_odom()))
+    body = msgpack.unpackb(payload)
+    assert body["schema_version"] == 2  # a v1 reader stops here: "schema_version 2 is not supported"
+    expect_error(with_field(make_scan(odom=make_odom()), schema_version=1), Scan, "invalid", "odom", ">= 2")
+    expect_error(with_field(make_tracks(), schema_version=1), Tracks, "invalid", "tracks", ">= 2")
+
+
+def test_odometry_may_be_non_finite_on_the_wire() -> None:
+    """A diverged filter's NaN pose must not cost the scan: consumers refuse the pose, not the message."""
+    scan = decode_message(encode_message(make_scan(odom=make_odom(x_m=float("nan")))), Scan)
+    assert scan.odom is not None and not scan.odom.finite
+    assert make_odom().finite
+
+
+@pytest.mark.parametrize(
+    ("factory", "fragment"),
+    [
+        (lambda: track(class_name="chair"), "class_name"),
+        (lambda: track(state="lost"), "state"),
+        (lambda: track(odom_y_m=None), "together"),
+        (lambda: track(x_m=float("nan")), "x_m"),
+        (lambda: make_tracks(frame="laser"), "laser-frame"),
+        (lambda: make_tracks(tracks=[track(odom_x_m=None, odom_y_m=None)]), "odom-frame"),
+        (lambda: make_tracks(frame="map"), "frame"),
+        (lambda: make_odom(frame_id=""), "frame_id"),
+    ],
+)
+def test_track_models_reject(factory: Callable[[], Any], fragment: str) -> None:
+    with pytest.raises(ValidationError, match=fragment):
+        factory()
+
+
 def test_class_names() -> None:
     assert CLASS_NAMES == ("chair", "box", "desk", "doorframe", "person")
     assert CLASS_NAMES[: len(FURNITURE_CLASSES)] == FURNITURE_CLASSES == ("chair", "box", "desk", "doorframe")
@@ -410,7 +520,7 @@ def test_shape_byte_length_mismatch_message_is_exact() -> None:
         (pack(7), "not_a_map", ("int",)),
         (encode_message(make_tensor()), "wrong_kind", ("'tensor'", "'scan'")),
         (without(make_scan(), "kind"), "wrong_kind", ("None",)),
-        (with_field(make_scan(), schema_version=2), "schema_version", ("2", "speaks 1")),
+        (with_field(make_scan(), schema_version=3), "schema_version", ("3", "speaks 1, 2")),
         (with_field(make_scan(), schema_version="1"), "schema_version", ("'1'",)),
         (with_field(make_scan(), schema_version=True), "schema_version", ("True",)),
         (without(make_scan(), "schema_version"), "schema_version", ("missing",)),

@@ -17,6 +17,7 @@ from common.keys import detections_key, scan_key
 from common.messages import Detections, Scan, StageTimings, decode_message, encode_message
 from services.ros2_bridge.core import BridgeConfig, BridgeCore
 from services.ros2_bridge.laser_scan import parse_laser_scan_cdr
+from services.ros2_bridge.odometry import ODOMETRY
 from services.ros2_bridge.rmw_zenoh import (
     ATTACHMENT_SIZE,
     AttachmentError,
@@ -436,3 +437,77 @@ def test_real_sensor_geometries_pass_the_bridge_and_light_the_right_columns(sens
     assert raster[-1, expected].all() and not raster[:-1].any()
     if fov < 2 * math.pi:  # a partial field of view leaves the columns behind the sensor dark
         assert len(lit) < ANGLE_COLUMNS
+
+
+# -- the core: odometry --------------------------------------------------------------------------
+
+
+def _odometry_cdr(x: float, yaw: float, stamp_ns: int) -> bytes:
+    """A Jazzy nav_msgs/Odometry serialised by rosbags (not by the code under test)."""
+    types = ros_types("jazzy")
+    t = types.store.types
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=x, y=-1.0, z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+    )
+    zero = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    message = t[ODOMETRY](
+        header=t["std_msgs/msg/Header"](
+            stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="odom"
+        ),
+        child_frame_id="base_footprint",
+        pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=t["geometry_msgs/msg/TwistWithCovariance"](
+            twist=t["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
+        ),
+    )
+    return types.serialize(message, ODOMETRY)
+
+
+@pytest.mark.parametrize("style", ["rmw_zenoh", "ros2dds"])
+def test_core_pairs_each_scan_with_the_robots_odometry_in_both_key_styles(style: str) -> None:
+    core = BridgeCore(BridgeConfig(style=style, namespace=None))  # type: ignore[arg-type]
+    attachment = encode_attachment(0, 1, GID) if style == "rmw_zenoh" else None
+
+    def odom_key(robot: str) -> str:
+        if style == "ros2dds":
+            return f"{robot}/odom"
+        return f"0/{robot}/odom/{dds_type_name(ODOMETRY)}/{ros_types('jazzy').type_hash(ODOMETRY)}"
+
+    def scan_key_of(robot: str) -> str:
+        return _rmw_key(robot) if style == "rmw_zenoh" else f"{robot}/scan"
+
+    assert core.odom_subscription_key == (
+        "*/odom" if style == "ros2dds" else f"0/*/odom/{dds_type_name(ODOMETRY)}/*"
+    )
+    first = core.handle_scan(
+        scan_key_of("alpha"), laser_scan_cdr(_good_ranges(), stamp_ns=STAMP_NS), attachment
+    )
+    assert first is not None and decode_message(first.payload, Scan).odom is None  # no pose yet: still a scan
+    core.handle_odometry(odom_key("alpha"), _odometry_cdr(2.5, 0.4, STAMP_NS + 90_000_000), attachment)
+    core.handle_odometry(odom_key("bravo"), _odometry_cdr(float("nan"), 0.0, STAMP_NS), attachment)
+    out = core.handle_scan(
+        scan_key_of("alpha"), laser_scan_cdr(_good_ranges(), stamp_ns=STAMP_NS + 100_000_000), attachment
+    )
+    assert out is not None
+    scan = decode_message(out.payload, Scan)
+    assert scan.odom is not None and scan.schema_version == 2
+    assert (scan.odom.x_m, scan.odom.y_m, scan.odom.frame_id) == (2.5, -1.0, "odom")
+    assert scan.odom.yaw_rad == pytest.approx(0.4) and scan.odom.stamp_ns == STAMP_NS + 90_000_000
+    # Alpha's pose is 2 s old by now: the scan goes on without it.
+    late = core.handle_scan(
+        scan_key_of("alpha"), laser_scan_cdr(_good_ranges(), stamp_ns=STAMP_NS + 2_100_000_000), attachment
+    )
+    assert late is not None and decode_message(late.payload, Scan).odom is None
+    core.handle_odometry(odom_key("alpha"), b"garbage!", attachment)
+    assert core.counters.odometry_received == 3 and core.counters.odometry_attached == 1
+    assert dict(core.counters.rejected_odometry) == {"not_finite": 1, "stale": 1, "not_cdr": 1}
+    assert core.counters.scans_published == 3 and not core.counters.rejected_scans
+
+
+def test_core_without_odometry_subscribes_to_none() -> None:
+    core = BridgeCore(BridgeConfig(namespace="/robot1", odom_topic=None))
+    assert core.odom_subscription_key is None
+    core.handle_odometry("0/robot1/odom/x/y", b"", None)
+    assert dict(core.counters.rejected_odometry) == {"bad_key": 1}

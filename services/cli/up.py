@@ -23,7 +23,13 @@ SIMULATOR_ONLY_FLAGS = {
     "people": "--people",
     "sensor": "--sensor",
 }
-REPLAY_ONLY_FLAGS = {"topic": "--topic", "robot": "--robot", "speed": "--speed", "loop": "--loop"}
+REPLAY_ONLY_FLAGS = {
+    "topic": "--topic",
+    "robot": "--robot",
+    "speed": "--speed",
+    "loop": "--loop",
+    "odom_topic": "--odom-topic",
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -96,6 +102,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"playback speed (default {default_of(ReplayConfig, 'speed'):g})",
     )
     replay.add_argument("--loop", action="store_true", default=None, help="replay until stopped")
+    replay.add_argument(
+        "--odom-topic",
+        default=None,
+        help="Odometry or /tf topic of the robot's pose (default: /odom, else /tf; none: no odometry)",
+    )
     add_zenoh_arguments(p)
 
 
@@ -142,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
 
 COMMAND = Command(
     "up",
-    "the full simulation loop: simulator, encoder, detector, visualizer as four processes",
+    "the full simulation loop: simulator, encoder, detector, tracker, visualizer as five processes",
     add_arguments,
     run,
     extras=("sim", "viz"),

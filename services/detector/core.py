@@ -266,6 +266,7 @@ class DetectorCore:
             model_id=self.detector.model_id,
             scan_stamp_ns=tensor.scan_stamps_ns[2],
             pose_stamp_ns=tensor.scan_stamps_ns[1],  # the boxes are the middle scan's
+            odom=tensor.odom,
         )
 
 

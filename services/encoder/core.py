@@ -13,6 +13,9 @@ happened. So, per robot (robots never share a FIFO):
   counts from 0 again): the FIFO restarts, so old and new frames never mix in one tensor.
 * **Clock jump** (a later ``seq`` with an older stamp): the FIFO restarts too, so the stamps inside a
   tensor never run backwards.
+* **Odometry**: a scan's ``odom`` (the robot's pose) goes into the tensor of which it is the newest
+  scan; a non-finite pose is refused and counted (``odom_not_finite``) and the scan goes on without
+  it, so a diverged odometry filter never costs a detection.
 * **Silence**: a robot not heard from for ``forget_after_s`` is forgotten (its FIFO freed), so a fleet
   that changes over time does not leak memory; if it speaks again it starts a fresh stream.
 * **Stacking period**: a model is trained on scans a set time apart (``stack_period_s``, from its
@@ -53,6 +56,7 @@ class EncoderCounters:
     restarts: int = 0
     between_stacked: int = 0  # scans of a faster sensor left out to stack at the model's period
     forgotten_robots: int = 0
+    odom_not_finite: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # reason → count
 
     def to_dict(self) -> dict[str, object]:
@@ -64,6 +68,7 @@ class EncoderCounters:
             "restarts": self.restarts,
             "between_stacked": self.between_stacked,
             "forgotten_robots": self.forgotten_robots,
+            "odom_not_finite": self.odom_not_finite,
             "rejected": dict(self.rejected),
         }
 
@@ -269,6 +274,11 @@ class EncoderCore:
         if tensor is None:
             self.counters.warming_up += 1
             return None
+        odom = scan.odom
+        if odom is not None and not odom.finite:
+            self.counters.odom_not_finite += 1
+            log.warning("%s seq %d: non-finite odometry refused, scan kept", scan.robot_id, scan.seq)
+            odom = None
         self.counters.published += 1
         tensor.flags.writeable = False  # no one else holds it: the message keeps it without a copy
         return StackedTensor(
@@ -281,4 +291,5 @@ class EncoderCore:
             scan_seqs=(stream.seqs[0], stream.seqs[1], stream.seqs[2]),
             scan_stamps_ns=(stream.stamps_ns[0], stream.stamps_ns[1], stream.stamps_ns[2]),
             encode_ms=(time.perf_counter_ns() - started) / 1e6,
+            odom=odom,
         )

@@ -81,6 +81,14 @@ def run(
             if out is not None:
                 publish([out])
 
+        def on_odometry(sample: Any) -> None:
+            with lock:
+                robots = len(core.robot_ids)
+                core.handle_odometry(str(sample.key_expr), payload_bytes(sample), _attachment_bytes(sample))
+                new_robot = len(core.robot_ids) != robots
+            if new_robot:
+                declare_graph()
+
         def on_detections(key: str, payload: bytes) -> None:
             with lock:
                 out = core.handle_detections(key, payload)
@@ -92,6 +100,8 @@ def run(
 
         declare_graph()
         runtime.subscribe_samples(core.scan_subscription_key, on_scan)
+        if core.odom_subscription_key is not None:
+            runtime.subscribe_samples(core.odom_subscription_key, on_odometry)
         runtime.subscribe(ALL_DETECTIONS, on_detections)
         log.info(
             "ros2 bridge ready (%s, %s): %s ⇄ triscan",
@@ -109,6 +119,7 @@ def build_config(args: argparse.Namespace) -> BridgeConfig:
         style=args.style,
         domain=args.domain,
         scan_topic=args.scan_topic,
+        odom_topic=None if args.odom_topic == "none" else args.odom_topic,
         namespace=namespace,
         robot=args.robot,
         distro=args.ros_distro,
@@ -128,6 +139,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--scan-topic", default=default_of(BridgeConfig, "scan_topic"), help="LaserScan topic, relative"
+    )
+    parser.add_argument(
+        "--odom-topic",
+        default=default_of(BridgeConfig, "odom_topic"),
+        help="nav_msgs/Odometry topic, relative, whose pose each scan carries ('none': no odometry)",
     )
     parser.add_argument(
         "--namespace",

@@ -9,6 +9,11 @@ publishes what it returns, so every rule below is tested by calling the core dir
 * **Scans.** seq is the bridge's own counter per robot (ROS 2 headers carry none), stamp_ns the header
   stamp, frame_id kept. rmw_zenoh-style samples must carry rmw_zenoh's attachment and a LaserScan type
   hash of Jazzy (RIHS01) or Humble (``TypeHashNotSupported``); ros2dds-style samples carry neither.
+* **Odometry.** ``nav_msgs/Odometry`` on ``<namespace>/odom`` (``odom_topic``; ``None``: no
+  odometry) gives the robot's pose; each scan carries the newest one close enough to its stamp
+  (:class:`services.ros2_bridge.odometry.OdometryPairing`). Refused poses are counted under
+  ``rejected_odometry`` (the scan reasons for keys and types, ``not_cdr``, ``bad_cdr``, and the
+  pairing's ``not_finite`` and ``stale``); the scan always goes on.
 * **Detections.** Each triscan ``Detections`` of a bridged robot becomes a Detection3DArray on
   ``<namespace>/triscan/detections`` and a MarkerArray on ``<namespace>/triscan/markers``, stamped with
   the scan's header stamp and frame; in rmw_zenoh style each with an attachment of its own publisher
@@ -33,6 +38,7 @@ from typing import Final
 from common.keys import parse_key, scan_key, validate_robot_id
 from common.messages import Detections, MessageError, decode_message, encode_message
 from services.ros2_bridge.laser_scan import ScanRejectedError, parse_laser_scan_cdr, to_triscan_scan
+from services.ros2_bridge.odometry import ODOMETRY, OdometryPairing, odometry_of_message
 from services.ros2_bridge.rmw_zenoh import (
     GID_SIZE,
     PUBLISHER,
@@ -58,6 +64,7 @@ from services.ros2_bridge.ros_types import (
     LASER_SCAN,
     MARKER_ARRAY,
     TYPE_HASH_NOT_SUPPORTED,
+    CdrError,
     Distro,
     check_distro,
     dds_type_name,
@@ -69,12 +76,16 @@ log = logging.getLogger(__name__)
 DETECTIONS_TOPIC: Final[str] = "triscan/detections"
 MARKERS_TOPIC: Final[str] = "triscan/markers"
 DEFAULT_SCAN_TOPIC: Final[str] = "scan"
+DEFAULT_ODOM_TOPIC: Final[str] = "odom"
 DEFAULT_NODE_NAME: Final[str] = "triscan_bridge"
 DEFAULT_MAX_ROBOTS: Final[int] = 1024
 LASER_SCAN_HASHES: Final[frozenset[str]] = frozenset(
     {ros_types("jazzy").type_hash(LASER_SCAN), TYPE_HASH_NOT_SUPPORTED}
 )
 """LaserScan's layout is the same on Humble and Jazzy, so a scan from either distro is accepted."""
+ODOMETRY_HASHES: Final[frozenset[str]] = frozenset(
+    {ros_types("jazzy").type_hash(ODOMETRY), TYPE_HASH_NOT_SUPPORTED}
+)
 
 
 @dataclass(frozen=True)
@@ -84,6 +95,7 @@ class BridgeConfig:
     style: Style = "rmw_zenoh"
     domain: int = 0
     scan_topic: str = DEFAULT_SCAN_TOPIC
+    odom_topic: str | None = DEFAULT_ODOM_TOPIC
     namespace: str | None = "/"
     robot: str | None = None
     distro: Distro = DEFAULT_DISTRO
@@ -93,6 +105,8 @@ class BridgeConfig:
         check_style(self.style)
         check_distro(self.distro)
         check_topic(self.scan_topic)
+        if self.odom_topic is not None:
+            check_topic(self.odom_topic)
         if not 0 <= self.domain <= 232:  # ROS_DOMAIN_ID's documented range
             raise ValueError(f"domain must be in [0, 232], got {self.domain}")
         if self.namespace is None:
@@ -121,8 +135,11 @@ class BridgeCounters:
     detections_skipped: int = 0  # of robots this bridge does not serve
     ros_published: int = 0
     robots: int = 0
+    odometry_received: int = 0
+    odometry_attached: int = 0
     rejected_scans: Counter[str] = field(default_factory=Counter)
     rejected_detections: Counter[str] = field(default_factory=Counter)
+    rejected_odometry: Counter[str] = field(default_factory=Counter)
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -132,8 +149,11 @@ class BridgeCounters:
             "detections_skipped": self.detections_skipped,
             "ros_published": self.ros_published,
             "robots": self.robots,
+            "odometry_received": self.odometry_received,
+            "odometry_attached": self.odometry_attached,
             "rejected_scans": dict(self.rejected_scans),
             "rejected_detections": dict(self.rejected_detections),
+            "rejected_odometry": dict(self.rejected_odometry),
         }
 
 
@@ -166,6 +186,7 @@ class _Robot:
     subscription_entity_id: int
     detections: _RosPublisher
     markers: _RosPublisher
+    odometry: OdometryPairing  # refusals counted in the bridge's rejected_odometry
     frame_id: str | None = None  # of the latest scan: the frame the detections are drawn in
     next_seq: int = 0
 
@@ -202,6 +223,15 @@ class BridgeCore:
         return subscription_key(c.style, c.domain, namespace, c.scan_topic, self._scan_dds_type)
 
     @property
+    def odom_subscription_key(self) -> str | None:
+        """Where the robots' odometry arrives (None: the bridge pairs no odometry)."""
+        c = self.config
+        if c.odom_topic is None:
+            return None
+        namespace = None if c.namespace is None else normalize_namespace(c.namespace)
+        return subscription_key(c.style, c.domain, namespace, c.odom_topic, dds_type_name(ODOMETRY))
+
+    @property
     def robot_ids(self) -> list[str]:
         return list(self._robots)
 
@@ -231,6 +261,7 @@ class BridgeCore:
             subscription_entity_id=self._next_entity(),
             detections=self._publisher(namespace, DETECTIONS_TOPIC, DETECTION3D_ARRAY),
             markers=self._publisher(namespace, MARKERS_TOPIC, MARKER_ARRAY),
+            odometry=OdometryPairing(refused=self.counters.rejected_odometry),
         )
         self._robots[robot_id] = self._by_namespace[namespace] = robot
         self.counters.robots = len(self._robots)
@@ -279,8 +310,54 @@ class BridgeCore:
             return None
         robot.next_seq += 1
         robot.frame_id = scan.frame_id
+        attached = robot.odometry.attached
+        scan = robot.odometry.attach(scan)
+        self.counters.odometry_attached += robot.odometry.attached - attached
         self.counters.scans_published += 1
         return Outgoing(scan_key(robot.robot_id), encode_message(scan))
+
+    def _reject_odometry(self, reason: str, detail: str) -> None:
+        self.counters.rejected_odometry[reason] += 1
+        log.debug("ROS odometry rejected (%s): %s", reason, detail)
+
+    def handle_odometry(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        """One ``nav_msgs/Odometry`` sample: the robot's newest pose, for its next scans (counted)."""
+        self.counters.odometry_received += 1
+        c = self.config
+        if c.odom_topic is None:
+            self._reject_odometry("bad_key", f"{key}: this bridge pairs no odometry")
+            return
+        try:
+            parsed = parse_data_key(c.style, c.domain, key, c.odom_topic)
+        except ValueError as exc:
+            self._reject_odometry("bad_key", str(exc))
+            return
+        if c.style == "rmw_zenoh":
+            if parsed.dds_type != dds_type_name(ODOMETRY):
+                self._reject_odometry("wrong_type", f"{key}: type {parsed.dds_type}")
+                return
+            if parsed.type_hash not in ODOMETRY_HASHES:
+                self._reject_odometry("type_hash", f"{key}: hash {parsed.type_hash} is not Odometry's")
+                return
+            try:
+                decode_attachment(attachment)
+            except AttachmentError as exc:
+                self._reject_odometry("no_attachment" if attachment is None else "bad_attachment", str(exc))
+                return
+        try:
+            robot = self._robot_for(parsed.namespace)
+        except ValueError as exc:
+            self._reject_odometry("bad_robot_id", str(exc))
+            return
+        except OverflowError as exc:
+            self._reject_odometry("too_many_robots", str(exc))
+            return
+        try:
+            pose = odometry_of_message(self.types.deserialize(payload, ODOMETRY))
+        except CdrError as exc:
+            self._reject_odometry(exc.reason, f"{key}: {exc}")
+            return
+        robot.odometry.update(pose)
 
     # -- triscan → ROS ---------------------------------------------------------------------------
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from common.encoding import PADDINGS, R_MAX_M, Padding
 from common.keys import validate_robot_id
-from common.messages import GroundTruth, Scan, TruthObject
+from common.messages import GroundTruth, Odometry, Scan, TruthObject
 from common.model_spec import CLASS_NAMES
 from services.simulator.defaults import ROBOT_ID_PREFIX, SCAN_RATE_HZ, SCENARIO_PERIOD_S, SIM_SEED
 from services.simulator.labels import Box, ObjectLabel, label_scan
@@ -338,6 +338,7 @@ class SimulatedRobot:
             range_max=self.spec.range_max,
             ranges=reading.ranges,
             frame_id=FRAME_ID,
+            odom=Odometry(x_m=self._pose[0], y_m=self._pose[1], yaw_rad=self._pose[2], stamp_ns=stamp_ns),
         )
         truth = GroundTruth(
             robot_id=self.robot_id,

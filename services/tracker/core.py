@@ -1,0 +1,475 @@
+"""The tracker's pure core: detections in, tracks with stable ids and velocities out, per robot.
+
+Method (docs/tracking.md has the reasoning and the scores):
+
+* **Frame.** With odometry on the detections, tracks live in the odometry frame: a detection at
+  ``(x_m, y_m)`` in the laser frame is moved by the robot's pose, so a chair stays put while the robot
+  drives past it. Without odometry they live in the laser frame and every object moves with the robot.
+* **Filter.** A constant-velocity Kalman filter per track, state ``(x, y, vx, vy)``. Its motion and
+  measurement noise are the same on both axes and the first covariance is diagonal, so the covariance
+  stays two identical 2×2 blocks (position, velocity) and one block is all a track keeps: the filter
+  is a handful of float operations, not matrix calls, which keeps 20 objects far under the cost goal.
+* **Motion models per class** (:data:`MOTION_MODELS`): furniture barely accelerates, so its velocity
+  stays near zero and its position does not drift with noisy detections; people accelerate freely.
+  In the laser frame the robot's own motion moves everything, so all classes get the free model.
+* **Assignment.** Cost = distance from each track's predicted position to each detection, plus a
+  penalty when the classes differ (a detection whose class flickers still continues its track);
+  pairs farther than ``gate_m`` are never matched. The optimum is scipy's
+  ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library).
+* **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it; a
+  confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
+  without a hit; a tentative track is deleted after ``tentative_misses`` misses. The class is the one
+  with the most summed score over the track, the score a running mean.
+* **Ids** come from one counter per core, never reused: not for the robot, not for any robot.
+
+Bad input loses nothing else (counted by reason in :class:`TrackerCounters`):
+
+* an odometry jump (more than ``jump_m`` or ``jump_rad`` between two scans) or a reset (the odometry
+  frame renamed, or odometry appearing where tracks lived in the laser frame) resets that robot's
+  tracks (``resets``);
+* NaN odometry is refused (``odom_refused["not_finite"]``): the robot's last pose stands in for that
+  scan, as it does for a scan that lost its odometry (``odom_refused["missing"]``);
+* detections not newer than the last (by scan stamp) are dropped (``dropped["out_of_order"]``); an
+  older ``seq`` with a newer stamp is a restarted pipeline, which resets the tracks (``resets``);
+* a robot silent for ``forget_after_s`` is forgotten with its tracks (``forgotten_robots``,
+  ``tracks_forgotten``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Final
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from common.keys import parse_key
+from common.messages import (
+    MAX_TRACKS,
+    Detection,
+    Detections,
+    MessageError,
+    Odometry,
+    Track,
+    TrackFrame,
+    Tracks,
+    TrackState,
+    decode_message,
+)
+from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
+
+log = logging.getLogger(__name__)
+
+DEFAULT_FORGET_AFTER_S: Final[float] = 10.0
+DEFAULT_MAX_ROBOTS: Final[int] = 1024
+_NS_PER_S: Final[float] = 1e9
+
+
+@dataclass(frozen=True)
+class MotionModel:
+    """Noise of a constant-velocity model: white acceleration, first velocity spread, measurement."""
+
+    accel_std_mps2: float
+    initial_speed_std_mps: float
+    measurement_std_m: float
+
+
+STILL: Final[MotionModel] = MotionModel(
+    accel_std_mps2=0.05, initial_speed_std_mps=0.05, measurement_std_m=0.15
+)
+FREE: Final[MotionModel] = MotionModel(accel_std_mps2=2.0, initial_speed_std_mps=1.0, measurement_std_m=0.12)
+MOTION_MODELS: Final[dict[str, MotionModel]] = {
+    name: (STILL if name in FURNITURE_CLASSES else FREE) for name in CLASS_NAMES
+}
+"""Furniture is still (it moves only when someone moves it, and then the gate still holds); people walk."""
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    gate_m: float = 0.8
+    class_penalty_m: float = 0.3
+    confirm_hits: int = 3
+    tentative_misses: int = 2
+    delete_after_s: float = 1.5
+    jump_m: float = 1.0
+    jump_rad: float = math.radians(30.0)
+    score_smoothing: float = 0.3  # weight of the newest detection's score in the track's running score
+
+    def __post_init__(self) -> None:
+        if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
+            raise ValueError(f"invalid tracker config: {self}")
+        if not (self.delete_after_s > 0 and self.jump_m > 0 and self.jump_rad > 0):
+            raise ValueError(f"invalid tracker config: {self}")
+
+
+@dataclass
+class TrackerCounters:
+    """What the tracker did; published as its stats (``triscan status`` shows them)."""
+
+    received: int = 0
+    published: int = 0
+    tracks_created: int = 0
+    tracks_deleted: int = 0
+    tracks_forgotten: int = 0
+    forgotten_robots: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
+    dropped: Counter[str] = field(default_factory=Counter)  # valid messages not used: out_of_order
+    resets: Counter[str] = field(default_factory=Counter)  # odom_jump, odom_reset, frame_change, restart
+    odom_refused: Counter[str] = field(default_factory=Counter)  # not_finite, missing
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "received": self.received,
+            "published": self.published,
+            "tracks_created": self.tracks_created,
+            "tracks_deleted": self.tracks_deleted,
+            "tracks_forgotten": self.tracks_forgotten,
+            "forgotten_robots": self.forgotten_robots,
+            "rejected": dict(self.rejected),
+            "dropped": dict(self.dropped),
+            "resets": dict(self.resets),
+            "odom_refused": dict(self.odom_refused),
+        }
+
+
+class _Track:
+    """One track's filter state; the covariance is one 2×2 block (see the module docstring)."""
+
+    __slots__ = (
+        "class_scores",
+        "first_stamp_ns",
+        "hits",
+        "last_hit_ns",
+        "misses",
+        "p_pp",
+        "p_pv",
+        "p_vv",
+        "score",
+        "state",
+        "track_id",
+        "vx",
+        "vy",
+        "x",
+        "y",
+    )
+
+    def __init__(self, track_id: int, x: float, y: float, det: Detection, stamp_ns: int, model: MotionModel):
+        self.track_id = track_id
+        self.x, self.y, self.vx, self.vy = x, y, 0.0, 0.0
+        self.p_pp = model.measurement_std_m**2
+        self.p_pv = 0.0
+        self.p_vv = model.initial_speed_std_mps**2
+        self.class_scores = [0.0] * len(CLASS_NAMES)
+        self.class_scores[det.class_id] = det.score
+        self.score = det.score
+        self.hits, self.misses = 1, 0
+        self.first_stamp_ns = self.last_hit_ns = stamp_ns
+        self.state: TrackState = "tentative"
+
+    @property
+    def class_id(self) -> int:
+        scores = self.class_scores
+        return max(range(len(scores)), key=scores.__getitem__)
+
+    def predict(self, dt: float, model: MotionModel) -> None:
+        if dt <= 0.0:
+            return
+        q = model.accel_std_mps2**2
+        self.x += self.vx * dt
+        self.y += self.vy * dt
+        dt2 = dt * dt
+        self.p_pp += 2.0 * dt * self.p_pv + dt2 * self.p_vv + q * dt2 * dt2 / 4.0
+        self.p_pv += dt * self.p_vv + q * dt2 * dt / 2.0
+        self.p_vv += q * dt2
+
+    def update(
+        self, x: float, y: float, det: Detection, stamp_ns: int, model: MotionModel, smooth: float
+    ) -> None:
+        s = self.p_pp + model.measurement_std_m**2
+        k_p, k_v = self.p_pp / s, self.p_pv / s
+        rx, ry = x - self.x, y - self.y
+        self.x += k_p * rx
+        self.y += k_p * ry
+        self.vx += k_v * rx
+        self.vy += k_v * ry
+        self.p_vv -= k_v * self.p_pv
+        self.p_pv *= 1.0 - k_p
+        self.p_pp *= 1.0 - k_p
+        self.class_scores[det.class_id] += det.score
+        self.score += smooth * (det.score - self.score)
+        self.hits += 1
+        self.misses = 0
+        self.last_hit_ns = stamp_ns
+
+
+@dataclass
+class _Robot:
+    tracks: list[_Track] = field(default_factory=list)
+    seq: int = -1
+    scan_stamp_ns: int = -1
+    frame: TrackFrame = "laser"
+    odom: Odometry | None = None  # the last good pose
+    last_seen_s: float = 0.0
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class TrackerCore:
+    """Detections in, :class:`~common.messages.Tracks` out; see the module docstring.
+
+    :meth:`handle_sample`, :meth:`forget_silent` and :meth:`snapshot` may be called from several
+    threads (Zenoh callbacks, housekeeping); :meth:`update` holds the same lock.
+    """
+
+    def __init__(
+        self,
+        config: TrackerConfig | None = None,
+        *,
+        first_track_id: int = 1,
+        forget_after_s: float = DEFAULT_FORGET_AFTER_S,
+        max_robots: int = DEFAULT_MAX_ROBOTS,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.config = config or TrackerConfig()
+        self.forget_after_s = forget_after_s
+        self.max_robots = max_robots
+        self.clock = clock
+        self.wall_clock_ns = wall_clock_ns
+        self.counters = TrackerCounters()
+        self._next_id = first_track_id
+        self._robots: dict[str, _Robot] = {}
+        self._lock = threading.RLock()
+
+    @property
+    def robot_ids(self) -> list[str]:
+        return list(self._robots)
+
+    def snapshot(self) -> dict[str, object]:
+        with self._lock:
+            live = [t for r in self._robots.values() for t in r.tracks]
+            return {
+                **self.counters.to_dict(),
+                "robots": len(self._robots),
+                "tracks": len(live),
+                "confirmed": sum(t.state != "tentative" for t in live),
+            }
+
+    def handle_sample(self, key: str, payload: bytes) -> Tracks | None:
+        """One Zenoh sample on a detections key: the key names the robot, the payload must agree."""
+        with self._lock:
+            self.counters.received += 1
+            try:
+                robot_id, _ = parse_key(key)
+            except ValueError as exc:
+                return self._reject("bad_key", str(exc))
+            try:
+                message = decode_message(payload, Detections)
+            except MessageError as exc:
+                return self._reject(exc.reason, str(exc))
+            if message.robot_id != robot_id:
+                return self._reject(
+                    "robot_id_mismatch", f"key says {robot_id!r}, payload {message.robot_id!r}"
+                )
+            return self._update(message)
+
+    def update(self, message: Detections) -> Tracks | None:
+        """One decoded detections message → that robot's tracks, or None if it was dropped (counted)."""
+        with self._lock:
+            self.counters.received += 1
+            return self._update(message)
+
+    def forget_silent(self) -> list[str]:
+        """Drop robots (and their tracks) silent for longer than ``forget_after_s``; returns their ids."""
+        with self._lock:
+            now = self.clock()
+            silent = [rid for rid, r in self._robots.items() if now - r.last_seen_s > self.forget_after_s]
+            for robot_id in silent:
+                self.counters.tracks_forgotten += len(self._robots.pop(robot_id).tracks)
+                log.info("robot %s silent for %.0f s: its tracks forgotten", robot_id, self.forget_after_s)
+            self.counters.forgotten_robots += len(silent)
+            return silent
+
+    def _reject(self, reason: str, detail: str) -> Tracks | None:
+        """Count and log a refused payload; returns None, what the caller returns for it."""
+        self.counters.rejected[reason] += 1
+        log.warning("detections rejected (%s): %s", reason, detail)
+        return None
+
+    def _reset(self, robot: _Robot, robot_id: str, reason: str) -> None:
+        self.counters.resets[reason] += 1
+        self.counters.tracks_deleted += len(robot.tracks)
+        log.info("%s: tracks reset (%s)", robot_id, reason)
+        robot.tracks = []
+
+    def _robot_of(self, robot_id: str) -> _Robot | None:
+        robot = self._robots.get(robot_id)
+        if robot is None:
+            if len(self._robots) >= self.max_robots:
+                self.forget_silent()
+            if len(self._robots) >= self.max_robots:
+                self._reject("too_many_robots", f"{robot_id}: already tracking {self.max_robots} robots")
+                return None
+            robot = self._robots[robot_id] = _Robot()
+        return robot
+
+    def _pose_for(self, robot: _Robot, robot_id: str, odom: Odometry | None) -> Odometry | None:
+        """The pose this message's detections are placed with (None: laser frame), resetting on a jump."""
+        if odom is not None and not odom.finite:
+            self.counters.odom_refused["not_finite"] += 1
+            odom = None
+        elif odom is None and robot.frame == "odom":
+            self.counters.odom_refused["missing"] += 1
+        if odom is None:
+            return robot.odom if robot.frame == "odom" else None
+        last = robot.odom
+        if robot.frame == "laser":
+            if robot.tracks:
+                self._reset(robot, robot_id, "frame_change")
+        elif last is not None and last.frame_id != odom.frame_id:
+            self._reset(robot, robot_id, "odom_reset")
+        elif last is not None and (
+            math.hypot(odom.x_m - last.x_m, odom.y_m - last.y_m) > self.config.jump_m
+            or abs(_wrap(odom.yaw_rad - last.yaw_rad)) > self.config.jump_rad
+        ):
+            self._reset(robot, robot_id, "odom_jump")
+        robot.frame = "odom"
+        robot.odom = odom
+        return odom
+
+    def _update(self, message: Detections) -> Tracks | None:
+        robot_id = message.robot_id
+        robot = self._robot_of(robot_id)
+        if robot is None:
+            return None
+        stamp = message.scan_stamp_ns
+        if robot.scan_stamp_ns >= 0:
+            if stamp <= robot.scan_stamp_ns:
+                self.counters.dropped["out_of_order"] += 1
+                log.debug(
+                    "%s: detections of seq %d not newer than seq %d: dropped",
+                    robot_id,
+                    message.seq,
+                    robot.seq,
+                )
+                return None
+            if message.seq <= robot.seq:
+                self._reset(robot, robot_id, "restart")
+        dt = (stamp - robot.scan_stamp_ns) / _NS_PER_S if robot.scan_stamp_ns >= 0 else 0.0
+        robot.seq, robot.scan_stamp_ns, robot.last_seen_s = message.seq, stamp, self.clock()
+        pose = self._pose_for(robot, robot_id, message.odom)
+        laser = pose is None
+        models = [FREE if laser else MOTION_MODELS[CLASS_NAMES[t.class_id]] for t in robot.tracks]
+        for track, model in zip(robot.tracks, models, strict=True):
+            track.predict(dt, model)
+        points = self._placed(message.detections, pose)
+        matches, unmatched = self._assign(robot.tracks, message.detections, points)
+        smooth = self.config.score_smoothing
+        for ti, di in matches:
+            track, det = robot.tracks[ti], message.detections[di]
+            track.update(points[di][0], points[di][1], det, stamp, models[ti], smooth)
+            if track.hits >= self.config.confirm_hits:
+                track.state = "confirmed"
+        matched = {ti for ti, _ in matches}
+        kept: list[_Track] = []
+        for ti, track in enumerate(robot.tracks):
+            if ti not in matched:
+                track.misses += 1
+                if track.state == "confirmed":
+                    track.state = "coasting"
+            if self._alive(track, stamp):
+                kept.append(track)
+            else:
+                self.counters.tracks_deleted += 1
+        for di in unmatched:
+            det = message.detections[di]
+            model = FREE if laser else MOTION_MODELS[det.class_name]
+            kept.append(_Track(self._next_id, points[di][0], points[di][1], det, stamp, model))
+            self._next_id += 1
+            self.counters.tracks_created += 1
+            if self.config.confirm_hits <= 1:
+                kept[-1].state = "confirmed"
+        if len(kept) > MAX_TRACKS:  # only a flood of detections gets here: keep the established tracks
+            kept.sort(key=lambda t: (t.state == "tentative", -t.hits))
+            self.counters.tracks_deleted += len(kept) - MAX_TRACKS
+            del kept[MAX_TRACKS:]
+        robot.tracks = kept
+        self.counters.published += 1
+        return self._message(message, robot, pose)
+
+    def _alive(self, track: _Track, stamp_ns: int) -> bool:
+        if track.state == "tentative":
+            return track.misses < self.config.tentative_misses
+        return (stamp_ns - track.last_hit_ns) / _NS_PER_S <= self.config.delete_after_s
+
+    @staticmethod
+    def _placed(detections: list[Detection], pose: Odometry | None) -> list[tuple[float, float]]:
+        if pose is None:
+            return [(d.x_m, d.y_m) for d in detections]
+        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+        return [(pose.x_m + c * d.x_m - s * d.y_m, pose.y_m + s * d.x_m + c * d.y_m) for d in detections]
+
+    def _assign(
+        self, tracks: list[_Track], detections: list[Detection], points: list[tuple[float, float]]
+    ) -> tuple[list[tuple[int, int]], list[int]]:
+        if not tracks or not detections:
+            return [], list(range(len(detections)))
+        predicted = np.array([(t.x, t.y) for t in tracks])
+        measured = np.array(points)
+        distance = np.hypot(
+            predicted[:, None, 0] - measured[None, :, 0], predicted[:, None, 1] - measured[None, :, 1]
+        )
+        track_class = np.array([t.class_id for t in tracks])
+        det_class = np.array([d.class_id for d in detections])
+        cost = distance + self.config.class_penalty_m * (track_class[:, None] != det_class[None, :])
+        gated = distance > self.config.gate_m
+        cost[gated] = 1e6  # never chosen over leaving both unmatched, filtered below
+        rows, cols = linear_sum_assignment(cost)
+        matches = [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if not gated[r, c]]
+        taken = {c for _, c in matches}
+        return matches, [d for d in range(len(detections)) if d not in taken]
+
+    def _message(self, message: Detections, robot: _Robot, pose: Odometry | None) -> Tracks:
+        if pose is None:
+            c, s, ox, oy = 1.0, 0.0, 0.0, 0.0
+        else:
+            c, s, ox, oy = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad), pose.x_m, pose.y_m
+        stamp = message.scan_stamp_ns
+        tracks = []
+        for t in robot.tracks:
+            dx, dy = t.x - ox, t.y - oy
+            class_id = t.class_id
+            tracks.append(
+                Track(
+                    track_id=t.track_id,
+                    class_id=class_id,
+                    class_name=CLASS_NAMES[class_id],
+                    score=min(1.0, max(0.0, t.score)),
+                    x_m=c * dx + s * dy,
+                    y_m=-s * dx + c * dy,
+                    odom_x_m=None if pose is None else t.x,
+                    odom_y_m=None if pose is None else t.y,
+                    vx_mps=t.vx,
+                    vy_mps=t.vy,
+                    age_s=(stamp - t.first_stamp_ns) / _NS_PER_S,
+                    hits=t.hits,
+                    misses=t.misses,
+                    state=t.state,
+                )
+            )
+        return Tracks(
+            robot_id=message.robot_id,
+            seq=message.seq,
+            stamp_ns=self.wall_clock_ns(),
+            scan_stamp_ns=stamp,
+            frame="laser" if pose is None else "odom",
+            tracks=tracks,
+        )

@@ -1,0 +1,265 @@
+"""The tracker's core: ids that hold, velocities, still furniture in the odometry frame, and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from common.keys import detections_key
+from common.messages import (
+    Detection,
+    Detections,
+    Odometry,
+    StageTimings,
+    Tracks,
+    decode_message,
+    encode_message,
+)
+from common.model_spec import CLASS_NAMES
+from services.tracker.core import TrackerConfig, TrackerCore
+
+PERIOD_NS = 100_000_000  # 10 Hz
+T0_NS = 1_700_000_000_000_000_000
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def det(x: float, y: float, class_name: str = "chair", score: float = 0.9) -> Detection:
+    r, b = math.hypot(x, y), math.degrees(math.atan2(y, x))
+    return Detection(
+        class_id=CLASS_NAMES.index(class_name),
+        class_name=class_name,
+        score=score,
+        box_px=(0.0, 0.0, 1.0, 1.0),
+        bearing_deg=b,
+        bearing_min_deg=b,
+        bearing_max_deg=b,
+        range_min_m=r,
+        range_max_m=r,
+        x_m=x,
+        y_m=y,
+    )
+
+
+def message(
+    seq: int,
+    detections: list[Detection],
+    odom: Odometry | None = None,
+    robot: str = "r1",
+    stamp: int | None = None,
+) -> Detections:
+    return Detections(
+        robot_id=robot,
+        seq=seq,
+        stamp_ns=T0_NS + seq * PERIOD_NS,
+        detections=detections,
+        timings=StageTimings(encode_ms=0.0, inference_ms=0.0, nms_ms=0.0),
+        model_id="test",
+        scan_stamp_ns=T0_NS + seq * PERIOD_NS if stamp is None else stamp,
+        odom=odom,
+    )
+
+
+def pose(x: float, y: float, yaw: float, frame: str = "odom") -> Odometry:
+    return Odometry(x_m=x, y_m=y, yaw_rad=yaw, frame_id=frame, stamp_ns=0)
+
+
+def in_laser(world: tuple[float, float], robot: Odometry) -> tuple[float, float]:
+    dx, dy = world[0] - robot.x_m, world[1] - robot.y_m
+    c, s = math.cos(robot.yaw_rad), math.sin(robot.yaw_rad)
+    return c * dx + s * dy, -s * dx + c * dy
+
+
+def robot_pose(k: int) -> Odometry:
+    """A robot driving at 0.3 m/s and turning at 0.2 rad/s: its detections of still objects move."""
+    return pose(0.03 * k, 0.01 * k, 0.02 * k)
+
+
+def drive(core: TrackerCore, frames: int, first: int = 0) -> list[Tracks]:
+    """A still chair at (2, 1) and a person walking at (0.5, -0.8) m/s, seen from the moving robot."""
+    out = []
+    for k in range(first, first + frames):
+        robot = robot_pose(k)
+        person = (1.0 + 0.05 * k, 1.0 - 0.08 * k)
+        dets = [det(*in_laser((2.0, 1.0), robot), "chair"), det(*in_laser(person, robot), "person")]
+        tracks = core.update(message(k, dets, robot))
+        assert tracks is not None
+        out.append(tracks)
+    return out
+
+
+def by_class(tracks: Tracks, name: str) -> list:
+    return [t for t in tracks.tracks if t.class_name == name]
+
+
+def test_ids_hold_furniture_stays_still_and_people_get_their_velocity_in_the_odom_frame() -> None:
+    core = TrackerCore(TrackerConfig(confirm_hits=3))
+    frames = drive(core, 40)
+    assert [t.state for t in frames[0].tracks] == ["tentative", "tentative"]
+    assert {t.state for t in frames[2].tracks} == {"confirmed"}
+    last = frames[-1]
+    assert last.frame == "odom" and last.seq == 39
+    (chair,) = by_class(last, "chair")
+    (person,) = by_class(last, "person")
+    assert {chair.track_id, person.track_id} == {t.track_id for t in frames[0].tracks}  # never switched
+    assert (chair.odom_x_m, chair.odom_y_m) == pytest.approx((2.0, 1.0), abs=1e-3)
+    assert math.hypot(chair.vx_mps, chair.vy_mps) < 0.01
+    assert (person.vx_mps, person.vy_mps) == pytest.approx((0.5, -0.8), abs=0.05)
+    # x_m, y_m: the laser frame of this scan.
+    assert (chair.x_m, chair.y_m) == pytest.approx(in_laser((2.0, 1.0), robot_pose(39)), abs=1e-3)
+    assert (chair.hits, chair.misses, chair.age_s) == (40, 0, pytest.approx(3.9))
+    assert decode_message(encode_message(last), Tracks) == last
+
+
+def test_without_odometry_tracks_live_in_the_laser_frame() -> None:
+    core = TrackerCore()
+    for k in range(10):
+        out = core.update(message(k, [det(1.0 + 0.05 * k, 0.5, "box")]))
+    assert out is not None and out.frame == "laser"
+    (track,) = out.tracks
+    assert track.odom_x_m is None and track.state == "confirmed"
+    assert track.vx_mps == pytest.approx(0.5, abs=0.1)  # the free model: the robot's motion moves things
+
+
+def test_coasting_through_an_occlusion_then_deletion_after_the_timeout() -> None:
+    core = TrackerCore(TrackerConfig(delete_after_s=0.5))
+    for k in range(5):
+        core.update(message(k, [det(2.0, 0.0)], pose(0, 0, 0)))
+    coasting = core.update(message(5, [], pose(0, 0, 0)))
+    assert coasting is not None and [(t.state, t.misses) for t in coasting.tracks] == [("coasting", 1)]
+    back = core.update(message(6, [det(2.02, 0.0)], pose(0, 0, 0)))
+    assert back is not None and [t.state for t in back.tracks] == ["confirmed"]
+    assert back.tracks[0].track_id == coasting.tracks[0].track_id
+    for k in range(7, 13):
+        gone = core.update(message(k, [], pose(0, 0, 0)))
+    assert gone is not None and gone.tracks == [] and core.counters.tracks_deleted == 1
+
+
+def test_a_tentative_track_dies_quickly_and_ids_are_never_reused() -> None:
+    core = TrackerCore(TrackerConfig(tentative_misses=1))
+    first = core.update(message(0, [det(1.0, 1.0)]))
+    assert first is not None and first.tracks[0].track_id == 1
+    empty = core.update(message(1, []))
+    assert empty is not None and empty.tracks == []
+    again = core.update(message(2, [det(1.0, 1.0)]))
+    assert again is not None and again.tracks[0].track_id == 2
+
+
+def test_gated_assignment_keeps_two_close_objects_apart_and_refuses_far_jumps() -> None:
+    core = TrackerCore(TrackerConfig(gate_m=0.8))
+    for k in range(5):
+        out = core.update(message(k, [det(1.0, 0.0, "chair"), det(1.0, 0.6, "box")], pose(0, 0, 0)))
+    assert out is not None
+    ids = {t.class_name: t.track_id for t in out.tracks}
+    swapped = core.update(message(5, [det(1.0, 0.55, "box"), det(1.0, 0.05, "chair")], pose(0, 0, 0)))
+    assert swapped is not None
+    assert {t.class_name: t.track_id for t in swapped.tracks if t.misses == 0} == ids
+    far = core.update(message(6, [det(3.0, 0.0, "chair"), det(1.0, 0.6, "box")], pose(0, 0, 0)))
+    assert far is not None
+    assert len(far.tracks) == 3 and core.counters.tracks_created == 3  # 2 m away: a new object, not a jump
+
+
+def test_a_class_flicker_continues_the_track_and_the_class_is_smoothed() -> None:
+    core = TrackerCore()
+    for k in range(6):
+        out = core.update(message(k, [det(2.0, 0.0, "box" if k == 4 else "chair")]))
+    assert out is not None and len(out.tracks) == 1
+    assert out.tracks[0].class_name == "chair" and out.tracks[0].hits == 6
+
+
+# -- bad input -------------------------------------------------------------------------------------
+
+
+def test_an_odometry_jump_or_reset_resets_only_that_robots_tracks() -> None:
+    core = TrackerCore()
+    for k in range(5):
+        core.update(message(k, [det(2.0, 0.0)], pose(0.0, 0.0, 0.0)))
+        core.update(message(k, [det(1.0, 0.0)], pose(0.0, 0.0, 0.0), robot="r2"))
+    jumped = core.update(message(5, [det(2.0, 0.0)], pose(1.5, 0.0, 0.0)))
+    assert jumped is not None and [t.state for t in jumped.tracks] == ["tentative"]
+    turned = core.update(message(6, [det(2.0, 0.0)], pose(1.5, 0.0, math.radians(40))))
+    assert turned is not None and [t.hits for t in turned.tracks] == [1]
+    renamed = core.update(message(7, [det(2.0, 0.0)], pose(1.5, 0.0, math.radians(40), frame="odom2")))
+    assert renamed is not None and [t.hits for t in renamed.tracks] == [1]
+    small = core.update(message(8, [det(2.0, 0.0)], pose(1.6, 0.0, math.radians(45), frame="odom2")))
+    assert small is not None and [t.hits for t in small.tracks] == [2]
+    other = core.update(message(5, [det(1.0, 0.0)], pose(0.0, 0.0, 0.0), robot="r2"))
+    assert other is not None and [t.hits for t in other.tracks] == [6]
+    assert core.counters.resets == {"odom_jump": 2, "odom_reset": 1}
+    assert not core.counters.dropped and not core.counters.rejected
+
+
+def test_nan_odometry_is_refused_and_the_last_pose_stands_in() -> None:
+    core = TrackerCore()
+    for k in range(4):
+        core.update(message(k, [det(2.0, 0.0)], pose(0.5, 0.0, 0.0)))
+    nan = Odometry(x_m=float("nan"), y_m=0.0, yaw_rad=0.0, stamp_ns=0)
+    out = core.update(message(4, [det(2.0, 0.0)], nan))
+    missing = core.update(message(5, [det(2.0, 0.0)]))
+    assert out is not None and missing is not None and missing.frame == "odom"
+    (track,) = missing.tracks
+    assert track.hits == 6 and track.odom_x_m == pytest.approx(2.5)
+    assert core.counters.odom_refused == {"not_finite": 1, "missing": 1} and not core.counters.resets
+
+
+def test_out_of_order_detections_are_dropped_and_a_restart_resets() -> None:
+    core = TrackerCore()
+    for k in range(3):
+        core.update(message(k, [det(2.0, 0.0)]))
+    assert core.update(message(1, [det(2.0, 0.0)])) is None
+    assert core.update(message(2, [det(2.0, 0.0)])) is None  # a duplicate
+    restarted = core.update(message(0, [det(2.0, 0.0)], stamp=T0_NS + 10 * PERIOD_NS))
+    assert restarted is not None and restarted.tracks[0].hits == 1
+    assert core.counters.dropped == {"out_of_order": 2} and core.counters.resets == {"restart": 1}
+    assert core.counters.published == 4 and core.counters.received == 6
+
+
+def test_odometry_arriving_resets_laser_frame_tracks() -> None:
+    core = TrackerCore()
+    core.update(message(0, [det(2.0, 0.0)]))
+    out = core.update(message(1, [det(2.0, 0.0)], pose(0.0, 0.0, 0.0)))
+    assert out is not None and out.frame == "odom" and out.tracks[0].hits == 1
+    assert core.counters.resets == {"frame_change": 1}
+
+
+def test_a_forgotten_robots_tracks_are_dropped_and_its_ids_not_reused() -> None:
+    clock = FakeClock()
+    core = TrackerCore(forget_after_s=10.0, clock=clock)
+    core.update(message(0, [det(2.0, 0.0), det(1.0, 1.0)], robot="r1"))
+    clock.now = 5.0
+    core.update(message(0, [det(2.0, 0.0)], robot="r2"))
+    clock.now = 12.0
+    assert core.forget_silent() == ["r1"] and core.robot_ids == ["r2"]
+    assert core.counters.forgotten_robots == 1 and core.counters.tracks_forgotten == 2
+    back = core.update(message(50, [det(2.0, 0.0)], robot="r1"))
+    assert back is not None and back.tracks[0].track_id == 4
+
+
+def test_bad_samples_are_counted_by_reason_and_good_ones_still_served() -> None:
+    core = TrackerCore()
+    good = encode_message(message(0, [det(2.0, 0.0)]))
+    assert core.handle_sample("triscan/r1/nope", good) is None
+    assert core.handle_sample(detections_key("r1"), b"\xc1") is None
+    assert core.handle_sample(detections_key("r2"), good) is None
+    served = core.handle_sample(detections_key("r1"), good)
+    assert served is not None and len(served.tracks) == 1
+    assert core.counters.rejected == {"bad_key": 1, "not_msgpack": 1, "robot_id_mismatch": 1}
+    snapshot = core.snapshot()
+    assert snapshot["received"] == 4 and snapshot["published"] == 1 and snapshot["tracks"] == 1
+
+
+def test_triscan_status_shows_the_trackers_counters() -> None:
+    from services.status import ServiceStatus, format_status
+
+    core = TrackerCore()
+    core.update(message(0, [det(2.0, 0.0)], pose(0.0, 0.0, 0.0)))
+    core.update(message(1, [det(2.0, 0.0)], pose(2.0, 0.0, 0.0)))
+    line = format_status([ServiceStatus("tracker", "123", True, core.snapshot())])
+    assert line.startswith("tracker") and "resets.odom_jump=1" in line and "tracks=1" in line
