@@ -453,7 +453,7 @@ class Detections(Message):
     """
 
     KIND: ClassVar[str] = "detections"
-    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2}
+    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2, "pose_stamp_ns": 2}
 
     detections: list[Detection] = Field(max_length=MAX_DETECTIONS)
     timings: StageTimings

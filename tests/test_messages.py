@@ -725,8 +725,9 @@ def test_detections_carry_the_stamp_of_the_scan_their_boxes_belong_to() -> None:
     """The boxes are the middle scan's: its stamp travels beside the newest scan's, never after it."""
     message = make_detections(scan_stamp_ns=90, pose_stamp_ns=80)
     assert decode_message(encode_message(message), Detections).pose_stamp_ns == 80
-    body = msgpack.unpackb(encode_message(make_detections()))
-    del body["pose_stamp_ns"]  # a producer that does not fill it
+    body = msgpack.unpackb(encode_message(make_detections()))  # a producer that does not fill it
+    assert "pose_stamp_ns" not in body and body["schema_version"] == 1, "a version-1 reader still reads it"
     assert decode_message(msgpack.packb(body), Detections).pose_stamp_ns is None
+    assert msgpack.unpackb(encode_message(message))["schema_version"] == 2
     with pytest.raises(ValidationError, match="cannot be newer than scan_stamp_ns"):
         make_detections(scan_stamp_ns=90, pose_stamp_ns=91)
