@@ -2,6 +2,8 @@
 
 ``--preset NAME`` names a protocol of the recipe file (``[eval.NAME]``: ``unseen`` is the model cards'
 unseen worlds under every LiDAR condition); a flag given with it overrides the preset's value.
+``--bag`` scores the models on a recorded ROS bag instead (:mod:`training.real_eval`,
+docs/real-recordings.md).
 """
 
 from __future__ import annotations
@@ -31,6 +33,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="the fresh worlds and conditions of the recipe file's [eval.NAME] (unseen: the model cards' "
         "20 unseen worlds under five LiDAR conditions)",
     )  # fmt: skip
+    source.add_argument(
+        "--bag", type=Path,
+        help="a recorded ROS bag: people, legs or false detections on real scans (docs/real-recordings.md)",
+    )  # fmt: skip
+    _add_bag_arguments(p.add_argument_group("recorded bags (--bag)"))
     p.add_argument(
         "--recipe", type=Path, default=None,
         help="recipe file holding --preset (default: training/recipes/default.toml)",
@@ -83,6 +90,53 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
 
 
+def _add_bag_arguments(g: argparse._ArgumentGroup) -> None:
+    g.add_argument("--topic", default=None, help="LaserScan topic of --bag (default: its only one)")
+    g.add_argument("--people-topic", default=None, help="person centres (PoseArray) in the laser frame")
+    g.add_argument("--legs-topic", default=None, help="leg clusters (PoseArray) in the laser frame")
+    g.add_argument(
+        "--stream-bag", type=Path, default=None,
+        help="the full recording --bag's scans were cut from: tensors stack its consecutive scans",
+    )  # fmt: skip
+    g.add_argument(
+        "--bearing-window", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
+        help="score only within these bearings, degrees counter-clockwise from forward (default: all)",
+    )  # fmt: skip
+    g.add_argument(
+        "--legs-window", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
+        help="bearings where --legs-topic's legs were extracted (default: the development set's own)",
+    )  # fmt: skip
+    g.add_argument("--people-free", action="store_true", help="the bag holds no people: false people/min")
+    g.add_argument("--conf", type=float, default=None, help="operating confidence (default: the detector's)")
+
+
+def _run_bag(args: argparse.Namespace) -> int:
+    from training.real_eval import (
+        BagEvalConfig,
+        Scope,
+        detector_for,
+        evaluate_bag,
+        format_reports,
+        write_reports,
+    )
+
+    config = BagEvalConfig(
+        bag=args.bag,
+        topic=args.topic,
+        people_topic=args.people_topic,
+        legs_topic=args.legs_topic,
+        stream_bag=args.stream_bag,
+        scope=Scope(*args.bearing_window) if args.bearing_window else Scope(),
+        legs_window=Scope(*args.legs_window, max_range_m=float("inf")) if args.legs_window else None,
+        people_free=args.people_free,
+        **({} if args.conf is None else {"conf": args.conf}),
+    )
+    reports = [evaluate_bag(detector_for(model, args.threads), config) for model in args.model]
+    print(format_reports(reports))
+    print(f"written to {write_reports(reports, args.out)}")
+    return 0
+
+
 def _apply_preset(args: argparse.Namespace) -> None:
     """Fill the --fresh settings left unset: from ``--preset``'s table, else :data:`FRESH_DEFAULTS`."""
     defaults = dict(FRESH_DEFAULTS)
@@ -105,6 +159,8 @@ def _apply_preset(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.bag is not None:
+        return _run_bag(args)
     from common.inference import OnnxDetector
     from training.evaluate import (
         SENSOR_SEPARATOR,

@@ -1,0 +1,402 @@
+"""``triscan eval --bag``: DR-SPAAM's person metric on hand-computed runs, leg hits, label pairing, a
+synthetic bag end to end, one-line refusals, and (slow) a real recording of the development set."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.model_spec import CLASS_NAMES, META_CLASSES, SHIPPED_MODEL
+from services.cli import main as cli_main
+from training.real_eval import (
+    LEG_TRACKER_WINDOWS,
+    PERSON_ID,
+    BagEvalConfig,
+    FrameDetections,
+    Positions,
+    RealEvalError,
+    Scope,
+    _FrameMatching,
+    detector_for,
+    evaluate_bag,
+    leg_hits,
+    pair_labels,
+    positions_of,
+    precision_recall_curve,
+    within_radius,
+)
+
+# The development set beside the checkout (CI has ../shared next to its clone); TRISCAN_REAL_DATA
+# points elsewhere, e.g. from a git worktree.
+ROOT = Path(__file__).resolve().parents[1]
+REAL = Path(os.environ.get("TRISCAN_REAL_DATA", ROOT.parent / "shared" / "real" / "leg_tracker"))
+T0_NS = 1_700_000_000_000_000_000
+PERIOD_NS = 100_000_000
+
+
+def frame(dets: list[tuple[float, float, float]], people: list[tuple[float, float]]) -> FrameDetections:
+    """A frame from (score, x, y) detections and (x, y) people."""
+    d = np.array(dets, dtype=np.float64).reshape(-1, 3)
+    return FrameDetections(d[:, 0], d[:, 1:], np.array(people, dtype=np.float64).reshape(-1, 2))
+
+
+# --------------------------------------------------------------------------------------------------
+# DR-SPAAM's curve, AP and peak F1
+# --------------------------------------------------------------------------------------------------
+
+
+def test_curve_ap_and_peak_f1_of_a_hand_computed_run() -> None:
+    # Two frames, one person each. 0.9 finds frame 0's person, 0.8 is a false alarm, 0.7 finds frame 1's.
+    frames = [frame([(0.9, 1.0, 0.1)], [(1.0, 0.0)]), frame([(0.8, 3.0, 0.0), (0.7, 2.1, 2.0)], [(2.0, 2.0)])]
+    curve = precision_recall_curve(frames, 0.3)
+    np.testing.assert_allclose(curve.thresholds, [0.9, 0.8, 0.7])
+    np.testing.assert_allclose(curve.recalls, [0.5, 0.5, 1.0])
+    np.testing.assert_allclose(curve.precisions, [1.0, 0.5, 2 / 3])
+    # Trapezoids between the curve's points: 0 from (0.5, 1) to (0.5, 0.5), then (0.5 + 2/3) / 2 · 0.5.
+    assert curve.ap == pytest.approx((0.5 + 2 / 3) / 2 * 0.5)
+    assert curve.peak_f1 == pytest.approx(0.8)  # at recall 1, precision 2/3
+    # At 0.05 m nothing matches: recall and precision stay 0.
+    tight = precision_recall_curve(frames, 0.05)
+    assert (tight.ap, tight.peak_f1) == (0.0, 0.0)
+
+
+def test_matching_is_optimal_not_greedy() -> None:
+    # The best detection lies within 0.3 m of both people, the second only of the first person: a
+    # greedy nearest match gives the first person to the best one and leaves one miss; the Hungarian
+    # assignment finds both. The curve starts at the first detection's recall (as sklearn's auc).
+    frames = [frame([(0.9, 0.25, 0.0), (0.8, -0.2, 0.0)], [(0.0, 0.0), (0.5, 0.0)])]
+    curve = precision_recall_curve(frames, 0.3)
+    np.testing.assert_allclose(curve.recalls, [0.5, 1.0])
+    np.testing.assert_allclose(curve.precisions, [1.0, 1.0])
+    assert (curve.ap, curve.peak_f1) == (pytest.approx(0.5), pytest.approx(1.0))
+
+
+def test_a_detection_exactly_at_the_radius_matches_and_one_beyond_does_not() -> None:
+    assert within_radius(np.array([[0.5, 0.0]]), np.array([[0.0, 0.0]]), 0.5).all()
+    assert not within_radius(np.array([[0.5001, 0.0]]), np.array([[0.0, 0.0]]), 0.5).any()
+
+
+def test_detections_in_frames_without_people_are_false_alarms_and_ties_go_later_first() -> None:
+    # Equal scores: DR-SPAAM walks its stable ascending sort backwards, so the later detection first.
+    frames = [frame([(0.5, 1.0, 0.0)], [(1.0, 0.0)]), frame([(0.5, 9.0, 9.0)], [])]
+    curve = precision_recall_curve(frames, 0.3)
+    np.testing.assert_allclose(curve.recalls, [0.0, 1.0])
+    np.testing.assert_allclose(curve.precisions, [0.0, 0.5])
+    assert curve.ap == pytest.approx(0.25)
+
+
+def test_runs_without_detections_or_without_people() -> None:
+    no_detections = precision_recall_curve([frame([], [(1.0, 0.0)])], 0.5)
+    assert (no_detections.ap, no_detections.peak_f1) == (0.0, 0.0)
+    no_people = precision_recall_curve([frame([(0.9, 1.0, 0.0)], [])], 0.5)
+    assert (no_people.ap, no_people.peak_f1) == (None, None)
+    assert precision_recall_curve([], 0.5).ap is None
+
+
+def brute_force_matching(near: np.ndarray) -> int:
+    """The largest number of one-to-one pairs within the radius, by trying every assignment."""
+    dets, people = near.shape
+    if dets < people:
+        return brute_force_matching(near.T)
+    return max(
+        (
+            sum(bool(near[d, p]) for p, d in enumerate(perm))
+            for perm in itertools.permutations(range(dets), people)
+        ),
+        default=0,
+    )
+
+
+def test_incremental_matching_stays_maximum_after_every_detection() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        people = rng.uniform(0, 1.5, (int(rng.integers(0, 5)), 2))
+        dets = rng.uniform(0, 1.5, (int(rng.integers(1, 6)), 2))
+        matching = _FrameMatching(people, 0.4)
+        for k in range(len(dets)):
+            matching.add(dets[k])
+            assert matching.matched == brute_force_matching(within_radius(dets[: k + 1], people, 0.4))
+
+
+def test_curve_equals_scipy_linear_sum_assignment_after_every_detection() -> None:
+    """The protocol as DR-SPAAM's code runs it: re-solve the frame's assignment per detection."""
+    optimize = pytest.importorskip("scipy.optimize")
+    rng = np.random.default_rng(3)
+    frames = []
+    for _ in range(25):
+        people = rng.uniform(0, 4, (int(rng.integers(0, 4)), 2))
+        dets = rng.uniform(0, 4, (int(rng.integers(0, 8)), 2))
+        frames.append(FrameDetections(rng.random(len(dets)).round(2), dets, people))
+    curve = precision_recall_curve(frames, 0.5)
+    accepted: list[list[int]] = [[] for _ in frames]
+    tps = np.zeros(len(frames), int)
+    order = [(s, f, i) for f, fr in enumerate(frames) for i, s in enumerate(fr.scores)]
+    order = [order[k] for k in np.argsort([s for s, _, _ in order], kind="stable")[::-1]]
+    total = sum(len(f.people) for f in frames)
+    for k, (_, f, i) in enumerate(order):
+        accepted[f].append(i)
+        if len(frames[f].people):
+            far = ~within_radius(frames[f].people, frames[f].xy[accepted[f]], 0.5)
+            rows, cols = optimize.linear_sum_assignment(far)
+            tps[f] = int((~far[rows, cols]).sum())
+        assert curve.precisions[k] == pytest.approx(tps.sum() / (k + 1))
+        assert curve.recalls[k] == pytest.approx(tps.sum() / total)
+
+
+# --------------------------------------------------------------------------------------------------
+# Legs, scope, labels
+# --------------------------------------------------------------------------------------------------
+
+
+def test_leg_hits_count_legs_found_and_detections_on_legs() -> None:
+    legs = np.array([[1.0, 0.1], [1.0, -0.1], [3.0, 0.0]])  # one person's two legs, a third leg far off
+    dets = np.array([[1.15, 0.0], [2.0, 2.0]])  # one on the pair, one on nothing
+    assert leg_hits(dets, legs) == (2, 1)
+    assert leg_hits(np.zeros((0, 2)), legs) == (0, 0)
+    assert leg_hits(dets, np.zeros((0, 2))) == (0, 0)
+
+
+def test_scope_keeps_bearings_and_ranges_inside_and_intersects() -> None:
+    scope = Scope(-15.0, 10.0, 4.0)
+    points = np.array([[2.0, 0.0], [2.0, 2.0 * math.tan(math.radians(12))], [4.5, 0.0], [-1.0, 0.0]])
+    assert scope.contains(points).tolist() == [True, False, False, False]
+    assert Scope().within(LEG_TRACKER_WINDOWS["positive_4_extracted.bag"]) == Scope(-15.0, 10.0, 4.0)
+    with pytest.raises(RealEvalError, match="bearing window"):
+        Scope(10.0, -10.0)
+
+
+def test_labels_pair_in_bag_order_without_stamps_and_by_nearest_stamp_with_them() -> None:
+    scans = [T0_NS + k * PERIOD_NS for k in range(4)]
+    xy = [np.full((1, 2), float(k)) for k in range(4)]
+    by_order = pair_labels(scans, [Positions(0, "laser", p) for p in xy], "/legs")
+    assert [float(by_order[s][0, 0]) for s in scans] == [0.0, 1.0, 2.0, 3.0]
+    with pytest.raises(RealEvalError, match="cannot pair them in bag order"):
+        pair_labels(scans, [Positions(0, "laser", p) for p in xy[:3]], "/legs")
+    stamped = [Positions(scans[1] + PERIOD_NS // 3, "laser", xy[1]), Positions(scans[3] - 1, "laser", xy[3])]
+    assert sorted(pair_labels(scans, stamped, "/people")) == [scans[1], scans[3]]
+    with pytest.raises(RealEvalError, match="within half a scan interval"):
+        pair_labels(scans, [Positions(scans[3] + 10 * PERIOD_NS, "laser", xy[0])], "/people")
+
+
+def test_positions_of_pose_arrays_and_people_lists() -> None:
+    def point(x: float, y: float) -> SimpleNamespace:
+        return SimpleNamespace(x=x, y=y, z=0.0)
+
+    poses = SimpleNamespace(poses=[SimpleNamespace(position=point(1.0, 2.0))])
+    people = SimpleNamespace(people=[SimpleNamespace(pos=point(3.0, 4.0))])
+    np.testing.assert_array_equal(positions_of(poses, "/t"), [[1.0, 2.0]])
+    np.testing.assert_array_equal(positions_of(people, "/t"), [[3.0, 4.0]])
+    with pytest.raises(RealEvalError, match="no positions"):
+        positions_of(SimpleNamespace(data="hi", __msgtype__="std_msgs/msg/String"), "/t")
+
+
+# --------------------------------------------------------------------------------------------------
+# A synthetic bag end to end
+# --------------------------------------------------------------------------------------------------
+
+
+def person_model(path: Path) -> Path:
+    """A 5-class constant model: one person box at bearing 0.5°, 1.9–2.1 m, score 0.9, every frame."""
+    from tests.test_inference import constant_model, raw_output
+
+    rows = (2.0 * 63 / 4) - 1.5, (2.0 * 63 / 4) + 1.5  # a box 3 rows tall centred on 2 m
+    anchor = (1.0, sum(rows) / 2, 2.0, rows[1] - rows[0], [0.0, 0.0, 0.0, 0.0, 0.9])
+    metadata = {META_CLASSES: json.dumps(list(CLASS_NAMES))}
+    return constant_model(path, raw_output([anchor], total=504), metadata=metadata)
+
+
+def write_bag(
+    path: Path, people: list[list[tuple[float, float]]], *, beams: int = 360, fov: float = 2 * math.pi
+) -> Path:
+    """A ROS 1 bag: len(people) scans on /scan, PERIOD_NS apart, and a stamped /people PoseArray each."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    t = store.types
+
+    def header(k: int) -> Any:
+        sec, nanosec = divmod(T0_NS + k * PERIOD_NS, 10**9)
+        stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        return t["std_msgs/msg/Header"](seq=k, stamp=stamp, frame_id="laser")
+
+    def pose(x: float, y: float) -> Any:
+        return t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        )
+
+    with Writer(path) as writer:
+        scan_conn = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
+        people_conn = writer.add_connection("/people", "geometry_msgs/msg/PoseArray", typestore=store)
+        for k, persons in enumerate(people):
+            increment = fov / beams
+            scan = t["sensor_msgs/msg/LaserScan"](
+                header=header(k),
+                angle_min=-fov / 2,
+                angle_max=-fov / 2 + increment * (beams - 1),
+                angle_increment=increment,
+                time_increment=0.0,
+                scan_time=0.1,
+                range_min=0.1,
+                range_max=8.0,
+                ranges=np.full(beams, 3.0, np.float32),
+                intensities=np.zeros(0, np.float32),
+            )
+            writer.write(
+                scan_conn, T0_NS + k * PERIOD_NS, store.serialize_ros1(scan, "sensor_msgs/msg/LaserScan")
+            )
+            poses = t["geometry_msgs/msg/PoseArray"](header=header(k), poses=[pose(*p) for p in persons])
+            writer.write(
+                people_conn,
+                T0_NS + k * PERIOD_NS + 1,
+                store.serialize_ros1(poses, "geometry_msgs/msg/PoseArray"),
+            )
+    return path
+
+
+def test_a_bag_is_scored_on_each_tensors_middle_scan(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    detector = detector_for(person_model(tmp_path / "person.onnx"))
+    # Five scans make three tensors, for middle scans 1, 2 and 3. The person stands at the detection
+    # in scan 1 only: a tensor scored against its newest scan would never meet them.
+    people = [[(2.0, 0.0)], [(2.0, 0.0)], [], [(5.0, 5.0)], [(2.0, 0.0)]]
+    report = evaluate_bag(
+        detector, BagEvalConfig(write_bag(tmp_path / "walk.bag", people), people_topic="/people")
+    )
+    assert (report.scans, report.tensors, report.has_person_class) == (5, 3, True)
+    assert report.people is not None
+    assert (report.people["frames"], report.people["people"]) == (3, 1)  # (5, 5) lies beyond 4 m
+    # Equal scores, later frames first: two false alarms (recall 0), then the hit (recall 1, precision 1/3).
+    assert report.people["r0.3"] == {"ap": pytest.approx(1 / 6), "peak_f1": pytest.approx(0.5)}
+    assert report.detections["person"] == 3
+    assert report.per_minute["person"] == pytest.approx(3 / (3 * PERIOD_NS / 60e9))
+    assert report.skipped == {"people_scans_without_tensor": 2}
+    behind = evaluate_bag(
+        detector,
+        BagEvalConfig(
+            tmp_path / "walk.bag", people_topic="/people", scope=Scope(90.0, 180.0), people_free=True
+        ),
+    )
+    assert behind.detections["person"] == 0 and behind.false_people_per_minute == 0.0
+
+
+def test_another_beam_geometry_works(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    bag = write_bag(tmp_path / "narrow.bag", [[(2.0, 0.0)]] * 4, beams=97, fov=math.radians(100))
+    report = evaluate_bag(
+        detector_for(person_model(tmp_path / "p.onnx")), BagEvalConfig(bag, people_topic="/people")
+    )
+    assert report.tensors == 2 and report.people is not None
+    assert report.people["r0.5"]["peak_f1"] == pytest.approx(1.0)
+
+
+def test_cli_refuses_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    pytest.importorskip("rosbags")
+    model = str(person_model(tmp_path / "p.onnx"))
+    bag = str(write_bag(tmp_path / "walk.bag", [[(2.0, 0.0)]] * 4))
+    garbage = tmp_path / "garbage.bag"
+    garbage.write_bytes(bytes(range(256)) * 8)
+    for argv, message in (
+        (["--bag", bag, "--topic", "/front_scan"], "no LaserScan topic ['/front_scan']"),
+        (["--bag", bag, "--people-topic", "/persons"], "no topic /persons in"),
+        (["--bag", bag, "--legs-topic", "/scan"], "holds sensor_msgs/msg/LaserScan: no positions"),
+        (["--bag", str(garbage)], "is not a readable ROS bag"),
+        (["--bag", str(tmp_path / "missing.bag")], "not found"),
+        (["--bag", bag, "--bearing-window", "30", "-30"], "bearing window"),
+    ):
+        assert cli_main(["eval", "--model", model, *argv, "--out", str(tmp_path / "out")]) == 2
+        errors = [r for r in caplog.records if r.levelname == "ERROR"]
+        assert len(errors) == 1 and message in errors[0].getMessage() and errors[0].exc_info is None
+        caplog.clear()
+    assert (
+        cli_main(
+            [
+                "eval",
+                "--model",
+                model,
+                "--bag",
+                bag,
+                "--people-topic",
+                "/people",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
+    table = capsys.readouterr().out
+    assert "AP@0.3 m / peak F1" in table and "person detections (/min)" in table
+    (written,) = json.loads((tmp_path / "out" / "walk.json").read_text())
+    assert written["people"]["r0.5"]["peak_f1"] == pytest.approx(1.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# The real development set
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_real_extracted_recording_scores_its_leg_clusters() -> None:
+    if not (REAL / "training_scans_res=0.33").is_dir():
+        pytest.skip(f"the leg_tracker development set is not at {REAL} (../shared beside the checkout)")
+    pytest.importorskip("rosbags")
+    from rosbags.highlevel import AnyReader
+
+    scans = REAL / "training_scans_res=0.33"
+    bag = scans / "positive_2_extracted.bag"
+    full = scans / "positive_not_extracted" / "positive_2.bag"
+    config = BagEvalConfig(
+        bag,
+        legs_topic="/leg_cluster_positions",
+        stream_bag=full,
+    )
+    detector = detector_for(SHIPPED_MODEL)
+    report = evaluate_bag(detector, config)
+
+    # The leg clusters within 4 m and ±15° of forward of every extracted scan that is some tensor's
+    # middle scan in the full recording, counted here independently of the code under test.
+    def stamps_and_legs(path: Path, topic: str) -> list[tuple[int, list[tuple[float, float]]]]:
+        with AnyReader([path]) as reader:
+            (conn,) = [c for c in reader.connections if c.topic == topic]
+            messages: list[Any] = [
+                reader.deserialize(raw, conn.msgtype) for _, _, raw in reader.messages(connections=[conn])
+            ]
+        return [
+            (
+                m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                [(p.position.x, p.position.y) for p in getattr(m, "poses", [])],
+            )
+            for m in messages
+        ]
+
+    extracted = [stamp for stamp, _ in stamps_and_legs(bag, "/training_scan")]
+    legs = [xy for _, xy in stamps_and_legs(bag, "/leg_cluster_positions")]
+    middles = {stamp for stamp, _ in stamps_and_legs(full, "right_scan")[1:-1]}
+    assert len(extracted) == len(legs) == 83
+    scored = [k for k, stamp in enumerate(extracted) if stamp in middles]
+    in_window = sum(
+        math.hypot(x, y) <= 4.0 and abs(math.degrees(math.atan2(y, x))) <= 15.0
+        for k in scored
+        for x, y in legs[k]
+    )
+    assert report.legs is not None
+    assert report.legs["scope"] == {"min_deg": -15.0, "max_deg": 15.0, "max_range_m": 4.0}
+    assert (report.legs["frames"], report.legs["legs"]) == (len(scored), in_window)
+    assert report.skipped.get("legs_scans_without_tensor", 0) == 83 - len(scored)
+    assert report.tensors == report.scans - 2
+    if detector.num_classes <= PERSON_ID:
+        assert not report.has_person_class and report.legs["recall"] == 0.0
+        assert report.legs["precision"] is None
+    else:
+        assert 0.0 <= report.legs["recall"] <= 1.0
