@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 
 from bench import fleet_capacity
-from bench.harness import recorded_scans
 from bench.machine import machine_info
 from common.encoding import to_model_input
 from common.inference import session_options
 from services.detector.batch_cap import detector_model_and_batch
 from services.encoder.core import EncoderCore
+from services.sim_bag import recorded_scans
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

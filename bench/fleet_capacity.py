@@ -41,7 +41,6 @@ from bench.harness import (
     add_detector_model_argument,
     proc_cpu_s,
     proc_status_mb,
-    recorded_scans,
     start_loopback_service,
     thread_cpu_s,
 )
@@ -54,6 +53,7 @@ from common.transport import ZenohSettings, open_session, payload_bytes, wait_fo
 from services.detector.batch_cap import detector_model_and_batch
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
+from services.sim_bag import recorded_scans
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

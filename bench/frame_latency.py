@@ -291,7 +291,7 @@ class GridPipeline:
 
 def simulated_scans(count: int, seed: int) -> list[ScanArgs]:
     """``count`` consecutive scans of one simulated robot (10 Hz, a new world every 30 s of sim time)."""
-    from bench.harness import recorded_scans
+    from services.sim_bag import recorded_scans
 
     return [
         ScanArgs(

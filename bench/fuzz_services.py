@@ -56,7 +56,7 @@ import msgpack
 import numpy as np
 import zenoh
 
-from bench.harness import recorded_scans, start_loopback_service
+from bench.harness import start_loopback_service
 from bench.report import write_report
 from common.keys import ALL_STATS, DETECTIONS, parse_key, scan_key, tensor_key, wildcard_key
 from common.messages import (
@@ -74,7 +74,7 @@ from services.launcher import free_tcp_ports, stop_processes
 from services.ros2_bridge.core import DEFAULT_SCAN_TOPIC, BridgeConfig, BridgeCore
 from services.ros2_bridge.rmw_zenoh import GID_SIZE, data_key, encode_attachment, qualified_topic
 from services.ros2_bridge.ros_types import LASER_SCAN, TYPE_HASH_NOT_SUPPORTED, dds_type_name, ros_types
-from services.sim_bag import T0_NS, laser_scan_message
+from services.sim_bag import T0_NS, laser_scan_message, recorded_scans
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 

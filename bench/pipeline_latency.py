@@ -269,9 +269,10 @@ def bare_frame_latency(model: Path, threads: int | None, rate_hz: float, frames:
     Paced like the pipeline (not back to back), so the ONNX Runtime thread pool idles between frames
     exactly as it does in the detector; the difference to the pipeline is what the pipeline adds.
     """
-    from bench.harness import recorded_scans, timed_us
+    from bench.harness import timed_us
     from common.inference import OnnxDetector
     from services.encoder.core import EncoderCore
+    from services.sim_bag import recorded_scans
 
     encoder = EncoderCore("zero")
     tensors = [t.tensor for scan in recorded_scans(60) if (t := encoder.push(scan)) is not None]

@@ -81,7 +81,7 @@ def test_a_wheel_installed_elsewhere_answers_a_tensor_with_its_default_model(tmp
     from common.messages import Detections, StackedTensor, decode_message, encode_message
     from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
     from services.launcher import free_tcp_ports
-    from tests.waiting import wait_for
+    from tests.support.waiting import wait_for
     from training.evaluate import fresh_samples
 
     source = _copy_sources(tmp_path / "source")

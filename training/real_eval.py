@@ -29,7 +29,7 @@ import logging
 import math
 from collections import Counter, deque
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Final, NamedTuple
@@ -301,15 +301,13 @@ def _opened(bag: Path) -> Iterator[Any]:
 
     if not bag.exists():
         raise FileNotFoundError(f"bag {bag} not found")
-    reader = _open_reader([bag])
+    stack = ExitStack()
     try:
-        reader.open()
+        reader = stack.enter_context(_open_reader([bag]))
     except Exception as exc:  # rosbags raises a zoo of types (UnicodeDecodeError too) for a bad file
-        raise RealEvalError(f"{bag} is not a readable ROS bag: {type(exc).__name__}: {exc}") from None
-    try:
+        raise RealEvalError(f"{bag} is not a readable ROS bag: {exc}") from None
+    with stack:
         yield reader
-    finally:
-        reader.close()
 
 
 def _scan_connection(reader: Any, bag: Path, topic: str | None) -> Any:
