@@ -37,6 +37,7 @@ Bad input loses nothing else (counted by reason in :class:`TrackerCounters`):
 
 from __future__ import annotations
 
+import colorsys
 import logging
 import math
 import threading
@@ -66,9 +67,24 @@ from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
 
 log = logging.getLogger(__name__)
 
+REPORTED_STATES: Final[tuple[TrackState, ...]] = ("confirmed", "coasting")
+"""The tracks a consumer should treat as objects (ROS 2 output, scoring): a tentative track may be noise."""
 DEFAULT_FORGET_AFTER_S: Final[float] = 10.0
 DEFAULT_MAX_ROBOTS: Final[int] = 1024
 _NS_PER_S: Final[float] = 1e9
+
+
+_GOLDEN_RATIO_CONJUGATE: Final[float] = 0.6180339887498949
+
+
+def track_colour(track_id: int) -> tuple[int, int, int]:
+    """A track's display colour, RGB 0–255, from its id alone: the same in every viewer and every frame.
+
+    Hues step by the golden ratio, so consecutive ids (tracks opened together) get far-apart colours.
+    """
+    hue = (track_id * _GOLDEN_RATIO_CONJUGATE) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.7, 0.95)
+    return round(r * 255), round(g * 255), round(b * 255)
 
 
 @dataclass(frozen=True)
