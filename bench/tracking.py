@@ -158,7 +158,8 @@ def live(seconds: float, robots: int, seed: int) -> dict[str, Any]:
     }
 
 
-def _detection(x: float, y: float, class_id: int) -> Detection:
+def detection_at(x: float, y: float, class_id: int) -> Detection:
+    """A detection of a point object at (x, y) in the laser frame."""
     r, b = math.hypot(x, y), math.degrees(math.atan2(y, x))
     return Detection(
         class_id=class_id, class_name=CLASS_NAMES[class_id], score=0.9, box_px=(0.0, 0.0, 1.0, 1.0),
@@ -178,7 +179,7 @@ def cost(objects: int, frames: int) -> dict[str, Any]:
         world = start + velocity * k * 0.1 + rng.normal(0.0, 0.03, (objects, 2))
         dx, dy = world[:, 0] - x0, world[:, 1] - y0
         detections = [
-            _detection(float(c * a + s * b), float(-s * a + c * b), i % len(CLASS_NAMES))
+            detection_at(float(c * a + s * b), float(-s * a + c * b), i % len(CLASS_NAMES))
             for i, (a, b) in enumerate(zip(dx, dy, strict=True))
         ]
         messages.append(

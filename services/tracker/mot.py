@@ -14,6 +14,7 @@ The default gate, 0.75 m, is the one leg_tracker's benchmarks use for people.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Hashable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -45,6 +46,12 @@ class MotScore:
     @property
     def motp_m(self) -> float:
         return self.distance_sum_m / self.matches if self.matches else math.nan
+
+    def merged(self, other: MotScore) -> MotScore:
+        """The score of both sequences together (independent sequences: no switch across them)."""
+        return MotScore(
+            *(getattr(self, f.name) + getattr(other, f.name) for f in dataclasses.fields(MotScore))
+        )
 
     def to_dict(self) -> dict[str, float | int]:
         return {
