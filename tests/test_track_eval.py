@@ -14,7 +14,15 @@ from bench.tracking import detection_at
 from common.messages import Detection, StageTimings
 from common.model_spec import CLASS_NAMES, SHIPPED_MODEL
 from services.tracker.mot import MotScore
-from training.track_eval import MotionFrame, evaluate_tracks, format_report, fresh_motions
+from training.track_eval import (
+    BagTracks,
+    MotionFrame,
+    evaluate_tracks,
+    format_bag_tracks,
+    format_report,
+    fresh_motions,
+    person_passes,
+)
 
 PERSON_ID = CLASS_NAMES.index("person")
 
@@ -51,7 +59,7 @@ def _motion(frames: int) -> list[MotionFrame]:
 
         tensor = np.full((64, 384, 3), k, dtype=np.uint8)
         targets = {"furniture": {"chair": laser(2.0, 1.0)}, "people": {"p0": laser(1.0, -1.5 + 0.1 * k)}}
-        out.append(MotionFrame(tensor, (k + 1) * 100_000_000, pose, targets))
+        out.append(MotionFrame(tensor, (k + 1) * 100_000_000, pose, targets, {"furniture": {}, "people": {}}))
     return out
 
 
@@ -100,3 +108,24 @@ def test_fresh_motions_give_consecutive_frames_with_truth_in_the_laser_frame() -
     assert len(steps) == 1  # one scan after the other, none skipped
     furniture = [p for f in frames for p in f.targets["furniture"].values()]
     assert furniture and all(math.hypot(*p) < 8.0 for p in furniture)
+
+
+def test_person_tracks_chain_into_passes_and_extra_tracks_in_a_pass_are_switches() -> None:
+    tracks = [
+        {"track_id": 1, "first_s": 0.0, "last_s": 4.0, "hits": 40},
+        {"track_id": 2, "first_s": 4.5, "last_s": 7.0, "hits": 25},  # lost and picked up again: same pass
+        {"track_id": 3, "first_s": 20.0, "last_s": 24.0, "hits": 40},  # the person walks back later
+    ]
+    passes = person_passes(tracks)
+    assert [p["track_ids"] for p in passes] == [[1, 2], [3]]
+    assert (passes[0]["start_s"], passes[0]["end_s"]) == (0.0, 7.0)
+    report = BagTracks(
+        bag="b", model="m", classes=list(CLASS_NAMES), conf=0.25, tensors=300,
+        confirmed_tracks={"person": 3}, person_tracks=tracks, passes=passes, id_switches=1,
+    )  # fmt: skip
+    assert "3 confirmed tracks in 2 passes, 1 ID switches" in format_bag_tracks(report)
+    four = BagTracks(
+        bag="b", model="m", classes=list(CLASS_NAMES[:4]), conf=0.25, tensors=300,
+        confirmed_tracks={"doorframe": 2}, person_tracks=[], passes=[], id_switches=0,
+    )  # fmt: skip
+    assert "this model has no person class" in format_bag_tracks(four)
