@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.tracker.mot import clear_mot
+from services.tracker.mot import ClearMot, clear_mot
 
 
 def test_perfect_tracking_scores_one_and_motp_is_the_mean_offset() -> None:
@@ -54,3 +54,16 @@ def test_a_target_keeps_its_hypothesis_while_within_the_gate_even_if_another_is_
 def test_nothing_to_score_is_nan_not_perfect() -> None:
     score = clear_mot([({}, {})])
     assert math.isnan(score.mota) and math.isnan(score.motp_m)
+
+
+def test_a_hypothesis_on_an_ignored_object_is_no_false_positive_but_a_second_one_is() -> None:
+    accumulator = ClearMot()
+    # the chair is occluded (ignored): the track kept on it is right; a duplicate beside it is not
+    accumulator.update(
+        {"box": (3.0, 0.0)}, {1: (3.0, 0.0), 2: (1.0, 1.0), 3: (1.1, 1.0)}, {"chair": (1.0, 1.05)}
+    )
+    score = accumulator.score
+    assert (score.matches, score.false_positives, score.ignored, score.misses) == (1, 1, 1, 0)
+    # a target is matched before anything is excused: an ignored object never hides a miss
+    accumulator.update({"box": (3.0, 0.0)}, {}, {"chair": (3.0, 0.0)})
+    assert (accumulator.score.misses, accumulator.score.ignored) == (1, 1)

@@ -13,8 +13,19 @@ import pytest
 from zenoh.ext import Int64, z_serialize
 
 from common.encoding import ANGLE_COLUMNS, ScanStacker, angle_columns, beam_bearings_rad, encode_scan
-from common.keys import detections_key, scan_key
-from common.messages import Detections, Scan, StageTimings, decode_message, encode_message
+from common.keys import detections_key, scan_key, tracks_key
+from common.messages import (
+    Detections,
+    Scan,
+    StageTimings,
+    Track,
+    TrackFrame,
+    Tracks,
+    TrackState,
+    decode_message,
+    encode_message,
+)
+from common.model_spec import CLASS_NAMES
 from services.ros2_bridge.core import BridgeConfig, BridgeCore
 from services.ros2_bridge.laser_scan import parse_laser_scan_cdr
 from services.ros2_bridge.odometry import ODOMETRY
@@ -32,6 +43,8 @@ from services.ros2_bridge.rmw_zenoh import (
 )
 from services.ros2_bridge.ros_messages import (
     ADD,
+    ARROW,
+    ARROW_HORIZON_S,
     CUBE,
     DELETEALL,
     TEXT_VIEW_FACING,
@@ -46,6 +59,7 @@ from services.ros2_bridge.ros_types import (
     dds_type_name,
     ros_types,
 )
+from services.tracker.core import track_colour
 from tests.support.detection_builders import one_detection
 from tests.support.ros2_scans import laser_scan_cdr
 
@@ -117,12 +131,44 @@ def test_detection_encoders_write_rosbags_bytes_on_both_distros() -> None:
                 )
                 assert fast.marker_array(*args) == reference.marker_array(*args), (distro, count, frame_id)
     marker = ros_types().store.types["visualization_msgs/msg/Marker"]
-    assert (marker.CUBE, marker.TEXT_VIEW_FACING, marker.ADD, marker.DELETEALL) == (
+    assert (marker.ARROW, marker.CUBE, marker.TEXT_VIEW_FACING, marker.ADD, marker.DELETEALL) == (
+        ARROW,
         CUBE,
         TEXT_VIEW_FACING,
         ADD,
         DELETEALL,
     )
+
+
+def _track(
+    track_id: int, x: float, y: float, vx: float, vy: float, frame: TrackFrame, state: TrackState
+) -> Track:
+    odom = {"odom_x_m": x + 10.0, "odom_y_m": y - 5.0} if frame == "odom" else {}
+    return Track(
+        track_id=track_id, class_id=track_id % 5, class_name=CLASS_NAMES[track_id % 5],
+        score=0.3 + 0.05 * (track_id % 11), x_m=x, y_m=y, vx_mps=vx, vy_mps=vy, age_s=1.0, hits=4,
+        misses=0, state=state, **odom,
+    )  # fmt: skip
+
+
+def test_track_encoders_write_rosbags_bytes_on_both_distros() -> None:
+    for distro in ("jazzy", "humble"):
+        fast, reference = DetectionMessages(ros_types(distro)), ReferenceDetectionMessages(ros_types(distro))
+        for frame in ("odom", "laser"):
+            # ids of every length (the id string's padding), still and moving tracks
+            tracks = [
+                _track(7**i, 0.3 * i, -0.2 * i, 0.1 * (i % 3), -0.4 * (i % 2), frame, "confirmed")
+                for i in range(12)
+            ]
+            for count in (0, 1, 2, 5, 12):
+                for frame_id in ("l", "odom", "base_scan"):
+                    args = (tracks[:count], frame, STAMP_NS, frame_id)
+                    assert fast.track_array(*args) == reference.track_array(*args), (distro, frame, count)
+                    assert fast.track_marker_array(*args) == reference.track_marker_array(*args), (
+                        distro,
+                        frame,
+                        count,
+                    )
 
 
 # -- rmw_zenoh: attachment, keys, tokens ---------------------------------------------------------
@@ -360,6 +406,82 @@ def test_core_publishes_detection3darray_and_markers_with_attachments() -> None:
     assert [m.type for m in markers[1:]] == [CUBE, TEXT_VIEW_FACING] * 3
     assert markers[2].text.startswith(message.detections[0].class_name)
     assert {m.header.frame_id for m in markers} == {"base_scan"}
+
+
+def _tracks(robot_id: str, frame: TrackFrame) -> Tracks:
+    tracks = [
+        _track(1_700_000_000_001, 1.0, 0.5, 0.0, 0.0, frame, "confirmed"),  # still furniture
+        _track(1_700_000_000_002, 2.0, -1.0, 0.6, 0.8, frame, "coasting"),  # a walker, just missed
+        _track(1_700_000_000_003, 0.5, 0.5, 0.0, 0.0, frame, "tentative"),  # maybe noise: not published
+    ]
+    return Tracks(robot_id=robot_id, seq=3, stamp_ns=1, scan_stamp_ns=STAMP_NS, frame=frame, tracks=tracks)
+
+
+@pytest.mark.parametrize("frame", ["odom", "laser"])
+def test_core_publishes_tracks_with_track_ids_and_velocity_arrows(frame: TrackFrame) -> None:
+    core = BridgeCore(BridgeConfig(namespace="/robot1"), clock_ns=lambda: 99)
+    att = encode_attachment(0, 1, GID)
+    core.handle_scan(_rmw_key("robot1"), laser_scan_cdr(_good_ranges(), frame_id="base_scan"), att)
+    core.handle_odometry(
+        f"0/robot1/odom/{dds_type_name(ODOMETRY)}/{ros_types().type_hash(ODOMETRY)}",
+        _odometry_cdr(1.0, 0.2, STAMP_NS),
+        att,
+    )
+    message = _tracks("robot1", frame)
+    out = core.handle_tracks(tracks_key("robot1"), encode_message(message))
+    types = ros_types()
+    assert [o.key for o in out] == [
+        f"0/robot1/triscan/tracks/vision_msgs::msg::dds_::Detection3DArray_/{types.type_hash(DETECTION3D_ARRAY)}",
+        f"0/robot1/triscan/track_markers/visualization_msgs::msg::dds_::MarkerArray_/{types.type_hash(MARKER_ARRAY)}",
+    ]
+    assert all(decode_attachment(o.attachment).source_timestamp_ns == 99 for o in out)
+    # the tracks' frame: the odometry's frame (named by the robot's odometry), else the scan's
+    frame_id = "odom" if frame == "odom" else "base_scan"
+    published = message.tracks[:2]
+    array = types.deserialize(out[0].payload, DETECTION3D_ARRAY)
+    assert array.header.frame_id == frame_id
+    assert array.header.stamp.sec * 1_000_000_000 + array.header.stamp.nanosec == STAMP_NS
+    assert [d.id for d in array.detections] == [str(t.track_id) for t in published]
+    for got, want in zip(array.detections, published, strict=True):
+        where = (want.odom_x_m, want.odom_y_m) if frame == "odom" else (want.x_m, want.y_m)
+        assert (got.bbox.center.position.x, got.bbox.center.position.y) == pytest.approx(where)
+        assert got.results[0].hypothesis.class_id == want.class_name
+    markers = types.deserialize(out[1].payload, MARKER_ARRAY).markers
+    assert markers[0].action == DELETEALL and {m.header.frame_id for m in markers} == {frame_id}
+    assert [m.type for m in markers[1:]] == [ARROW, TEXT_VIEW_FACING] * 2
+    walker_arrow, walker_label = markers[3], markers[4]
+    assert walker_label.text.startswith(f"#{published[1].track_id} ") and "1.0 m/s" in walker_label.text
+    assert walker_arrow.scale.x == pytest.approx(1.0 * ARROW_HORIZON_S)  # |(0.6, 0.8)| m/s
+    q = walker_arrow.pose.orientation
+    assert 2 * math.atan2(q.z, q.w) == pytest.approx(math.atan2(0.8, 0.6))
+    colour = walker_arrow.color
+    assert (colour.r, colour.g, colour.b) == pytest.approx(
+        [c / 255 for c in track_colour(published[1].track_id)]
+    )
+    assert markers[1].scale.x > 0  # still furniture still gets a (tiny) arrow RViz can draw
+    # a second sample: own sequence numbers per publisher
+    again = core.handle_tracks(tracks_key("robot1"), encode_message(message))
+    assert [decode_attachment(o.attachment).sequence_number for o in again] == [1, 1]
+    tokens = core.liveliness_tokens("z")
+    assert any("%triscan%tracks/" in t for t in tokens) and any(
+        "%triscan%track_markers/" in t for t in tokens
+    )
+
+
+def test_core_skips_tracks_of_unknown_robots_and_counts_bad_ones() -> None:
+    core = BridgeCore(BridgeConfig(namespace="/robot1"))
+    assert core.handle_tracks(tracks_key("robot1"), encode_message(_tracks("robot1", "laser"))) == []
+    assert core.counters.tracks_skipped == 1  # no scan yet: no frame to draw in
+    cases = [
+        ("bad_key", "triscan/bad.id/tracks", encode_message(_tracks("robot1", "laser"))),
+        ("robot_id_mismatch", tracks_key("robot1"), encode_message(_tracks("other", "laser"))),
+        ("not_msgpack", tracks_key("robot1"), b"\xc1"),
+        ("wrong_kind", tracks_key("robot1"), encode_message(_detections("robot1", 5))),
+    ]
+    for _, key, payload in cases:
+        assert core.handle_tracks(key, payload) == []
+    assert dict(core.counters.rejected_tracks) == {reason: 1 for reason, _, _ in cases}
+    assert core.counters.tracks_received == 5 and not core.counters.rejected_detections
 
 
 def test_core_skips_unknown_robots_and_counts_bad_detections() -> None:

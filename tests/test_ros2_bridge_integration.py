@@ -4,7 +4,7 @@ zenoh-ros2-sdk publishes LaserScans exactly as a ROS 2 node on rmw_zenoh does (i
 expression, its own RIHS01 hash computation from ``.msg`` text, its own attachment, its own CDR via
 rosbags) and subscribes to the bridge's Detection3DArray and MarkerArray the same way, so a wrong
 key, hash, attachment or byte anywhere in the bridge shows up as silence or a decode error here.
-Between them run the real bridge, encoder and detector processes with the shipped model, on real
+Between them run the real bridge, encoder, detector and tracker processes with the shipped model, on real
 simulated scans. Nothing is downloaded: the SDK reads every ``.msg`` from a local directory built
 from rosbags' definitions and the repository's vision_msgs (the SDK would otherwise ``git clone`` the
 message repositories on first use, which needs the network).
@@ -16,6 +16,7 @@ import json
 import queue
 import subprocess
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -74,16 +75,16 @@ def write_message_directory(root: Path) -> Path:
 
 @pytest.fixture
 def sdk_session(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[int, list[int]]]:
-    """Ports (bridge, [encoder, detector]) and a zenoh-ros2-sdk set up offline; closed afterwards."""
+    """Ports (bridge, [encoder, detector, tracker]) and a zenoh-ros2-sdk set up offline; closed afterwards."""
     from zenoh_ros2_sdk import message_registry
 
     monkeypatch.setenv("ZENOH_CONFIG_OVERRIDE", 'listen/endpoints=["tcp/127.0.0.1:0"]')
     monkeypatch.setenv("ROS_DOMAIN_ID", "0")
     monkeypatch.setattr(message_registry, "_registry", None)  # the SDK's registry is a process global
     message_registry.get_registry(str(write_message_directory(tmp_path / "msgs")))
-    bridge_port, encoder_port, detector_port = free_tcp_ports(3)
+    bridge_port, encoder_port, detector_port, tracker_port = free_tcp_ports(4)
     try:
-        yield bridge_port, [encoder_port, detector_port]
+        yield bridge_port, [encoder_port, detector_port, tracker_port]
     finally:
         session = sdk.ZenohSession._instance
         if session is not None:
@@ -103,23 +104,25 @@ def next_answer(answers: queue.Queue[Any], not_before_ns: int, stamp: Callable[[
 
 
 def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple[int, list[int]]) -> None:
-    bridge_port, (encoder_port, detector_port) = sdk_session
+    bridge_port, (encoder_port, detector_port, tracker_port) = sdk_session
     scans = [r.scan for r in replay_scans(ROBOT, SCANS)]
     quiet = {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT}
     children = {
         "bridge": start_loopback_service(
             "services.ros2_bridge",
             bridge_port,
-            [encoder_port, detector_port],
+            [encoder_port, detector_port, tracker_port],
             "--namespace",
             f"/{ROBOT}",
             **quiet,
         ),
         "encoder": start_loopback_service("services.encoder", encoder_port, [detector_port], **quiet),
         "detector": start_loopback_service("services.detector", detector_port, [], "--threads", "1", **quiet),
+        "tracker": start_loopback_service("services.tracker", tracker_port, [detector_port], **quiet),
     }
     arrays: queue.Queue[Any] = queue.Queue()
     markers: queue.Queue[Any] = queue.Queue()
+    tracks: queue.Queue[Any] = queue.Queue()
     stats: list[dict[str, Any]] = []
     endpoints: list[Any] = []
     try:
@@ -127,6 +130,7 @@ def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple
         endpoints += [
             sdk.ROS2Subscriber(f"/{ROBOT}/triscan/detections", DETECTION3D_ARRAY, arrays.put, **common),
             sdk.ROS2Subscriber(f"/{ROBOT}/triscan/markers", MARKER_ARRAY, markers.put, **common),
+            sdk.ROS2Subscriber(f"/{ROBOT}/triscan/tracks", DETECTION3D_ARRAY, tracks.put, **common),
         ]
         lidar = sdk.ROS2Publisher(f"/{ROBOT}/scan", LASER_SCAN, node_name="lidar", **common)
         endpoints.append(lidar)
@@ -176,6 +180,10 @@ def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple
             got_arrays.append((stamp, array))
             got_markers.append((stamp, marker))
             stamp += PERIOD_NS
+        # The tracks of the last lockstep scan, and every tracks array since lockstep began.
+        got_tracks: list[Any] = []
+        while not got_tracks or stamp_of(got_tracks[-1]) < stamp - PERIOD_NS:
+            got_tracks.append(next_answer(tracks, lockstep_from, stamp_of))
         topics = dict(sdk.get_topic_names_and_types(domain_id=0, router_port=bridge_port, timeout=2.0))
         assert wait_for(lambda: bool(stats), 10)
     finally:
@@ -200,4 +208,12 @@ def test_zenoh_ros2_sdk_node_gets_detections_and_markers_back(sdk_session: tuple
     assert total > 0, "the shipped model saw nothing in 14 real scans"
     assert topics.get(f"/{ROBOT}/triscan/detections") == [DETECTION3D_ARRAY]
     assert topics.get(f"/{ROBOT}/triscan/markers") == [MARKER_ARRAY]
+    assert topics.get(f"/{ROBOT}/triscan/tracks") == [DETECTION3D_ARRAY]
+    assert topics.get(f"/{ROBOT}/triscan/track_markers") == [MARKER_ARRAY]
+    # The same scans over and over: the same objects keep the same track ids from array to array.
+    seen = Counter(d.id for array in got_tracks for d in array.detections)
+    assert seen and all(track_id.isdigit() for track_id in seen)
+    assert max(seen.values()) >= SCANS // 2, seen
+    assert {a.header.frame_id for a in got_tracks} == {scans[0].frame_id}  # no odometry: laser frame
     assert stats[-1]["rejected_scans"] == {} and stats[-1]["rejected_detections"] == {}
+    assert stats[-1]["rejected_tracks"] == {}

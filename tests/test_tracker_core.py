@@ -129,7 +129,7 @@ def test_without_odometry_tracks_live_in_the_laser_frame() -> None:
 
 
 def test_coasting_through_an_occlusion_then_deletion_after_the_timeout() -> None:
-    core = TrackerCore(TrackerConfig(delete_after_s=0.5))
+    core = TrackerCore(TrackerConfig(delete_after_s=0.5, still_delete_after_s=0.5))
     for k in range(5):
         core.update(message(k, [det(2.0, 0.0)], pose(0, 0, 0)))
     coasting = core.update(message(5, [], pose(0, 0, 0)))
@@ -140,6 +140,53 @@ def test_coasting_through_an_occlusion_then_deletion_after_the_timeout() -> None
     for k in range(7, 13):
         gone = core.update(message(k, [], pose(0, 0, 0)))
     assert gone is not None and gone.tracks == [] and core.counters.tracks_deleted == 1
+
+
+def test_still_furniture_out_of_sight_is_hidden_then_takes_its_id_back_and_a_person_is_deleted() -> None:
+    core = TrackerCore(TrackerConfig(delete_after_s=0.5, still_delete_after_s=5.0))
+    for k in range(5):
+        seen = core.update(message(k, [det(2.0, 0.0, "chair"), det(0.0, 2.0, "person")], pose(0, 0, 0)))
+    assert seen is not None
+    ids = {t.class_name: t.track_id for t in seen.tracks}
+    for k in range(5, 35):  # 3 s unseen: past delete_after_s, within still_delete_after_s
+        hidden = core.update(message(k, [], pose(0.01 * k, 0, 0)))
+        assert hidden is not None and (k < 11 or hidden.tracks == [])  # not shown once over 0.5 s
+    assert core.counters.tracks_deleted == 1  # the person; the chair is kept, dormant
+    back = core.update(
+        message(35, [det(2.0 - 0.35, 0.0, "chair"), det(0.0, 2.0, "person")], pose(0.35, 0, 0))
+    )
+    assert back is not None
+    got = {t.class_name: t.track_id for t in back.tracks}
+    assert got["chair"] == ids["chair"] and got["person"] != ids["person"]
+    for k in range(36, 100):  # past still_delete_after_s: gone
+        core.update(message(k, [], pose(0.35, 0, 0)))
+    assert core.counters.tracks_deleted == 3
+
+
+def test_boxes_are_placed_with_the_pose_of_the_middle_scan_they_are_of() -> None:
+    core = TrackerCore()
+    turning = [pose(0.05 * k, 0.0, 0.3 * k) for k in range(8)]  # a fast turn: 0.3 rad a scan
+    for k in range(8):
+        middle = turning[max(k - 1, 0)]  # the boxes are scan t-1's; the odometry is scan t's
+        detections = message(k, [det(*in_laser((2.0, 1.0), middle))], turning[k])
+        pose_stamp = None if k == 0 else T0_NS + (k - 1) * PERIOD_NS
+        out = core.update(detections.model_copy(update={"pose_stamp_ns": pose_stamp}))
+        assert out is not None
+        (track,) = out.tracks
+        assert (track.odom_x_m, track.odom_y_m) == pytest.approx((2.0, 1.0), abs=1e-9)
+        assert (track.x_m, track.y_m) == pytest.approx(in_laser((2.0, 1.0), turning[k]), abs=1e-9)
+
+
+def test_a_second_detection_of_a_tracked_object_opens_no_track() -> None:
+    core = TrackerCore(TrackerConfig(duplicate_m=0.4))
+    for k in range(4):
+        out = core.update(message(k, [det(2.0, 0.0, "doorframe")], pose(0, 0, 0)))
+    doubled = core.update(message(4, [det(2.0, 0.0, "doorframe"), det(2.1, 0.2, "doorframe")], pose(0, 0, 0)))
+    assert out is not None and doubled is not None and len(doubled.tracks) == 1
+    assert core.counters.duplicates == 1 and core.counters.tracks_created == 1
+    # a person beside a chair is no duplicate of it: another group
+    person = core.update(message(5, [det(2.0, 0.0, "doorframe"), det(2.1, 0.2, "person")], pose(0, 0, 0)))
+    assert person is not None and core.counters.tracks_created == 2
 
 
 def test_a_tentative_track_dies_quickly_and_ids_are_never_reused() -> None:

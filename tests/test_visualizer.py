@@ -31,6 +31,7 @@ from common.keys import (  # noqa: E402
     scan_key,
     stats_key,
     tensor_key,
+    tracks_key,
     truth_key,
 )
 from common.messages import (  # noqa: E402
@@ -38,16 +39,21 @@ from common.messages import (  # noqa: E402
     Detection,
     Detections,
     GroundTruth,
+    Odometry,
     Scan,
     StackedTensor,
     StageTimings,
+    Track,
+    Tracks,
     TruthObject,
     encode_message,
 )
 from common.model_spec import CLASS_COLOURS, CLASS_NAMES  # noqa: E402
 from common.transport import ZenohSettings, open_session, payload_bytes  # noqa: E402
+from services.tracker.core import track_colour  # noqa: E402
 from services.visualizer.core import (  # noqa: E402
     TIMING_NAMES,
+    TRAIL_LENGTH,
     RerunVisualizer,
     RobotPaths,
     blueprint,
@@ -267,6 +273,87 @@ def test_detection_labels_carry_class_and_score_and_colours_come_from_one_contex
     colours = [infos[i]["color"] for i in range(len(CLASS_NAMES))]
     expected = [(r << 24) | (g << 16) | (b << 8) | 0xFF for r, g, b in CLASS_COLOURS]
     assert colours == expected
+
+
+def _tracks_of(robot_id: str, seq: int, pose: tuple[float, float, float] | None) -> Tracks:
+    """A still chair at world (2, 1) and a walker moving +y, seen from a robot at ``pose``."""
+    world = {1_700_000_000_007: (2.0, 1.0, "confirmed"), 1_700_000_000_008: (0.5, 0.1 * seq, "coasting")}
+    x0, y0, yaw = pose or (0.0, 0.0, 0.0)
+    c, s = math.cos(yaw), math.sin(yaw)
+    tracks = [
+        Track(
+            track_id=track_id,
+            class_id=0,
+            class_name=CLASS_NAMES[0],
+            score=0.8,
+            x_m=c * (x - x0) + s * (y - y0),
+            y_m=-s * (x - x0) + c * (y - y0),
+            odom_x_m=None if pose is None else x,
+            odom_y_m=None if pose is None else y,
+            vx_mps=0.0,
+            vy_mps=0.0 if track_id % 2 else 1.0,
+            age_s=1.0,
+            hits=5,
+            misses=0,
+            state=state,
+        )
+        for track_id, (x, y, state) in world.items()
+    ]
+    tentative = tracks[0].model_copy(update={"track_id": 3, "state": "tentative"})
+    return Tracks(
+        robot_id=robot_id, seq=seq, stamp_ns=1, scan_stamp_ns=1_700_000_000_000_000_000 + seq * 100_000_000,
+        frame="laser" if pose is None else "odom", tracks=[*tracks, tentative],
+    )  # fmt: skip
+
+
+def _rows_of(path: Path, entity: str, column: str) -> list[Any]:
+    return [
+        row
+        for chunk in RrdReader(path).stream()
+        if chunk.entity_path == entity
+        for row in chunk.to_record_batch().column(column).to_pylist()
+    ]
+
+
+def test_tracks_get_a_colour_from_their_id_and_a_trail_that_stays_put_in_the_odometry_frame(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "tracks.rrd"
+    rec = new_recording(path)
+    viz = RerunVisualizer(rec, send_blueprints=False)
+    frames = TRAIL_LENGTH + 5
+    for seq in range(frames):
+        pose = (0.2 * seq, -0.1 * seq, 0.05 * seq)  # the robot drives and turns
+        detections = Detections(
+            **make_detections("r1", seq).model_dump(exclude={"schema_version", "odom"}),
+            odom=Odometry(x_m=pose[0], y_m=pose[1], yaw_rad=pose[2], stamp_ns=1),
+        )
+        assert viz.handle(detections_key("r1"), encode_message(detections))
+        assert viz.handle(tracks_key("r1"), encode_message(_tracks_of("r1", seq, pose)))
+    # a robot whose detections carried no pose: its tracks in the laser frame, trails as they came
+    for seq in range(3):
+        assert viz.handle(tracks_key("r2"), encode_message(_tracks_of("r2", seq, None)))
+    close(rec)
+    assert viz.stats().accepted["tracks"] == frames + 3
+    p = RobotPaths("r1")
+    labels = _rows_of(path, "/" + p.map_tracks, "Points2D:labels")
+    assert labels[0] == ["#1700000000007 chair", "#1700000000008 chair"]  # tentative tracks are not drawn
+    colours = _rows_of(path, "/" + p.map_tracks, "Points2D:colors")
+    expected = [
+        (r << 24) | (g << 16) | (b << 8) | 0xFF
+        for r, g, b in map(track_colour, (1_700_000_000_007, 1_700_000_000_008))
+    ]
+    assert all(row == expected for row in colours)
+    strips = _rows_of(path, "/" + p.map_track_trails, "LineStrips2D:strips")
+    assert [len(row[0]) for row in strips] == [min(k + 1, TRAIL_LENGTH) for k in range(frames)]
+    last_pose = (0.2 * (frames - 1), -0.1 * (frames - 1), 0.05 * (frames - 1))
+    chair, walker = (np.array(strip) for strip in strips[-1])
+    # the still chair's whole trail is one point in the last scan's laser frame, where the chair is now
+    assert np.allclose(chair, world_to_sensor(np.array([[2.0, 1.0]]), last_pose), atol=1e-5)
+    walked = np.linalg.norm(walker[-1] - walker[0])
+    assert walked == pytest.approx(0.1 * (TRAIL_LENGTH - 1), abs=1e-4)  # the walker's own path only
+    r2 = _rows_of(path, "/" + RobotPaths("r2").map_track_trails, "LineStrips2D:strips")
+    assert [len(row[0]) for row in r2] == [1, 2, 3]
 
 
 def test_bad_payloads_are_counted_by_reason_and_never_raise(tmp_path: Path) -> None:

@@ -3,12 +3,14 @@
 ``--preset NAME`` names a protocol of the recipe file (``[eval.NAME]``: ``unseen`` is the model cards'
 unseen worlds under every LiDAR condition); a flag given with it overrides the preset's value.
 ``--bag`` scores the models on a recorded ROS bag instead (:mod:`training.real_eval`,
-docs/real-recordings.md).
+docs/real-recordings.md); ``--tracks`` scores the tracker over the detections of the --fresh
+motions with CLEAR MOT (:mod:`training.track_eval`, docs/tracking.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from common.encoding import PADDINGS
@@ -86,6 +88,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--box-grid", choices=BOX_GRIDS, default=None,
         help="'pixel': round box edges to whole pixels after NMS (default: the model's own)",
     )  # fmt: skip
+    p.add_argument(
+        "--tracks", action="store_true",
+        help="score the tracker (CLEAR MOT, furniture and people apart) over every scan of the --fresh "
+        "motions instead of the detections; with --bag: its confirmed tracks and person passes",
+    )  # fmt: skip
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
     p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
 
@@ -131,6 +138,18 @@ def _run_bag(args: argparse.Namespace) -> int:
         people_free=args.people_free,
         **({} if args.conf is None else {"conf": args.conf}),
     )
+    if args.tracks:
+        import json
+
+        from training.track_eval import format_bag_tracks, track_bag
+
+        tracked = [track_bag(detector_for(model, args.threads), config) for model in args.model]
+        print("\n".join(format_bag_tracks(report) for report in tracked))
+        args.out.mkdir(parents=True, exist_ok=True)
+        out = args.out / "bag_tracks.json"
+        out.write_text(json.dumps([dataclasses.asdict(r) for r in tracked], indent=2) + "\n")
+        print(f"written to {out}")
+        return 0
     reports = [evaluate_bag(detector_for(model, args.threads), config) for model in args.model]
     print(format_reports(reports))
     print(f"written to {write_reports(reports, args.out)}")
@@ -186,16 +205,22 @@ def run(args: argparse.Namespace) -> int:
         else [f"{sensor}{SENSOR_SEPARATOR}{noise}" for sensor in sensors for noise in args.noise]
     )
     matrix = len(args.model) > 1 or len(conditions) > 1
+    if args.tracks and (matrix or args.data is not None):
+        raise ValueError("--tracks scores one --model on --fresh worlds under one condition")
     if matrix and args.data is not None:
         raise ValueError("several --model or --noise values need --fresh worlds, not --data")
     if (args.clutter or args.people or sensors) and args.data is not None:
         raise ValueError("--clutter, --people and --sensor shape --fresh worlds; a --data set has its own")
+    # mAP sweeps every confidence; the tracker sees what the detector service publishes (its defaults).
+    thresholds = (
+        {}
+        if args.tracks
+        else {"conf_threshold": VAL_CONF, "iou_threshold": VAL_IOU, "max_detections": VAL_MAX_DET}
+    )
     detectors = [
         OnnxDetector(
             model,
-            conf_threshold=VAL_CONF,
-            iou_threshold=VAL_IOU,
-            max_detections=VAL_MAX_DET,
+            **thresholds,
             padding=args.padding,
             intra_op_threads=args.threads,
             box_grid=args.box_grid,
@@ -208,6 +233,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"per cell: {args.out}/<condition>/<model>/metrics.json; grid: {args.out}/summary.json")
         return 0
     detector = detectors[0]
+    if args.tracks:
+        from training.track_eval import evaluate_tracks, format_report, fresh_motions
+
+        motions = fresh_motions(
+            args.seed, args.fresh, args.positions, detector, spec=condition_spec(conditions[0]),
+            clutter=args.clutter, people=args.people,
+        )  # fmt: skip
+        track_report = evaluate_tracks(detector, motions, args.out, source=worlds.source(conditions[0]))
+        print(format_report(track_report))
+        print(f"written to {args.out}/tracks.json")
+        return 0
     if args.data is not None:
         from training.onnx_export import dataset_invalid_rule
 

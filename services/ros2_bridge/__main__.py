@@ -3,9 +3,10 @@
 Subscribes to a robot's ``scan`` topic as a ROS 2 node on rmw_zenoh would (or behind
 zenoh-bridge-ros2dds, ``--style ros2dds``), publishes triscan ``Scan``s on ``triscan/<robot>/scan``,
 and turns the detector's ``triscan/<robot>/detections`` into ``vision_msgs/Detection3DArray`` and
-``visualization_msgs/MarkerArray`` on ``<namespace>/triscan/{detections,markers}``. In rmw_zenoh style
-it declares the ROS graph tokens, so ``ros2 topic list`` shows its topics. Base install plus
-``rosbags`` (``pip install triscan[ros2]``). The rules live in :mod:`services.ros2_bridge.core`.
+``visualization_msgs/MarkerArray`` on ``<namespace>/triscan/{detections,markers}``, the tracker's
+``triscan/<robot>/tracks`` into the same two types on ``<namespace>/triscan/{tracks,track_markers}``.
+In rmw_zenoh style it declares the ROS graph tokens, so ``ros2 topic list`` shows its topics. Base
+install plus ``rosbags`` (``pip install triscan[ros2]``). The rules live in :mod:`services.ros2_bridge.core`.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import logging
 import threading
 from typing import Any
 
-from common.keys import ALL_DETECTIONS
+from common.keys import ALL_DETECTIONS, ALL_TRACKS
 from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.ros2_bridge.core import BridgeConfig, BridgeCore, Outgoing
 from services.ros2_bridge.rmw_zenoh import STYLES
@@ -94,6 +95,11 @@ def run(
                 out = core.handle_detections(key, payload)
             publish(out)
 
+        def on_tracks(key: str, payload: bytes) -> None:
+            with lock:
+                out = core.handle_tracks(key, payload)
+            publish(out)
+
         def counters() -> dict[str, object]:
             with lock:
                 return core.counters.to_dict()
@@ -103,6 +109,7 @@ def run(
         if core.odom_subscription_key is not None:
             runtime.subscribe_samples(core.odom_subscription_key, on_odometry)
         runtime.subscribe(ALL_DETECTIONS, on_detections)
+        runtime.subscribe(ALL_TRACKS, on_tracks)
         log.info(
             "ros2 bridge ready (%s, %s): %s ⇄ triscan",
             config.style,

@@ -18,6 +18,15 @@ publishes what it returns, so every rule below is tested by calling the core dir
   ``<namespace>/triscan/detections`` and a MarkerArray on ``<namespace>/triscan/markers``, stamped with
   the scan's header stamp and frame; in rmw_zenoh style each with an attachment of its own publisher
   (own sequence numbers, own GID). Detections of robots this bridge never saw are skipped.
+* **Tracks.** Each triscan ``Tracks`` of a bridged robot (its confirmed and coasting tracks,
+  :data:`services.tracker.core.REPORTED_STATES`) becomes a Detection3DArray on
+  ``<namespace>/triscan/tracks`` whose ``id`` is the track id, and a MarkerArray on
+  ``<namespace>/triscan/track_markers`` (an arrow along the velocity and ``#<id>`` per track). They
+  are their own topic rather than ids written onto the detections: the tracker has already made the
+  assignment (matching again here would be a second, possibly different, answer), a coasting track has
+  no detection to carry its id, and tracks arrive on their own sample. They are stamped with the scan's
+  stamp, in the odometry frame (the frame of the robot's last pose) when the tracks live there, else in
+  the scan's frame.
 * **Bad input** never raises: it is counted by reason (``rejected_scans``/``rejected_detections``) and
   dropped. Scan reasons: ``bad_key``, ``wrong_type``, ``type_hash``, ``no_attachment``,
   ``bad_attachment``, ``bad_robot_id``, ``too_many_robots`` and those of
@@ -33,12 +42,12 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Final, TypeVar
 
 from common.keys import parse_key, scan_key, validate_robot_id
-from common.messages import Detections, MessageError, decode_message, encode_message
+from common.messages import Detections, Message, MessageError, Tracks, decode_message, encode_message
 from services.ros2_bridge.laser_scan import ScanRejectedError, parse_laser_scan_cdr, to_triscan_scan
-from services.ros2_bridge.odometry import ODOMETRY, OdometryPairing, odometry_of_message
+from services.ros2_bridge.odometry import ODOM_FRAME, ODOMETRY, OdometryPairing, odometry_of_message
 from services.ros2_bridge.rmw_zenoh import (
     GID_SIZE,
     PUBLISHER,
@@ -70,11 +79,16 @@ from services.ros2_bridge.ros_types import (
     dds_type_name,
     ros_types,
 )
+from services.tracker.core import REPORTED_STATES
 
 log = logging.getLogger(__name__)
 
+M = TypeVar("M", bound=Message)
+
 DETECTIONS_TOPIC: Final[str] = "triscan/detections"
 MARKERS_TOPIC: Final[str] = "triscan/markers"
+TRACKS_TOPIC: Final[str] = "triscan/tracks"
+TRACK_MARKERS_TOPIC: Final[str] = "triscan/track_markers"
 DEFAULT_SCAN_TOPIC: Final[str] = "scan"
 DEFAULT_ODOM_TOPIC: Final[str] = "odom"
 DEFAULT_NODE_NAME: Final[str] = "triscan_bridge"
@@ -133,6 +147,8 @@ class BridgeCounters:
     scans_published: int = 0
     detections_received: int = 0
     detections_skipped: int = 0  # of robots this bridge does not serve
+    tracks_received: int = 0
+    tracks_skipped: int = 0  # of robots this bridge does not serve
     ros_published: int = 0
     robots: int = 0
     odometry_received: int = 0
@@ -140,6 +156,7 @@ class BridgeCounters:
     rejected_scans: Counter[str] = field(default_factory=Counter)
     rejected_detections: Counter[str] = field(default_factory=Counter)
     rejected_odometry: Counter[str] = field(default_factory=Counter)
+    rejected_tracks: Counter[str] = field(default_factory=Counter)
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -147,6 +164,8 @@ class BridgeCounters:
             "scans_published": self.scans_published,
             "detections_received": self.detections_received,
             "detections_skipped": self.detections_skipped,
+            "tracks_received": self.tracks_received,
+            "tracks_skipped": self.tracks_skipped,
             "ros_published": self.ros_published,
             "robots": self.robots,
             "odometry_received": self.odometry_received,
@@ -154,6 +173,7 @@ class BridgeCounters:
             "rejected_scans": dict(self.rejected_scans),
             "rejected_detections": dict(self.rejected_detections),
             "rejected_odometry": dict(self.rejected_odometry),
+            "rejected_tracks": dict(self.rejected_tracks),
         }
 
 
@@ -186,6 +206,8 @@ class _Robot:
     subscription_entity_id: int
     detections: _RosPublisher
     markers: _RosPublisher
+    tracks: _RosPublisher
+    track_markers: _RosPublisher
     odometry: OdometryPairing  # refusals counted in the bridge's rejected_odometry
     frame_id: str | None = None  # of the latest scan: the frame the detections are drawn in
     next_seq: int = 0
@@ -261,6 +283,8 @@ class BridgeCore:
             subscription_entity_id=self._next_entity(),
             detections=self._publisher(namespace, DETECTIONS_TOPIC, DETECTION3D_ARRAY),
             markers=self._publisher(namespace, MARKERS_TOPIC, MARKER_ARRAY),
+            tracks=self._publisher(namespace, TRACKS_TOPIC, DETECTION3D_ARRAY),
+            track_markers=self._publisher(namespace, TRACK_MARKERS_TOPIC, MARKER_ARRAY),
             odometry=OdometryPairing(refused=self.counters.rejected_odometry),
         )
         self._robots[robot_id] = self._by_namespace[namespace] = robot
@@ -361,11 +385,6 @@ class BridgeCore:
 
     # -- triscan → ROS ---------------------------------------------------------------------------
 
-    def _reject_detections(self, reason: str, detail: str) -> list[Outgoing]:
-        self.counters.rejected_detections[reason] += 1
-        log.debug("triscan detections rejected (%s): %s", reason, detail)
-        return []
-
     def _stamped(self, publisher: _RosPublisher, payload: bytes) -> Outgoing:
         attachment = None
         if self.config.style == "rmw_zenoh":
@@ -373,22 +392,32 @@ class BridgeCore:
         publisher.sequence_number += 1
         return Outgoing(publisher.key, payload, attachment)
 
-    def handle_detections(self, key: str, payload: bytes) -> list[Outgoing]:
-        """One triscan Detections sample → its Detection3DArray and MarkerArray samples ([] if none)."""
-        self.counters.detections_received += 1
+    def _decoded(self, key: str, payload: bytes, kind: type[M], rejected: Counter[str]) -> M | None:
+        """The triscan message of ``kind`` in a sample, or None (counted in ``rejected`` by reason)."""
         try:
             key_robot, _ = parse_key(key)
         except ValueError as exc:
-            return self._reject_detections("bad_key", str(exc))
-        try:
-            message = decode_message(payload, Detections)
-        except MessageError as exc:
-            return self._reject_detections(exc.reason, str(exc))
-        if message.robot_id != key_robot:
-            return self._reject_detections(
-                "robot_id_mismatch", f"key says {key_robot!r}, payload says {message.robot_id!r}"
-            )
-        robot = self._robots.get(key_robot)
+            reason, detail = "bad_key", str(exc)
+        else:
+            try:
+                message = decode_message(payload, kind)
+            except MessageError as exc:
+                reason, detail = exc.reason, str(exc)
+            else:
+                if message.robot_id == key_robot:
+                    return message
+                reason, detail = "robot_id_mismatch", f"key says {key_robot!r}, payload {message.robot_id!r}"
+        rejected[reason] += 1
+        log.debug("triscan %s rejected (%s): %s", kind.KIND, reason, detail)
+        return None
+
+    def handle_detections(self, key: str, payload: bytes) -> list[Outgoing]:
+        """One triscan Detections sample → its Detection3DArray and MarkerArray samples ([] if none)."""
+        self.counters.detections_received += 1
+        message = self._decoded(key, payload, Detections, self.counters.rejected_detections)
+        if message is None:
+            return []
+        robot = self._robots.get(message.robot_id)
         if robot is None or robot.frame_id is None:
             self.counters.detections_skipped += 1
             return []
@@ -405,10 +434,36 @@ class BridgeCore:
         self.counters.ros_published += len(out)
         return out
 
+    def handle_tracks(self, key: str, payload: bytes) -> list[Outgoing]:
+        """One triscan Tracks sample → its Detection3DArray (id = track id) and MarkerArray ([] if none)."""
+        self.counters.tracks_received += 1
+        message = self._decoded(key, payload, Tracks, self.counters.rejected_tracks)
+        if message is None:
+            return []
+        robot = self._robots.get(message.robot_id)
+        if robot is None or robot.frame_id is None:
+            self.counters.tracks_skipped += 1
+            return []
+        if message.frame == "odom":
+            latest = robot.odometry.latest
+            frame_id = ODOM_FRAME if latest is None else latest.frame_id
+        else:
+            frame_id = robot.frame_id
+        tracks = [t for t in message.tracks if t.state in REPORTED_STATES]
+        stamp, frame = message.scan_stamp_ns, message.frame
+        out = [
+            self._stamped(robot.tracks, self.messages.track_array(tracks, frame, stamp, frame_id)),
+            self._stamped(
+                robot.track_markers, self.messages.track_marker_array(tracks, frame, stamp, frame_id)
+            ),
+        ]
+        self.counters.ros_published += len(out)
+        return out
+
     # -- the ROS graph ---------------------------------------------------------------------------
 
     def liveliness_tokens(self, zid: str) -> list[str]:
-        """rmw_zenoh graph tokens of every bridged robot: its node, scan subscription and two publishers.
+        """rmw_zenoh graph tokens of every bridged robot: its node, scan subscription and four publishers.
 
         Declared by the wiring (rmw_zenoh style only), they make ``ros2 topic list`` and
         ``ros2 node list`` show the bridge like any ROS 2 node.
@@ -424,7 +479,7 @@ class BridgeCore:
                     qualified_topic(ns, c.scan_topic), self._scan_dds_type, self.types.type_hash(LASER_SCAN),
                 )
             )  # fmt: skip
-            for publisher in (robot.detections, robot.markers):
+            for publisher in (robot.detections, robot.markers, robot.tracks, robot.track_markers):
                 tokens.append(
                     endpoint_token(
                         PUBLISHER, c.domain, zid, robot.node_id, publisher.entity_id, ns, c.node_name,

@@ -26,20 +26,31 @@ per object.
 Markers: a ``DELETEALL`` first (stale boxes of the previous frame vanish even when fewer objects are
 seen), then per object a translucent ``CUBE`` (the box above, in the class colour) and a
 ``TEXT_VIEW_FACING`` label ``"<class> <score>"`` above it.
+
+Tracks (:class:`~common.messages.Tracks`, the tracker's output) become a Detection3DArray of their own
+with ``id`` = the track id, and markers: per track an ``ARROW`` from its position along its velocity
+(its length the distance covered in ``ARROW_HORIZON_S``) and a label ``"#<id> <class> <speed>"``, both
+in the track's stable colour (:func:`services.tracker.core.track_colour`). They are drawn in the frame
+the tracks live in: the odometry frame (``odom_x_m``/``odom_y_m``, where the velocity is too) when the
+scans carried odometry, else the laser frame, so no velocity needs rotating. A track has a position,
+not an extent: its box is ``MIN_EXTENT_M`` wide (the detection at the same place has the extent), and
+Detection3D has no velocity field, so the velocity rides only on the markers (and the tracks message).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import struct
 from dataclasses import dataclass
 from typing import Any, Final, NamedTuple
 
 import numpy as np
 
-from common.messages import Detection
+from common.messages import Detection, Track, TrackFrame
 from common.model_spec import CLASS_COLOURS, UNKNOWN_CLASS_COLOUR
 from services.ros2_bridge.ros_types import DETECTION3D_ARRAY, MARKER_ARRAY, RosTypes
+from services.tracker.core import track_colour
 
 SLAB_HEIGHT_M: Final[float] = 0.2
 MIN_EXTENT_M: Final[float] = 0.01  # a zero-size box is invisible and RViz warns about it
@@ -47,10 +58,14 @@ LABEL_HEIGHT_M: Final[float] = 0.12  # text size of the labels
 LABEL_LIFT_M: Final[float] = 0.25  # labels float this far above the scan plane
 CUBE_ALPHA: Final[float] = 0.5
 MARKER_NS: Final[str] = "triscan"
+TRACK_MARKER_NS: Final[str] = "triscan_tracks"
+ARROW_HORIZON_S: Final[float] = 1.0  # a track's arrow ends where it will be in this long at its velocity
+ARROW_WIDTH_M: Final[float] = 0.05
 _NS_PER_S: Final[int] = 1_000_000_000
 _COVARIANCE: Final[np.ndarray] = np.zeros(36, dtype=np.float64)
 
 # Marker constants (visualization_msgs/msg/Marker), checked against the typestore in the tests.
+ARROW: Final[int] = 0
 CUBE: Final[int] = 1
 TEXT_VIEW_FACING: Final[int] = 9
 ADD: Final[int] = 0
@@ -108,6 +123,14 @@ class Boxes:
             width=np.maximum(arc_rad * middle_range, MIN_EXTENT_M),
         )
 
+    @classmethod
+    def of_tracks(cls, tracks: list[Track], frame: TrackFrame) -> Boxes:
+        """Tracks as extent-less boxes (see the module docstring) in the frame they live in."""
+        xy = np.array([track_position(t, frame) for t in tracks], dtype=np.float64).reshape(-1, 2)
+        count = len(tracks)
+        extent = np.full(count, MIN_EXTENT_M)
+        return cls(x=xy[:, 0], y=xy[:, 1], qz=np.zeros(count), qw=np.ones(count), length=extent, width=extent)
+
     def pose_columns(self, z: float) -> list[np.ndarray | float]:
         """geometry_msgs/Pose as 7 columns: position x, y, z, orientation x, y, z, w."""
         return [self.x, self.y, z, 0.0, 0.0, self.qz, self.qw]
@@ -121,6 +144,17 @@ def _rgba(class_id: int, alpha: float) -> tuple[float, float, float, float]:
 
 def label_text(detection: Detection) -> str:
     return f"{detection.class_name} {detection.score:.2f}"
+
+
+def track_position(track: Track, frame: TrackFrame) -> tuple[float, float]:
+    """Where a track is in the frame its tracks message lives in (its velocity's frame too)."""
+    if frame == "odom" and track.odom_x_m is not None and track.odom_y_m is not None:
+        return track.odom_x_m, track.odom_y_m
+    return track.x_m, track.y_m
+
+
+def track_label(track: Track) -> str:
+    return f"#{track.track_id} {track.class_name} {math.hypot(track.vx_mps, track.vy_mps):.1f} m/s"
 
 
 class MarkerSpec(NamedTuple):
@@ -165,6 +199,29 @@ def marker_specs(detections: list[Detection]) -> list[MarkerSpec]:
     return specs
 
 
+def track_marker_specs(tracks: list[Track], frame: TrackFrame) -> list[MarkerSpec]:
+    """``DELETEALL``, then a velocity arrow and a label per track (see the module docstring)."""
+    specs = [DELETE_ALL_MARKER]
+    for i, track in enumerate(tracks):
+        x, y = track_position(track, frame)
+        speed, heading = math.hypot(track.vx_mps, track.vy_mps), math.atan2(track.vy_mps, track.vx_mps)
+        r, g, b = track_colour(track.track_id)
+        rgba = (r / 255.0, g / 255.0, b / 255.0, 1.0)
+        specs.append(
+            MarkerSpec(
+                2 * i, ARROW, ADD, (x, y, 0.0), (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2)),
+                (max(speed * ARROW_HORIZON_S, MIN_EXTENT_M), ARROW_WIDTH_M, ARROW_WIDTH_M), rgba,
+            )
+        )  # fmt: skip
+        specs.append(
+            MarkerSpec(
+                2 * i + 1, TEXT_VIEW_FACING, ADD, (x, y, LABEL_LIFT_M), (0.0, 0.0, 0.0, 1.0),
+                (0.0, 0.0, LABEL_HEIGHT_M), rgba, track_label(track),
+            )
+        )  # fmt: skip
+    return specs
+
+
 def _stamp(stamp_ns: int) -> tuple[int, int]:
     return stamp_ns // _NS_PER_S, stamp_ns % _NS_PER_S
 
@@ -172,6 +229,7 @@ def _stamp(stamp_ns: int) -> tuple[int, int]:
 _U32 = struct.Struct("<I")
 _STAMP = struct.Struct("<iI")
 _MARKER_IDS = struct.Struct("<iii")
+_POSE_SCALE = struct.Struct("<10d")
 _COLOR = struct.Struct("<4f")
 _LIFETIME_LOCKED = struct.Struct("<iI?")
 _PAD: Final[tuple[bytes, ...]] = tuple(bytes(n) for n in range(8))
@@ -226,6 +284,42 @@ def _rows(columns: list[np.ndarray | float], count: int) -> list[bytes]:
     return [raw[i * size : (i + 1) * size] for i in range(count)]
 
 
+def _detection3d_array(
+    stamp_ns: int,
+    frame_id: str,
+    boxes: Boxes,
+    class_names: list[str],
+    scores: list[float],
+    ids: list[str] | None,
+) -> bytes:
+    """A Detection3DArray of one hypothesis per object; ``ids`` None: every ``id`` empty."""
+    stamp = _stamp(stamp_ns)
+    w = _CdrWriter()
+    w.header(stamp, frame_id)
+    w.pack(_U32, 4, len(class_names))
+    if not class_names:
+        return bytes(w.buf)
+    head = _CdrWriter()  # each Detection3D: the array's header, then one hypothesis
+    head.header(stamp, frame_id)
+    head.pack(_U32, 4, 1)
+    object_head = head.body_from_4_aligned()
+    # hypothesis score, PoseWithCovariance (pose, 36 zeros), BoundingBox3D (pose, size): 54 doubles
+    rows = _rows(
+        [np.array(scores, dtype=np.float64), *boxes.pose_columns(0.0), *([0.0] * 36),
+         *boxes.pose_columns(0.0), boxes.length, boxes.width, SLAB_HEIGHT_M],
+        len(class_names),
+    )  # fmt: skip
+    buf = w.buf
+    for i, (class_name, row) in enumerate(zip(class_names, rows, strict=True)):
+        buf += _PAD[-(len(buf) - 4) % 4]
+        buf += object_head
+        buf += _class_string(class_name)
+        buf += _PAD[-(len(buf) - 4) % 8]
+        buf += row
+        buf += _EMPTY_STRING if ids is None else _cdr_string(ids[i])
+    return bytes(buf)
+
+
 class DetectionMessages:
     """The bridge's encoder: hand-written CDR for Detection3DArray and MarkerArray (see module docstring).
 
@@ -246,32 +340,34 @@ class DetectionMessages:
         self, detections: list[Detection], stamp_ns: int, frame_id: str, boxes: Boxes | None = None
     ) -> bytes:
         """``boxes``: ``Boxes.of(detections)``, when the caller has them already."""
-        stamp = _stamp(stamp_ns)
-        w = _CdrWriter()
-        w.header(stamp, frame_id)
-        w.pack(_U32, 4, len(detections))
-        if not detections:
-            return bytes(w.buf)
-        head = _CdrWriter()  # each Detection3D: the array's header, then one hypothesis
-        head.header(stamp, frame_id)
-        head.pack(_U32, 4, 1)
-        object_head = head.body_from_4_aligned()
-        boxes = Boxes.of(detections) if boxes is None else boxes
-        scores = np.array([d.score for d in detections], dtype=np.float64)
-        # hypothesis score, PoseWithCovariance (pose, 36 zeros), BoundingBox3D (pose, size): 54 doubles
-        rows = _rows(
-            [scores, *boxes.pose_columns(0.0), *([0.0] * 36), *boxes.pose_columns(0.0),
-             boxes.length, boxes.width, SLAB_HEIGHT_M],
-            len(detections),
+        return _detection3d_array(
+            stamp_ns, frame_id, Boxes.of(detections) if boxes is None else boxes,
+            [d.class_name for d in detections], [d.score for d in detections], None,
         )  # fmt: skip
-        buf = w.buf
-        for detection, row in zip(detections, rows, strict=True):
-            buf += _PAD[-(len(buf) - 4) % 4]
-            buf += object_head
-            buf += _class_string(detection.class_name)
-            buf += _PAD[-(len(buf) - 4) % 8]
-            buf += row
-            buf += _EMPTY_STRING  # id
+
+    def track_array(self, tracks: list[Track], frame: TrackFrame, stamp_ns: int, frame_id: str) -> bytes:
+        """The tracks as Detection3Ds with ``id`` = the track id, in ``frame_id`` (``frame``'s name)."""
+        return _detection3d_array(
+            stamp_ns, frame_id, Boxes.of_tracks(tracks, frame), [t.class_name for t in tracks],
+            [t.score for t in tracks], [str(t.track_id) for t in tracks],
+        )  # fmt: skip
+
+    def track_marker_array(
+        self, tracks: list[Track], frame: TrackFrame, stamp_ns: int, frame_id: str
+    ) -> bytes:
+        """Arrows and labels (:func:`track_marker_specs`); per-marker packing: a frame has few tracks."""
+        head = _CdrWriter()
+        head.header(_stamp(stamp_ns), frame_id)
+        head.string(TRACK_MARKER_NS)
+        marker_head = head.body_from_4_aligned()
+        specs = track_marker_specs(tracks, frame)
+        buf = bytearray(b"\x00\x01\x00\x00")
+        buf += _U32.pack(len(specs))
+        for spec in specs:
+            numbers = _POSE_SCALE.pack(*spec.position, *spec.orientation, *spec.scale) + _COLOR.pack(
+                *spec.rgba
+            )
+            _marker(buf, marker_head, spec.marker_id, spec.kind, spec.action, numbers, spec.text)
         return bytes(buf)
 
     def marker_array(
@@ -390,19 +486,29 @@ class ReferenceDetectionMessages:
         return self.t["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2])
 
     def detection_array(self, detections: list[Detection], stamp_ns: int, frame_id: str) -> bytes:
+        return self._array(
+            stamp_ns, frame_id, Boxes.of(detections), [(d.class_name, d.score, "") for d in detections]
+        )
+
+    def track_array(self, tracks: list[Track], frame: TrackFrame, stamp_ns: int, frame_id: str) -> bytes:
+        return self._array(
+            stamp_ns, frame_id, Boxes.of_tracks(tracks, frame),
+            [(t.class_name, t.score, str(t.track_id)) for t in tracks],
+        )  # fmt: skip
+
+    def _array(
+        self, stamp_ns: int, frame_id: str, boxes: Boxes, objects: list[tuple[str, float, str]]
+    ) -> bytes:
         t = self.t
         header = self._header(stamp_ns, frame_id)
         items = []
-        boxes = Boxes.of(detections)
-        for i, detection in enumerate(detections):
+        for i, (class_name, score, object_id) in enumerate(objects):
             pose = self._pose(
                 (float(boxes.x[i]), float(boxes.y[i]), 0.0),
                 (0.0, 0.0, float(boxes.qz[i]), float(boxes.qw[i])),
             )
             hypothesis = t["vision_msgs/msg/ObjectHypothesisWithPose"](
-                hypothesis=t["vision_msgs/msg/ObjectHypothesis"](
-                    class_id=detection.class_name, score=detection.score
-                ),
+                hypothesis=t["vision_msgs/msg/ObjectHypothesis"](class_id=class_name, score=score),
                 pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=_COVARIANCE),
             )
             bbox = t["vision_msgs/msg/BoundingBox3D"](
@@ -410,18 +516,26 @@ class ReferenceDetectionMessages:
                 size=self._vector3((float(boxes.length[i]), float(boxes.width[i]), SLAB_HEIGHT_M)),
             )
             items.append(
-                t["vision_msgs/msg/Detection3D"](header=header, results=[hypothesis], bbox=bbox, id="")
+                t["vision_msgs/msg/Detection3D"](header=header, results=[hypothesis], bbox=bbox, id=object_id)
             )
         return self.types.serialize(t[DETECTION3D_ARRAY](header=header, detections=items), DETECTION3D_ARRAY)
 
     def marker_array(self, detections: list[Detection], stamp_ns: int, frame_id: str) -> bytes:
+        return self._markers(marker_specs(detections), MARKER_NS, stamp_ns, frame_id)
+
+    def track_marker_array(
+        self, tracks: list[Track], frame: TrackFrame, stamp_ns: int, frame_id: str
+    ) -> bytes:
+        return self._markers(track_marker_specs(tracks, frame), TRACK_MARKER_NS, stamp_ns, frame_id)
+
+    def _markers(self, specs: list[MarkerSpec], namespace: str, stamp_ns: int, frame_id: str) -> bytes:
         t = self.t
         header = self._header(stamp_ns, frame_id)
         empty_bytes = np.zeros(0, dtype=np.uint8)
         markers = [
             t["visualization_msgs/msg/Marker"](
                 header=header,
-                ns=MARKER_NS,
+                ns=namespace,
                 id=spec.marker_id,
                 type=spec.kind,
                 action=spec.action,
@@ -442,6 +556,6 @@ class ReferenceDetectionMessages:
                 mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=empty_bytes),
                 mesh_use_embedded_materials=False,
             )
-            for spec in marker_specs(detections)
+            for spec in specs
         ]
         return self.types.serialize(t[MARKER_ARRAY](markers=markers), MARKER_ARRAY)

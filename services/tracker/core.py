@@ -37,11 +37,12 @@ Bad input loses nothing else (counted by reason in :class:`TrackerCounters`):
 
 from __future__ import annotations
 
+import colorsys
 import logging
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
@@ -66,9 +67,25 @@ from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
 
 log = logging.getLogger(__name__)
 
+REPORTED_STATES: Final[tuple[TrackState, ...]] = ("confirmed", "coasting")
+"""The tracks a consumer should treat as objects (ROS 2 output, scoring): a tentative track may be noise."""
+POSES_KEPT: Final[int] = 4  # per robot: the middle scan's pose is the one before the newest
 DEFAULT_FORGET_AFTER_S: Final[float] = 10.0
 DEFAULT_MAX_ROBOTS: Final[int] = 1024
 _NS_PER_S: Final[float] = 1e9
+
+
+_GOLDEN_RATIO_CONJUGATE: Final[float] = 0.6180339887498949
+
+
+def track_colour(track_id: int) -> tuple[int, int, int]:
+    """A track's display colour, RGB 0–255, from its id alone: the same in every viewer and every frame.
+
+    Hues step by the golden ratio, so consecutive ids (tracks opened together) get far-apart colours.
+    """
+    hue = (track_id * _GOLDEN_RATIO_CONJUGATE) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.7, 0.95)
+    return round(r * 255), round(g * 255), round(b * 255)
 
 
 @dataclass(frozen=True)
@@ -97,6 +114,8 @@ class TrackerConfig:
     confirm_hits: int = 3
     tentative_misses: int = 2
     delete_after_s: float = 1.5
+    still_delete_after_s: float = 30.0
+    duplicate_m: float = 0.4  # furniture in the odometry frame: it is where it was when seen again
     jump_m: float = 1.0
     jump_rad: float = math.radians(30.0)
     score_smoothing: float = 0.3  # weight of the newest detection's score in the track's running score
@@ -118,6 +137,7 @@ class TrackerCounters:
     tracks_deleted: int = 0
     tracks_forgotten: int = 0
     forgotten_robots: int = 0
+    duplicates: int = 0  # detections of an object a track already follows: no new track
     rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
     dropped: Counter[str] = field(default_factory=Counter)  # valid messages not used: out_of_order
     resets: Counter[str] = field(default_factory=Counter)  # odom_jump, odom_reset, frame_change, restart
@@ -131,6 +151,7 @@ class TrackerCounters:
             "tracks_deleted": self.tracks_deleted,
             "tracks_forgotten": self.tracks_forgotten,
             "forgotten_robots": self.forgotten_robots,
+            "duplicates": self.duplicates,
             "rejected": dict(self.rejected),
             "dropped": dict(self.dropped),
             "resets": dict(self.resets),
@@ -215,6 +236,7 @@ class _Robot:
     scan_stamp_ns: int = -1
     frame: TrackFrame = "laser"
     odom: Odometry | None = None  # the last good pose
+    poses: OrderedDict[int, Odometry] = field(default_factory=OrderedDict)  # the last scans' by stamp
     last_seen_s: float = 0.0
 
 
@@ -309,6 +331,7 @@ class TrackerCore:
         self.counters.tracks_deleted += len(robot.tracks)
         log.info("%s: tracks reset (%s)", robot_id, reason)
         robot.tracks = []
+        robot.poses.clear()  # poses of the old odometry frame place nothing in the new one
 
     def _robot_of(self, robot_id: str) -> _Robot | None:
         robot = self._robots.get(robot_id)
@@ -370,7 +393,13 @@ class TrackerCore:
         models = [FREE if laser else MOTION_MODELS[CLASS_NAMES[t.class_id]] for t in robot.tracks]
         for track, model in zip(robot.tracks, models, strict=True):
             track.predict(dt, model)
-        points = self._placed(message.detections, pose)
+        if pose is not None:
+            robot.poses[stamp] = pose
+            while len(robot.poses) > POSES_KEPT:
+                robot.poses.popitem(last=False)
+        # The boxes are the middle scan's: placed with its pose when the robot's last scans left it here.
+        placing = pose if message.pose_stamp_ns is None else robot.poses.get(message.pose_stamp_ns, pose)
+        points = self._placed(message.detections, placing)
         matches, unmatched = self._assign(robot.tracks, message.detections, points)
         smooth = self.config.score_smoothing
         for ti, di in matches:
@@ -385,12 +414,15 @@ class TrackerCore:
                 track.misses += 1
                 if track.state == "confirmed":
                     track.state = "coasting"
-            if self._alive(track, stamp):
+            if self._alive(track, stamp, models[ti] is STILL):
                 kept.append(track)
             else:
                 self.counters.tracks_deleted += 1
         for di in unmatched:
             det = message.detections[di]
+            if self._duplicate(points[di], det, kept):
+                self.counters.duplicates += 1
+                continue
             model = FREE if laser else MOTION_MODELS[det.class_name]
             kept.append(_Track(self._next_id, points[di][0], points[di][1], det, stamp, model))
             self._next_id += 1
@@ -405,10 +437,23 @@ class TrackerCore:
         self.counters.published += 1
         return self._message(message, robot, pose)
 
-    def _alive(self, track: _Track, stamp_ns: int) -> bool:
+    def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
+        """A second detection of an object a track already follows: within ``duplicate_m`` of a
+        confirmed track of the same group (furniture or person) that a detection of this scan updated."""
+        person = det.class_name == "person"
+        return any(
+            t.state == "confirmed"
+            and t.misses == 0
+            and (CLASS_NAMES[t.class_id] == "person") == person
+            and math.hypot(t.x - point[0], t.y - point[1]) < self.config.duplicate_m
+            for t in tracks
+        )
+
+    def _alive(self, track: _Track, stamp_ns: int, still: bool) -> bool:
         if track.state == "tentative":
             return track.misses < self.config.tentative_misses
-        return (stamp_ns - track.last_hit_ns) / _NS_PER_S <= self.config.delete_after_s
+        timeout = self.config.still_delete_after_s if still else self.config.delete_after_s
+        return (stamp_ns - track.last_hit_ns) / _NS_PER_S <= timeout
 
     @staticmethod
     def _placed(detections: list[Detection], pose: Odometry | None) -> list[tuple[float, float]]:
@@ -445,6 +490,8 @@ class TrackerCore:
         stamp = message.scan_stamp_ns
         tracks = []
         for t in robot.tracks:
+            if (stamp - t.last_hit_ns) / _NS_PER_S > self.config.delete_after_s:
+                continue  # dormant: still furniture kept to take its id back when seen again, not shown
             dx, dy = t.x - ox, t.y - oy
             class_id = t.class_id
             tracks.append(

@@ -24,7 +24,7 @@ from urllib.parse import quote
 
 import rerun as rr
 
-from common.keys import DETECTIONS, SCAN, TENSOR, TRUTH, validate_robot_id, wildcard_key
+from common.keys import DETECTIONS, SCAN, TENSOR, TRACKS, TRUTH, validate_robot_id, wildcard_key
 from common.transport import (
     ZenohSettings,
     add_zenoh_arguments,
@@ -42,7 +42,7 @@ from services.visualizer.core import APPLICATION_ID, RerunVisualizer, Visualizer
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
 SERVICE_NAME = "visualizer"
-SUBSCRIBED_TOPICS: tuple[str, ...] = (SCAN, TENSOR, DETECTIONS, TRUTH)
+SUBSCRIBED_TOPICS: tuple[str, ...] = (SCAN, TENSOR, DETECTIONS, TRUTH, TRACKS)
 DEFAULT_GRPC_PORT = 9876
 DEFAULT_WEB_PORT = 9090
 FLUSH_TIMEOUT_S = 10.0

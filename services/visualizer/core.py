@@ -6,6 +6,14 @@ arc they cover, and the simulator's true footprints) and in the *raster* view (t
 tensor the network read, with detection and label boxes in raster pixels). Both come from the same
 message ``seq``, so scrubbing the ``seq`` timeline shows a frame exactly as the detector got it.
 
+Tracks (the tracker's output) are drawn in the metric view too: each reported track a point labelled
+``#<id> <class>`` and a trail of its last ``TRAIL_LENGTH`` positions, both in a colour fixed by the
+track id (:func:`services.tracker.core.track_colour`), so one object keeps one colour however its
+detections flicker. A trail is kept in the frame the tracks live in: in the odometry frame a still
+chair's trail stays a dot while the robot drives, and each frame moves it into that scan's laser frame
+with the pose the detections of the same ``seq`` carried (a tracks message follows its detections).
+Without that pose a frame draws the tracks but no odometry-frame trails.
+
 Keeping this core free of Zenoh means a test can feed it messages and read the ``.rrd`` back, and any
 other transport (a bag replay, a notebook) can reuse it. Payloads come from the network: ``handle``
 decodes them itself and turns every bad one into a counted, logged rejection; it never raises.
@@ -21,7 +29,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections import Counter
+from collections import Counter, OrderedDict, deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Final
@@ -39,11 +47,15 @@ from common.messages import (
     GroundTruth,
     Message,
     MessageError,
+    Odometry,
     Scan,
     StackedTensor,
+    TrackFrame,
+    Tracks,
     decode_message,
 )
 from common.model_spec import CLASS_COLOURS, CLASS_NAMES, UNKNOWN_CLASS_COLOUR, Rgb
+from services.tracker.core import REPORTED_STATES, track_colour
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +72,9 @@ DETECTION_RADIUS_M: Final[float] = 0.05
 LINE_RADIUS_M: Final[float] = 0.01
 RASTER_LINE_RADIUS_PX: Final[float] = 0.5
 ARC_STEP_DEG: Final[float] = 2.0
+TRACK_RADIUS_M: Final[float] = 0.07
+TRAIL_LENGTH: Final[int] = 20  # positions: two seconds of a 10 Hz LiDAR
+POSES_KEPT: Final[int] = 32  # detections' poses by seq, waiting for the tracks of the same seq
 
 DISPLAY_FROM_SENSOR: Final[tuple[tuple[float, ...], ...]] = (
     (0.0, -1.0, 0.0),
@@ -112,6 +127,14 @@ class RobotPaths:
     @property
     def map_detection_extents(self) -> str:
         return f"{self.map}/detection_extents"
+
+    @property
+    def map_tracks(self) -> str:
+        return f"{self.map}/tracks"
+
+    @property
+    def map_track_trails(self) -> str:
+        return f"{self.map}/track_trails"
 
     @property
     def map_truth(self) -> str:
@@ -185,6 +208,45 @@ def _detection_label(detection: Detection) -> str:
     return f"{detection.class_name} {detection.score:.2f}"
 
 
+@dataclass
+class _RobotTracks:
+    """One robot's track trails (in the tracks' frame) and the poses its detections carried."""
+
+    frame: TrackFrame = "laser"
+    trails: dict[int, deque[tuple[float, float]]] = field(default_factory=dict)
+    poses: OrderedDict[int, Odometry] = field(default_factory=OrderedDict)  # by seq, the newest last
+
+    def remember_pose(self, seq: int, pose: Odometry) -> None:
+        self.poses[seq] = pose
+        while len(self.poses) > POSES_KEPT:
+            self.poses.popitem(last=False)
+
+    def trails_in_laser_frame(self, message: Tracks) -> list[tuple[int, np.ndarray]]:
+        """Record ``message``'s reported tracks; (track id, trail in its scan's laser frame) of each.
+
+        Tracks that are gone lose their trail; a change of frame (odometry appearing or lost) starts
+        every trail afresh, since old positions are in the other frame.
+        """
+        if message.frame != self.frame:
+            self.frame, self.trails = message.frame, {}
+        reported = [t for t in message.tracks if t.state in REPORTED_STATES]
+        alive = {t.track_id for t in message.tracks}
+        self.trails = {k: v for k, v in self.trails.items() if k in alive}
+        for t in reported:
+            point = (t.x_m, t.y_m) if t.odom_x_m is None or t.odom_y_m is None else (t.odom_x_m, t.odom_y_m)
+            self.trails.setdefault(t.track_id, deque(maxlen=TRAIL_LENGTH)).append(point)
+        pose = self.poses.get(message.seq)
+        if message.frame == "odom" and pose is None:
+            return []
+        out = []
+        for t in reported:
+            trail = np.array(self.trails[t.track_id], dtype=np.float64)
+            if pose is not None and message.frame == "odom":
+                trail = world_to_sensor(trail, (pose.x_m, pose.y_m, pose.yaw_rad))
+            out.append((t.track_id, trail))
+        return out
+
+
 # --------------------------------------------------------------------------------------------------
 # Blueprint
 # --------------------------------------------------------------------------------------------------
@@ -243,6 +305,7 @@ class RerunVisualizer:
         self._robots: set[str] = set()
         self._accepted: Counter[str] = Counter()
         self._rejected: Counter[str] = Counter()
+        self._tracks: dict[str, _RobotTracks] = {}
         initial = sorted(set(robot_ids))
         self._rec.log("/", CLASS_ANNOTATIONS, static=True)
         for robot_id in initial:
@@ -339,6 +402,8 @@ class RerunVisualizer:
             self._log_detections(message)
         elif isinstance(message, GroundTruth):
             self._log_truth(message)
+        elif isinstance(message, Tracks):
+            self._log_tracks(message)
         else:
             raise TypeError(f"no visualisation for {type(message).__name__}")
 
@@ -392,6 +457,34 @@ class RerunVisualizer:
         timings = message.timings
         for name in TIMING_NAMES:
             self._rec.log(paths.timing(name), rr.Scalars(float(getattr(timings, name))))
+        if message.odom is not None and message.odom.finite:
+            with self._lock:
+                self._tracks.setdefault(message.robot_id, _RobotTracks()).remember_pose(
+                    message.seq, message.odom
+                )
+
+    def _log_tracks(self, message: Tracks) -> None:
+        paths = RobotPaths(message.robot_id)
+        reported = [t for t in message.tracks if t.state in REPORTED_STATES]
+        with self._lock:
+            trails = self._tracks.setdefault(message.robot_id, _RobotTracks()).trails_in_laser_frame(message)
+        self._rec.log(
+            paths.map_tracks,
+            rr.Points2D(
+                np.array([(t.x_m, t.y_m) for t in reported], dtype=np.float64).reshape(-1, 2),
+                colors=[track_colour(t.track_id) for t in reported],
+                labels=[f"#{t.track_id} {t.class_name}" for t in reported],
+                radii=TRACK_RADIUS_M,
+            ),
+        )
+        self._rec.log(
+            paths.map_track_trails,
+            rr.LineStrips2D(
+                [trail for _, trail in trails],
+                colors=[track_colour(track_id) for track_id, _ in trails],
+                radii=LINE_RADIUS_M,
+            ),
+        )
 
     def _log_truth(self, truth: GroundTruth) -> None:
         paths = RobotPaths(truth.robot_id)
