@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
 from services.launcher import child_environment
+from services.sim_bag import recorded_scans as recorded_scans  # the benches' recorded scans, re-exported
 
 T = TypeVar("T")
 
