@@ -247,8 +247,10 @@ def sibling_commands(
     """The command lines of the ``count - 1`` other processes of a ``flag N`` launch of ``module``.
 
     Each runs ``module`` with this process's own flags and ``extra`` but ``flag 1``, and joins the
-    network through this process: it listens nowhere (this process holds the listen endpoints) and
-    connects to this process's endpoints and to its ``--connect`` peers.
+    network through this process: it connects to this process's endpoints and to its ``--connect``
+    peers, and listens where this process does but on a port of its own (0: the OS picks), so that a
+    peer which knows only this process's endpoint learns the others' through Zenoh's gossip and sends
+    them their robots' samples directly.
     """
     strip = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     add_zenoh_arguments(strip)
@@ -259,6 +261,7 @@ def sibling_commands(
     sibling = ZenohSettings(
         mode=settings.mode,
         connect=(*here, *settings.connect),
+        listen=tuple(endpoint.rsplit(":", 1)[0] + ":0" for endpoint in settings.listen),
         multicast_scouting=settings.multicast_scouting,
         config_file=settings.config_file,
         cfg=settings.cfg,

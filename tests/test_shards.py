@@ -121,6 +121,7 @@ def test_siblings_join_through_this_process_and_run_one_process_each() -> None:
     command = commands[0]
     assert command[1:5] == ["-m", "services.detector", "--model", "m.onnx"]
     assert command[command.index("--detectors") + 1] == "1" and command.count("--detectors") == 1
-    assert "--listen" not in command and command[command.index("--batch") + 1] == "4"
+    assert command[command.index("--listen") + 1] == "tcp/0.0.0.0:0"  # a port of its own
+    assert command[command.index("--batch") + 1] == "4"
     connects = [command[i + 1] for i, arg in enumerate(command) if arg == "--connect"]
     assert connects == ["tcp/127.0.0.1:7447", "tcp/enc:7447"]
