@@ -177,13 +177,23 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the robots send tensors (their own encoder on board): the detector alone on this host",
     )
+    parser.add_argument(
+        "--detectors",
+        type=int,
+        default=None,
+        help="detector processes (default: the detector's own); 1/2/4 give the scaling table",
+    )
+    parser.add_argument(
+        "--fractions", default=",".join(map(str, FRACTIONS)), help="ladder steps as shares of the bound"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_bound.json"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     model, _ = detector_model_and_batch(None, None)  # the model the detector runs by default
     bound = compute_bound(model, args.bound_seconds)
     bound_robots = float(bound["best_frames_per_s"]) / args.rate  # type: ignore[arg-type]
-    ladder = sorted({max(1, math.floor(f * bound_robots)) for f in FRACTIONS})
+    fractions = [float(f) for f in args.fractions.split(",")]
+    ladder = sorted({max(1, math.floor(f * bound_robots)) for f in fractions})
     log.info("compute bound: %.1f frames/s = %.1f robots at %.0f Hz; ladder %s", bound["best_frames_per_s"],
              bound_robots, args.rate, ladder)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
@@ -193,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
                 "--ladder", ",".join(map(str, ladder)), "--seconds", str(args.seconds),
                 "--rate", str(args.rate), "--detector-defaults", "--out", str(fleet_json),
                 *(("--encode-on-robots",) if args.encode_on_robots else ()),
+                *(("--detectors", str(args.detectors)) if args.detectors else ()),
             ]
         )  # fmt: skip
         fleet = json.loads(fleet_json.read_text())

@@ -39,11 +39,11 @@ import numpy as np
 
 from bench.harness import (
     add_detector_model_argument,
-    proc_cpu_s,
-    proc_status_mb,
     recorded_scans,
     start_loopback_service,
     thread_cpu_s,
+    tree_cpu_s,
+    tree_rss_mb,
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, write_report
@@ -186,6 +186,7 @@ def _start_services(
     )
     detector_args = (
         *tuning,
+        *(("--detectors", str(args.detectors)) if args.detectors else ()),
         *(("--no-spin",) if args.no_spin else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
@@ -206,8 +207,8 @@ def _start_services(
 
 
 def _rss_mb(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
-    """Resident memory of each child process now, in MB."""
-    return {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+    """Resident memory of each child process (with its siblings: ``--detectors``) now, in MB."""
+    return {n: round(tree_rss_mb(p.pid), 1) for n, p in children.items()}
 
 
 def _publish_fleet(
@@ -282,8 +283,8 @@ def _publish_fleet(
 
 
 def _cpu_s(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
-    """CPU seconds used so far by each child and by this process."""
-    return {**{n: proc_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time()}
+    """CPU seconds used so far by each child (with its siblings: ``--detectors``) and by this process."""
+    return {**{n: tree_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time()}
 
 
 def _worst_latency_per_second(
@@ -343,6 +344,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--detector-defaults",
         action="store_true",
         help="pass no --workers/--batch/--threads: measure the detector as it configures itself",
+    )
+    parser.add_argument(
+        "--detectors",
+        type=int,
+        default=None,
+        help="detector processes sharing the fleet (default: the detector's own, one per core)",
     )
     parser.add_argument(
         "--no-spin", action="store_true", help="the detector's ONNX Runtime threads sleep instead of spinning"
@@ -415,6 +422,7 @@ def main(argv: list[str] | None = None) -> int:
         "workers": "detector default" if args.detector_defaults else args.workers,
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
+        "detectors": args.detectors or "detector default",
         "from_scans": args.from_scans,
         "encode_on_robots": args.encode_on_robots,
         "model": detector_model(args).name,

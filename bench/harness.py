@@ -64,6 +64,41 @@ def proc_cpu_s(pid: int) -> float:
     return _stat_cpu_s(Path(f"/proc/{pid}/stat"))
 
 
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and its live descendants (a service's ``--detectors N`` siblings are its children)."""
+    pids, index = [pid], 0
+    while index < len(pids):
+        for task in Path(f"/proc/{pids[index]}/task").glob("*/children"):
+            try:
+                pids += [int(child) for child in task.read_text().split()]
+            except (FileNotFoundError, ProcessLookupError):
+                continue
+        index += 1
+    return pids
+
+
+def tree_cpu_s(pid: int) -> float:
+    """:func:`proc_cpu_s` of ``pid`` and its descendants together; one that ends meanwhile counts 0."""
+    total = 0.0
+    for member in process_tree(pid):
+        try:
+            total += proc_cpu_s(member)
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+    return total
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` and its descendants together, in MiB."""
+    total = 0.0
+    for member in process_tree(pid):
+        try:
+            total += proc_status_mb(member)
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+    return total
+
+
 def _per_thread(pid: int, read: Callable[[Path], T]) -> Iterator[tuple[str, T]]:
     """``(comm, read(task dir))`` for each live thread of ``pid``; one that ends meanwhile is skipped."""
     for task in Path(f"/proc/{pid}/task").iterdir():
@@ -74,14 +109,16 @@ def _per_thread(pid: int, read: Callable[[Path], T]) -> Iterator[tuple[str, T]]:
 
 
 def thread_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds per thread name (``comm``) of a live process, threads of one name summed.
+    """CPU seconds per thread name (``comm``) of a live process and its descendants, threads of one name
+    summed.
 
     Python threads are all "python" unless named (the detector names its inference threads);
     Zenoh's runtime threads carry their own names (rx-0, tx-0, net-0, acc-0, app-0).
     """
     totals: dict[str, float] = {}
-    for name, seconds in _per_thread(pid, lambda task: _stat_cpu_s(task / "stat")):
-        totals[name] = totals.get(name, 0.0) + seconds
+    for member in process_tree(pid):  # the siblings of a --detectors N launch, whose threads are alike
+        for name, seconds in _per_thread(member, lambda task: _stat_cpu_s(task / "stat")):
+            totals[name] = totals.get(name, 0.0) + seconds
     return totals
 
 

@@ -230,8 +230,12 @@ class ShardMembership:
         self._token = self._subscriber = None
 
 
+SIBLING_FLAG: Final[str] = "--sibling"  # marks a process started by :func:`sibling_commands`
+
+
 def add_processes_argument(parser: argparse.ArgumentParser, flag: str, default_help: str) -> None:
-    """``--detectors N`` / ``--encoders N``: how many processes of this service share the fleet."""
+    """``--detectors N`` / ``--encoders N``: how many processes of this service share the fleet; and the
+    hidden flag of the processes a launch starts itself, which start none."""
     parser.add_argument(
         flag,
         type=int,
@@ -239,6 +243,7 @@ def add_processes_argument(parser: argparse.ArgumentParser, flag: str, default_h
         metavar="N",
         help=f"processes of this service sharing the robots, this one included (default: {default_help})",
     )
+    parser.add_argument(SIBLING_FLAG, action="store_true", help=argparse.SUPPRESS)
 
 
 def sibling_commands(
@@ -246,7 +251,9 @@ def sibling_commands(
 ) -> list[list[str]]:
     """The command lines of the ``count - 1`` other processes of a ``flag N`` launch of ``module``.
 
-    Each runs ``module`` with this process's own flags and ``extra`` but ``flag 1``, and joins the
+    Each runs ``module`` with this process's own flags and ``extra``, ``flag count`` (its share of the
+    cores, and how many processes to wait for before serving) and :data:`SIBLING_FLAG` (it starts no
+    process itself). It joins the
     network through this process: it connects to this process's endpoints and to its ``--connect``
     peers, and listens where this process does but on a port of its own (0: the OS picks), so that a
     peer which knows only this process's endpoint learns the others' through Zenoh's gossip and sends
@@ -266,7 +273,7 @@ def sibling_commands(
         config_file=settings.config_file,
         cfg=settings.cfg,
     )
-    command = [sys.executable, "-m", module, *rest, *extra, flag, "1", *sibling.to_cli()]
+    command = [sys.executable, "-m", module, *rest, *extra, flag, str(count), SIBLING_FLAG, *sibling.to_cli()]
     return [list(command) for _ in range(count - 1)]
 
 

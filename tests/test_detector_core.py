@@ -263,6 +263,8 @@ def test_pipeline_answers_only_the_robots_it_owns_when_it_receives_and_when_it_p
         return robot_id in owned
 
     pipeline = InferencePipeline([detector], publish, owns=owns)
+    assert pipeline.not_ours(tensor_key("theirs")) and not pipeline.not_ours(tensor_key("mine"))
+    assert not pipeline.not_ours("not/a/triscan/key")  # left to handle_sample, which rejects it
     tensor, _ = replayed_tensors[0]
     for robot in ("mine", "theirs"):
         copy = tensor.model_copy(update={"robot_id": robot})
@@ -278,4 +280,4 @@ def test_pipeline_answers_only_the_robots_it_owns_when_it_receives_and_when_it_p
         pipeline.stop()
     assert [m.robot_id for m in published] == ["mine"]
     counters = pipeline.core.counters
-    assert (counters.received, counters.not_ours) == (2, 1)
+    assert (counters.received, counters.not_ours) == (2, 2)

@@ -120,7 +120,8 @@ def test_siblings_join_through_this_process_and_run_one_process_each() -> None:
     assert len(commands) == 2
     command = commands[0]
     assert command[1:5] == ["-m", "services.detector", "--model", "m.onnx"]
-    assert command[command.index("--detectors") + 1] == "1" and command.count("--detectors") == 1
+    assert command[command.index("--detectors") + 1] == "3" and command.count("--detectors") == 1
+    assert "--sibling" in command  # it starts no process of its own
     assert command[command.index("--listen") + 1] == "tcp/0.0.0.0:0"  # a port of its own
     assert command[command.index("--batch") + 1] == "4"
     connects = [command[i + 1] for i, arg in enumerate(command) if arg == "--connect"]

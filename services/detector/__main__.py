@@ -20,13 +20,14 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from common.inference import OnnxDetector
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
-from common.transport import ZenohSettings, settings_from_args
+from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.detector.batch_cap import (
     AUTO_BATCH,
     AUTO_BATCH_CALL_BUDGET_MS,
@@ -66,13 +67,17 @@ def run(
     duration_s: float = 0.0,
     batch: int = 1,
     siblings: Siblings | None = None,
+    processes: int = 1,
+    sibling: bool = False,
 ) -> DetectorCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
     The process serves the robots that rendezvous hashing gives it among the live detector processes
     (:mod:`services.shards`); ``siblings`` are the other processes of this launch, restarted if one dies.
+    It serves once ``processes`` detectors are live and settled; a ``sibling`` (started by another
+    process of the launch) declares no health token, so the launch's token means all of it serves.
     """
-    with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
+    with ServiceRuntime("detector", settings, stop, duration_s=duration_s, announce=not sibling) as runtime:
         publishers = runtime.robot_publishers(detections_key)
         shards = ShardMembership(runtime.session, "detector")
 
@@ -98,9 +103,15 @@ def run(
         pipeline.start()
         try:
             key = ALL_SCANS if from_scans else ALL_TENSORS
-            runtime.subscribe(key, pipeline.handle_sample)
+
+            def on_sample(sample: Any) -> None:
+                sample_key = str(sample.key_expr)
+                if not pipeline.not_ours(sample_key):  # another process's robot: no payload copy
+                    pipeline.handle_sample(sample_key, payload_bytes(sample))
+
+            runtime.subscribe_samples(key, on_sample)
             shards.join()
-            shards.wait_settled(1 + (len(siblings.processes) if siblings is not None else 0), stop)
+            shards.wait_settled(processes, stop)
             detector = pipeline.core.detector
             log.info(
                 "detector %s ready: %s (%s padding) on %s → detections",
@@ -197,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             AUTO_BATCH_CALL_BUDGET_MS,
         )
     siblings = None
-    if processes > 1:  # the others run this cap too: timed once, on an idle machine
+    if processes > 1 and not args.sibling:  # the others run this cap too: timed once, on an idle machine
         extra = ("--batch", str(batch)) if args.batch is None else ()
         commands = sibling_commands("services.detector", argv, PROCESSES_FLAG, processes, extra)
         siblings = Siblings(commands, lambda command: subprocess.Popen(command, env=child_environment()))
@@ -214,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
             duration_s=args.duration,
             batch=batch,
             siblings=siblings,
+            processes=processes,
+            sibling=args.sibling,
         )
     finally:
         if siblings is not None:

@@ -382,6 +382,18 @@ class InferencePipeline:
         for worker in self._workers:
             worker.join(timeout_s)
 
+    def not_ours(self, key: str) -> bool:
+        """True (and counted) for a sample of a robot another process serves: the Zenoh callback then
+        never copies its payload out. A key that does not parse is left to :meth:`handle_sample`."""
+        try:
+            robot_id, _ = parse_key(key)
+        except ValueError:
+            return False
+        if self._owns(robot_id):
+            return False
+        self.core.note_not_ours()
+        return True
+
     def handle_sample(self, key: str, payload: bytes) -> None:
         """A tensor (or, ``from_scans``, a scan) sample from Zenoh; cheap, never blocks on inference."""
         started_ns = time.perf_counter_ns()

@@ -43,15 +43,18 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     siblings: Siblings | None = None,
+    processes: int = 1,
+    sibling: bool = False,
 ) -> EncoderCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
     Like the detector, the process stacks the scans of the robots that rendezvous hashing gives it
     among the live encoder processes (:mod:`services.shards`); a robot that moves here starts a fresh
-    FIFO, so its first tensor comes three scans later and none is sent twice.
+    FIFO, so its first tensor comes three scans later and none is sent twice. As the detector's, it
+    serves once ``processes`` encoders are live and settled, and a ``sibling`` declares no health token.
     """
     core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s)
-    with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
+    with ServiceRuntime("encoder", settings, stop, duration_s=duration_s, announce=not sibling) as runtime:
         tensors = runtime.robot_publishers(tensor_key)
         shards = ShardMembership(runtime.session, "encoder")
         not_ours = 0
@@ -78,7 +81,7 @@ def run(
 
         runtime.subscribe(ALL_SCANS, on_scan)
         shards.join()
-        shards.wait_settled(1 + (len(siblings.processes) if siblings is not None else 0), stop)
+        shards.wait_settled(processes, stop)
         log.info("encoder ready (padding %s, invalid returns %s): %s → tensor", padding, invalid, ALL_SCANS)
         try:
             runtime.serve(housekeeping)
@@ -101,11 +104,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
+    if args.encoders is not None and args.encoders < 1:
+        parser.error(f"{PROCESSES_FLAG} must be >= 1, got {args.encoders}")
     processes = args.encoders or 1
-    if processes < 1:
-        parser.error(f"{PROCESSES_FLAG} must be >= 1, got {processes}")
     siblings = None
-    if processes > 1:
+    if processes > 1 and not args.sibling:
         commands = sibling_commands("services.encoder", argv, PROCESSES_FLAG, processes)
         siblings = Siblings(commands, lambda command: subprocess.Popen(command, env=child_environment()))
         siblings.start()
@@ -118,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
             forget_after_s=args.forget_after,
             duration_s=args.duration,
             siblings=siblings,
+            processes=processes,
+            sibling=args.sibling,
         )
     finally:
         if siblings is not None:
