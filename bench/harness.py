@@ -77,26 +77,25 @@ def process_tree(pid: int) -> list[int]:
     return pids
 
 
-def tree_cpu_s(pid: int) -> float:
-    """:func:`proc_cpu_s` of ``pid`` and its descendants together; one that ends meanwhile counts 0."""
+def _tree_sum(pid: int, read: Callable[[int], float]) -> float:
+    """``read`` of ``pid`` and of each of its descendants, summed; one that ends meanwhile counts 0."""
     total = 0.0
     for member in process_tree(pid):
         try:
-            total += proc_cpu_s(member)
+            total += read(member)
         except (FileNotFoundError, ProcessLookupError):
             continue
     return total
+
+
+def tree_cpu_s(pid: int) -> float:
+    """:func:`proc_cpu_s` of ``pid`` and its descendants together."""
+    return _tree_sum(pid, proc_cpu_s)
 
 
 def tree_rss_mb(pid: int) -> float:
     """Resident memory of ``pid`` and its descendants together, in MiB."""
-    total = 0.0
-    for member in process_tree(pid):
-        try:
-            total += proc_status_mb(member)
-        except (FileNotFoundError, ProcessLookupError):
-            continue
-    return total
+    return _tree_sum(pid, proc_status_mb)
 
 
 def _per_thread(pid: int, read: Callable[[Path], T]) -> Iterator[tuple[str, T]]:
