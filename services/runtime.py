@@ -194,18 +194,9 @@ class ServiceRuntime:
     """
 
     def __init__(
-        self,
-        service: str,
-        settings: ZenohSettings,
-        stop: threading.Event,
-        *,
-        duration_s: float = 0.0,
-        announce: bool = True,
+        self, service: str, settings: ZenohSettings, stop: threading.Event, *, duration_s: float = 0.0
     ) -> None:
         self.service = service
-        # False for the extra processes of a ``--detectors N`` launch (services.shards): the first
-        # process's token stands for the launch, declared once all of them serve their shares.
-        self.announce = announce
         self.settings = settings
         self.stop = stop
         self.duration_s = duration_s
@@ -245,7 +236,7 @@ class ServiceRuntime:
 
     def ready(self) -> None:
         """Declare the health token (once): the service is wired and serving."""
-        if self._health is None and self.announce:
+        if self._health is None:
             self._health = declare_health(self.session, self.service)
 
     def subscribe(self, key: str, handler: SampleHandler) -> None:

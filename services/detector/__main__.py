@@ -68,16 +68,15 @@ def run(
     batch: int = 1,
     siblings: Siblings | None = None,
     processes: int = 1,
-    sibling: bool = False,
 ) -> DetectorCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
     The process serves the robots that rendezvous hashing gives it among the live detector processes
     (:mod:`services.shards`); ``siblings`` are the other processes of this launch, restarted if one dies.
-    It serves once ``processes`` detectors are live and settled; a ``sibling`` (started by another
-    process of the launch) declares no health token, so the launch's token means all of it serves.
+    It serves, and declares its health token, once ``processes`` detectors are live and settled, so
+    that a launch's token means all of its processes serve their shares.
     """
-    with ServiceRuntime("detector", settings, stop, duration_s=duration_s, announce=not sibling) as runtime:
+    with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
         publishers = runtime.robot_publishers(detections_key)
         shards = ShardMembership(runtime.session, "detector")
 
@@ -226,7 +225,6 @@ def main(argv: list[str] | None = None) -> int:
             batch=batch,
             siblings=siblings,
             processes=processes,
-            sibling=args.sibling,
         )
     finally:
         if siblings is not None:

@@ -44,17 +44,16 @@ def run(
     duration_s: float = 0.0,
     siblings: Siblings | None = None,
     processes: int = 1,
-    sibling: bool = False,
 ) -> EncoderCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
     Like the detector, the process stacks the scans of the robots that rendezvous hashing gives it
     among the live encoder processes (:mod:`services.shards`); a robot that moves here starts a fresh
     FIFO, so its first tensor comes three scans later and none is sent twice. As the detector's, it
-    serves once ``processes`` encoders are live and settled, and a ``sibling`` declares no health token.
+    serves once ``processes`` encoders are live and settled.
     """
     core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s)
-    with ServiceRuntime("encoder", settings, stop, duration_s=duration_s, announce=not sibling) as runtime:
+    with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
         tensors = runtime.robot_publishers(tensor_key)
         shards = ShardMembership(runtime.session, "encoder")
         not_ours = 0
@@ -122,7 +121,6 @@ def main(argv: list[str] | None = None) -> int:
             duration_s=args.duration,
             siblings=siblings,
             processes=processes,
-            sibling=args.sibling,
         )
     finally:
         if siblings is not None:
