@@ -206,7 +206,9 @@ class ShardMembership:
         one comes up); False after ``timeout_s`` or once ``stop`` is set."""
         deadline = time.monotonic() + timeout_s
         while not (len(self.view.members) >= members and self.view.settled()):
-            if time.monotonic() > deadline or stop.wait(0.05):
+            if stop.wait(0.05):
+                return False
+            if time.monotonic() > deadline:
                 log.warning("%s: %d of %d processes up after %.0f s: serving anyway", self.service,
                             len(self.view.members), members, timeout_s)  # fmt: skip
                 return False
