@@ -46,7 +46,7 @@ from bench.harness import (
     tree_rss_mb,
 )
 from bench.machine import machine_info
-from bench.report import latency_quantiles_ms, write_report
+from bench.report import latency_quantiles_ms, summed_counters, write_report
 from common.inference import model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
@@ -141,10 +141,11 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
         with lock:
             received[(message.robot_id, message.seq)] = arrived
 
-    detector_stats: dict[str, Any] = {}
+    detector_stats: dict[int, dict[str, Any]] = {}  # pid → its latest counters (--detectors N: several)
 
     def on_detector_stats(sample: Any) -> None:
-        detector_stats.update(json.loads(payload_bytes(sample)))
+        counters = json.loads(payload_bytes(sample))
+        detector_stats[int(counters["pid"])] = counters
 
     try:
         with open_session(ZenohSettings.loopback(bench_port)) as session:
@@ -158,11 +159,11 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
             published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
-            step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
-            calls = int(detector_stats.get("inference_calls", 0))
-            step.detector_mean_batch = (
-                round(int(detector_stats.get("processed", 0)) / calls, 2) if calls else 0.0
-            )
+
+            detector = summed_counters(detector_stats.values())
+            step.detector_dropped_stale = int(detector.get("dropped_stale", 0))
+            calls = int(detector.get("inference_calls", 0))
+            step.detector_mean_batch = round(int(detector.get("processed", 0)) / calls, 2) if calls else 0.0
             sub.undeclare()
             stats_sub.undeclare()
     finally:
