@@ -71,8 +71,7 @@ class ShardView:
         # (since, members) of every view that may still matter, oldest first. The first view lacks
         # this member: a process that has just joined serves nothing until it has settled.
         self._views: list[tuple[float, frozenset[str]]] = [(started, frozenset())]
-        self._owned_cache: dict[str, bool] = {}
-        self._cache_until = float("inf")
+        self._owned_cache: dict[str, bool] = {}  # filled only while settled, emptied by a change
         self._seen: dict[str, float] = {}  # robot id → when last asked about
         self._logged: set[str] = set()  # robots owned at the last :meth:`changes`
         self._lock = threading.Lock()
@@ -92,7 +91,6 @@ class ShardView:
                 return
             self._views.append((now, current))
             self._owned_cache.clear()
-            self._cache_until = now + self.settle_s
 
     def _prune(self, now: float) -> None:
         """Drop views that ended more than ``settle_s`` ago (the one current then stays)."""
@@ -105,17 +103,17 @@ class ShardView:
         now = time.monotonic() if now is None else now
         with self._lock:
             self._seen[robot_id] = now
-            if now >= self._cache_until:  # a gain may have settled: recompute once
-                self._owned_cache.clear()
-                self._cache_until = float("inf")
-            cached = self._owned_cache.get(robot_id)
-            if cached is not None:
-                return cached
-            self._prune(now)
-            owned = all(owner_of(robot_id, members) == self.me for _, members in self._views)
-            if len(self._views) == 1:  # settled: the answer holds until the next change
-                self._owned_cache[robot_id] = owned
-            return owned
+            return self._owns(robot_id, now)
+
+    def _owns(self, robot_id: str, now: float) -> bool:
+        cached = self._owned_cache.get(robot_id)
+        if cached is not None:
+            return cached
+        self._prune(now)
+        owned = all(owner_of(robot_id, members) == self.me for _, members in self._views)
+        if len(self._views) == 1:  # settled: the answer holds until the next change
+            self._owned_cache[robot_id] = owned
+        return owned
 
     def forget_silent(self, forget_after_s: float, now: float | None = None) -> list[str]:
         """Forget robots not asked about for ``forget_after_s`` (a changing fleet does not leak)."""
@@ -138,10 +136,8 @@ class ShardView:
     def changes(self, now: float | None = None) -> tuple[list[str], list[str]]:
         """(gained, lost) among the robots seen, since the last call: what the service logs."""
         now = time.monotonic() if now is None else now
-        with self._lock:
-            seen = list(self._seen)
-        owned = {robot_id for robot_id in seen if self.owns(robot_id, now)}
-        with self._lock:
+        with self._lock:  # asking here is not hearing from a robot: ``_seen`` stays as it was
+            owned = {robot_id for robot_id in self._seen if self._owns(robot_id, now)}
             gained, lost = sorted(owned - self._logged), sorted(self._logged - owned)
             self._logged = owned
         return gained, lost

@@ -110,6 +110,7 @@ def test_changes_log_gains_and_losses_and_silent_robots_are_forgotten() -> None:
     view.set_members(["a1f3", "0be2"], now=1.0)
     gained, lost = view.changes(now=1.0)
     assert gained == [] and lost == [r for r in ROBOTS[:20] if owner_of(r, ["a1f3", "0be2"]) == "0be2"]
+    view.changes(now=8.0)  # logging the changes is not hearing from the robots
     assert view.forget_silent(5.0, now=10.0) == ROBOTS[:20]
     assert view.snapshot() == {"member": "a1f3", "members": 2, "robots_served": 0}
 
