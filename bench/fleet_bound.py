@@ -36,7 +36,7 @@ import numpy as np
 from bench import fleet_capacity
 from bench.machine import machine_info
 from common.encoding import to_model_input
-from common.inference import session_options
+from common.inference import model_facts, session_options
 from services.detector.batch_cap import detector_model_and_batch
 from services.encoder.core import EncoderCore
 from services.sim_bag import recorded_scans
@@ -167,6 +167,50 @@ def cpu_per_scan(
     return rows
 
 
+PROFILE_BATCH = 8  # a full batch: what each frame costs past a fleet's knee
+
+
+def python_per_scan(model: Path, batches: int) -> dict[str, float]:
+    """ms per scan of each part of the detector's own work, in this process on recorded tensors: the
+    payload's decode and validation, the model call (uint8 → float32, ``session.run`` and
+    post-processing, by the detector's own timings) and the detections message's encoding. Where the
+    rest of a scan's CPU in ``cpu_per_scan`` goes is Zenoh's, the hand-offs' and the GIL's."""
+    from common.inference import OnnxDetector
+    from common.keys import tensor_key
+    from common.messages import encode_message
+    from services.detector.core import DetectorCore, InferencePipeline
+
+    encoder = EncoderCore(model_facts(model).padding)
+    tensors = [t for scan in recorded_scans(PROFILE_BATCH * 4 + 2, seed=11) if (t := encoder.push(scan))]
+    payloads = [encode_message(t) for t in tensors]
+    core = DetectorCore(OnnxDetector(model, intra_op_threads=1))
+    pipeline = InferencePipeline([core.detector], lambda _d: None)
+    core.detector.warmup(PROFILE_BATCH)
+    sections = dict.fromkeys(("receive", "decode", "convert", "inference", "postprocess", "encode"), 0.0)
+    frames = 0
+    for round_ in range(batches):
+        batch = [i % len(tensors) for i in range(round_ * PROFILE_BATCH, (round_ + 1) * PROFILE_BATCH)]
+        started = time.perf_counter()
+        for i in batch:
+            pipeline.not_ours(tensor_key(tensors[i].robot_id))  # the callback's first look at the key
+        sections["receive"] += time.perf_counter() - started
+        started = time.perf_counter()
+        decoded = [core.decode(payloads[i], tensors[i].robot_id) for i in batch]
+        sections["decode"] += time.perf_counter() - started
+        accepted = [t for t in decoded if t is not None]
+        messages = core.detect_many(accepted)
+        for tensor, message in zip(accepted, messages, strict=True):
+            sections["convert"] += (message.timings.encode_ms - tensor.encode_ms) / 1e3  # less the encoder's
+            sections["postprocess"] += message.timings.nms_ms / 1e3
+        sections["inference"] += messages[0].timings.inference_ms / 1e3
+        started = time.perf_counter()
+        for message in messages:
+            encode_message(message)
+        sections["encode"] += time.perf_counter() - started
+        frames += len(messages)
+    return {name: round(1e3 * seconds / frames, 3) for name, seconds in sections.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
@@ -177,13 +221,37 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the robots send tensors (their own encoder on board): the detector alone on this host",
     )
+    parser.add_argument(
+        "--detectors",
+        type=int,
+        default=None,
+        help="detector processes (default: the detector's own); 1/2/4 give the scaling table",
+    )
+    parser.add_argument(
+        "--fractions", default=",".join(map(str, FRACTIONS)), help="ladder steps as shares of the bound"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_bound.json"))
+    parser.add_argument(
+        "--python-per-scan",
+        type=int,
+        default=0,
+        metavar="BATCHES",
+        help="only time the detector's own sections per scan over this many full batches, and exit",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     model, _ = detector_model_and_batch(None, None)  # the model the detector runs by default
+    if args.python_per_scan:
+        sections = python_per_scan(model, args.python_per_scan)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"ms_per_scan": sections, "batch": PROFILE_BATCH,
+                                        "machine": asdict(machine_info())}, indent=2) + "\n")  # fmt: skip
+        log.info("ms per scan at batch %d: %s; written to %s", PROFILE_BATCH, sections, args.out)
+        return 0
     bound = compute_bound(model, args.bound_seconds)
     bound_robots = float(bound["best_frames_per_s"]) / args.rate  # type: ignore[arg-type]
-    ladder = sorted({max(1, math.floor(f * bound_robots)) for f in FRACTIONS})
+    fractions = [float(f) for f in args.fractions.split(",")]
+    ladder = sorted({max(1, math.floor(f * bound_robots)) for f in fractions})
     log.info("compute bound: %.1f frames/s = %.1f robots at %.0f Hz; ladder %s", bound["best_frames_per_s"],
              bound_robots, args.rate, ladder)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
@@ -193,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
                 "--ladder", ",".join(map(str, ladder)), "--seconds", str(args.seconds),
                 "--rate", str(args.rate), "--detector-defaults", "--out", str(fleet_json),
                 *(("--encode-on-robots",) if args.encode_on_robots else ()),
+                *(("--detectors", str(args.detectors)) if args.detectors else ()),
             ]
         )  # fmt: skip
         fleet = json.loads(fleet_json.read_text())

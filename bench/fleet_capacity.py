@@ -39,13 +39,13 @@ import numpy as np
 
 from bench.harness import (
     add_detector_model_argument,
-    proc_cpu_s,
-    proc_status_mb,
     start_loopback_service,
     thread_cpu_s,
+    tree_cpu_s,
+    tree_rss_mb,
 )
 from bench.machine import machine_info
-from bench.report import latency_quantiles_ms, write_report
+from bench.report import latency_quantiles_ms, summed_counters, write_report
 from common.inference import model_facts
 from common.keys import DETECTIONS, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, StackedTensor, decode_message, encode_message
@@ -141,10 +141,11 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
         with lock:
             received[(message.robot_id, message.seq)] = arrived
 
-    detector_stats: dict[str, Any] = {}
+    detector_stats: dict[int, dict[str, Any]] = {}  # pid → its latest counters (--detectors N: several)
 
     def on_detector_stats(sample: Any) -> None:
-        detector_stats.update(json.loads(payload_bytes(sample)))
+        counters = json.loads(payload_bytes(sample))
+        detector_stats[int(counters["pid"])] = counters
 
     try:
         with open_session(ZenohSettings.loopback(bench_port)) as session:
@@ -158,11 +159,11 @@ def run_step(robots: int, frames: list[Scan] | list[StackedTensor], args: argpar
             published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
-            step.detector_dropped_stale = int(detector_stats.get("dropped_stale", 0))
-            calls = int(detector_stats.get("inference_calls", 0))
-            step.detector_mean_batch = (
-                round(int(detector_stats.get("processed", 0)) / calls, 2) if calls else 0.0
-            )
+
+            detector = summed_counters(detector_stats.values())
+            step.detector_dropped_stale = int(detector.get("dropped_stale", 0))
+            calls = int(detector.get("inference_calls", 0))
+            step.detector_mean_batch = round(int(detector.get("processed", 0)) / calls, 2) if calls else 0.0
             sub.undeclare()
             stats_sub.undeclare()
     finally:
@@ -186,6 +187,7 @@ def _start_services(
     )
     detector_args = (
         *tuning,
+        *(("--detectors", str(args.detectors)) if args.detectors else ()),
         *(("--no-spin",) if args.no_spin else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
@@ -206,8 +208,8 @@ def _start_services(
 
 
 def _rss_mb(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
-    """Resident memory of each child process now, in MB."""
-    return {n: round(proc_status_mb(p.pid), 1) for n, p in children.items()}
+    """Resident memory of each child process (with its siblings: ``--detectors``) now, in MB."""
+    return {n: round(tree_rss_mb(p.pid), 1) for n, p in children.items()}
 
 
 def _publish_fleet(
@@ -282,8 +284,8 @@ def _publish_fleet(
 
 
 def _cpu_s(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
-    """CPU seconds used so far by each child and by this process."""
-    return {**{n: proc_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time()}
+    """CPU seconds used so far by each child (with its siblings: ``--detectors``) and by this process."""
+    return {**{n: tree_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time()}
 
 
 def _worst_latency_per_second(
@@ -343,6 +345,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--detector-defaults",
         action="store_true",
         help="pass no --workers/--batch/--threads: measure the detector as it configures itself",
+    )
+    parser.add_argument(
+        "--detectors",
+        type=int,
+        default=None,
+        help="detector processes sharing the fleet (default: the detector's own, one per core)",
     )
     parser.add_argument(
         "--no-spin", action="store_true", help="the detector's ONNX Runtime threads sleep instead of spinning"
@@ -415,6 +423,7 @@ def main(argv: list[str] | None = None) -> int:
         "workers": "detector default" if args.detector_defaults else args.workers,
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
+        "detectors": args.detectors or "detector default",
         "from_scans": args.from_scans,
         "encode_on_robots": args.encode_on_robots,
         "model": detector_model(args).name,

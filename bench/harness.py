@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 from common.model_spec import MODEL_ENV
 from common.transport import ZenohSettings
 from services.launcher import child_environment
+from services.sim_bag import recorded_scans as recorded_scans  # the benches' recorded scans, re-exported
 
 T = TypeVar("T")
 
@@ -63,6 +64,40 @@ def proc_cpu_s(pid: int) -> float:
     return _stat_cpu_s(Path(f"/proc/{pid}/stat"))
 
 
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and its live descendants (a service's ``--detectors N`` siblings are its children)."""
+    pids, index = [pid], 0
+    while index < len(pids):
+        for task in Path(f"/proc/{pids[index]}/task").glob("*/children"):
+            try:
+                pids += [int(child) for child in task.read_text().split()]
+            except (FileNotFoundError, ProcessLookupError):
+                continue
+        index += 1
+    return pids
+
+
+def _tree_sum(pid: int, read: Callable[[int], float]) -> float:
+    """``read`` of ``pid`` and of each of its descendants, summed; one that ends meanwhile counts 0."""
+    total = 0.0
+    for member in process_tree(pid):
+        try:
+            total += read(member)
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+    return total
+
+
+def tree_cpu_s(pid: int) -> float:
+    """:func:`proc_cpu_s` of ``pid`` and its descendants together."""
+    return _tree_sum(pid, proc_cpu_s)
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` and its descendants together, in MiB."""
+    return _tree_sum(pid, proc_status_mb)
+
+
 def _per_thread(pid: int, read: Callable[[Path], T]) -> Iterator[tuple[str, T]]:
     """``(comm, read(task dir))`` for each live thread of ``pid``; one that ends meanwhile is skipped."""
     for task in Path(f"/proc/{pid}/task").iterdir():
@@ -73,14 +108,16 @@ def _per_thread(pid: int, read: Callable[[Path], T]) -> Iterator[tuple[str, T]]:
 
 
 def thread_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds per thread name (``comm``) of a live process, threads of one name summed.
+    """CPU seconds per thread name (``comm``) of a live process and its descendants, threads of one name
+    summed.
 
     Python threads are all "python" unless named (the detector names its inference threads);
     Zenoh's runtime threads carry their own names (rx-0, tx-0, net-0, acc-0, app-0).
     """
     totals: dict[str, float] = {}
-    for name, seconds in _per_thread(pid, lambda task: _stat_cpu_s(task / "stat")):
-        totals[name] = totals.get(name, 0.0) + seconds
+    for member in process_tree(pid):  # the siblings of a --detectors N launch, whose threads are alike
+        for name, seconds in _per_thread(member, lambda task: _stat_cpu_s(task / "stat")):
+            totals[name] = totals.get(name, 0.0) + seconds
     return totals
 
 

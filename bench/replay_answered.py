@@ -45,7 +45,7 @@ import zenoh
 
 from bench.harness import add_detector_model_argument, start_loopback_service
 from bench.machine import MachineInfo, machine_info
-from bench.report import latency_quantiles_ms, write_report
+from bench.report import latency_quantiles_ms, summed_counters, write_report
 from common.keys import ALL_STATS, DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import Detections, Scan, decode_message
 from common.model_spec import default_model_path
@@ -91,7 +91,7 @@ class Answers:
         self.arrived_ns: dict[tuple[str, int], int] = {}
         self.objects: dict[tuple[str, int], int] = {}
         self.stage_ms: dict[tuple[str, int], tuple[float, float, float]] = {}
-        self.stats: dict[str, dict[str, Any]] = {}
+        self.stats: dict[str, dict[int, dict[str, Any]]] = {}  # service → pid → latest counters
         self.first_priming_answer = threading.Event()
         self._lock = threading.Lock()
 
@@ -112,8 +112,8 @@ class Answers:
 
     def on_stats(self, sample: Any) -> None:
         body = json.loads(payload_bytes(sample))
-        with self._lock:
-            self.stats[body["service"]] = body
+        with self._lock:  # per process: a --detectors N launch publishes one body each
+            self.stats.setdefault(body["service"], {})[int(body["pid"])] = body
 
     def answered(self, keys: list[tuple[str, int]]) -> list[tuple[str, int]]:
         with self._lock:
@@ -239,7 +239,8 @@ def _fill_report(
             for i, name in enumerate(("encode", "inference", "nms"))
         }
     for service in ("detector", "encoder"):
-        counters = {k: v for k, v in answers.stats.get(service, {}).items() if k not in ("pid", "stamp_ns")}
+        summed = summed_counters(answers.stats.get(service, {}).values())
+        counters = {k: v for k, v in summed.items() if k not in ("pid", "stamp_ns")}
         setattr(report, f"{service}_counters", counters)
     report.machine.loadavg_end = [round(x, 2) for x in os.getloadavg()]
 

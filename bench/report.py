@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,27 @@ def latency_quantiles_ms(values_ms: Sequence[float] | np.ndarray) -> dict[str, f
     summary = {f"p{q}": float(np.percentile(values, q)) for q in (50, 95, 99)}
     summary["max"] = float(values.max())
     return {k: round(v, 2) for k, v in summary.items()}
+
+
+_NOT_COUNTERS = frozenset({"pid", "stamp_ns"})  # numbers in a service's stats that name, not count
+
+
+def summed_counters(bodies: Iterable[dict[str, Any]]) -> dict[str, Any]:
+    """The counters of several processes of one service (``--detectors N``) as one: numbers summed,
+    nested counters summed key by key, anything else (its pid and stamp, a member id) from the first
+    process."""
+    total: dict[str, Any] = {}
+    for body in bodies:
+        for key, value in body.items():
+            if key in _NOT_COUNTERS and key in total:
+                continue
+            if key not in total:
+                total[key] = summed_counters([value]) if isinstance(value, dict) else value
+            elif isinstance(value, dict) and isinstance(total[key], dict):
+                total[key] = summed_counters([total[key], value])
+            elif isinstance(value, int | float) and isinstance(total[key], int | float):
+                total[key] = total[key] + value
+    return total
 
 
 def write_report(report: Any, out: Path | None, *, echo: bool = True) -> str:

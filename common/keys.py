@@ -135,10 +135,14 @@ def parse_key(key: str, *, prefix: str = PREFIX) -> tuple[str, str]:
 
 HEALTH: Final[str] = "@health"
 STATS: Final[str] = "@stats"
+SHARDS: Final[str] = "@shards"
 HEALTH_PREFIX: Final[str] = f"{PREFIX}/{HEALTH}"  # liveliness tokens: triscan/@health/<service>/<instance>
 STATS_PREFIX: Final[str] = f"{PREFIX}/{STATS}"  # JSON counters: triscan/@stats/<service>/<instance>
 ALL_HEALTH: Final[str] = f"{HEALTH_PREFIX}/**"
 ALL_STATS: Final[str] = f"{STATS_PREFIX}/**"
+# Liveliness tokens of the processes that share a fleet: triscan/@shards/<service>/<member>. The member is
+# the process's Zenoh id, unique across hosts (a pid is not: every container's first process is 1).
+SHARDS_PREFIX: Final[str] = f"{PREFIX}/{SHARDS}"
 
 
 def health_key(service: str, instance: str) -> str:
@@ -154,6 +158,16 @@ def stats_key(service: str, instance: str) -> str:
 def service_stats_key(service: str) -> str:
     """The counters of every instance of one service (``triscan/@stats/detector/*``)."""
     return f"{STATS_PREFIX}/{validate_robot_id(service)}/*"
+
+
+def shard_key(service: str, member: str) -> str:
+    """Liveliness token of one process of ``service`` taking its share of the robots."""
+    return f"{SHARDS_PREFIX}/{validate_robot_id(service)}/{validate_robot_id(member)}"
+
+
+def shard_members_key(service: str) -> str:
+    """Every live member of one service's shard set (``triscan/@shards/detector/*``)."""
+    return f"{SHARDS_PREFIX}/{validate_robot_id(service)}/*"
 
 
 def _parse_service_key(key: str, prefix: str, what: str) -> tuple[str, str]:
@@ -174,6 +188,11 @@ def parse_stats_key(key: str) -> tuple[str, str]:
     return _parse_service_key(key, STATS_PREFIX, "stats")
 
 
+def parse_shard_key(key: str) -> tuple[str, str]:
+    """``triscan/@shards/<service>/<member>`` → (service, member)."""
+    return _parse_service_key(key, SHARDS_PREFIX, "shard")
+
+
 # --- access-control patterns of the secure mode (security/zenoh_config.py) --------------------------
 
 
@@ -186,3 +205,8 @@ def service_keys(prefix: str = PREFIX) -> tuple[str, str]:
     """(health pattern, stats pattern) of a deployment's prefix."""
     base = _validate_prefix(prefix)
     return f"{base}/{HEALTH}/**", f"{base}/{STATS}/**"
+
+
+def shard_keys(prefix: str = PREFIX) -> str:
+    """The shard tokens of a deployment's prefix (``@`` chunks are matched by no wildcard)."""
+    return f"{_validate_prefix(prefix)}/{SHARDS}/**"

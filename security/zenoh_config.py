@@ -39,6 +39,7 @@ from common.keys import (
     everything_key,
     scan_key,
     service_keys,
+    shard_keys,
     validate_robot_id,
     wildcard_key,
 )
@@ -83,11 +84,12 @@ def access_control(robots: Sequence[str], *, simulator: bool = True, prefix: str
         members.remove(common_name("simulator"))
     data = everything_key(prefix)
     health, stats = service_keys(prefix)
+    shards = shard_keys(prefix)
 
     rules: list[dict[str, Any]] = [
         # Declaring interest and watching health: every member, both ways, so subscriptions propagate.
-        _rule("observe", _OBSERVE_MESSAGES, ["ingress", "egress"], [data, health, stats]),
-        _rule("health-tokens", ["liveliness_token"], ["ingress", "egress"], [health]),
+        _rule("observe", _OBSERVE_MESSAGES, ["ingress", "egress"], [data, health, stats, shards]),
+        _rule("health-tokens", ["liveliness_token"], ["ingress", "egress"], [health, shards]),
         # A node may send (and forward) every publication it holds; receivers check the source.
         _rule("send", ["put"], ["egress"], [data, stats]),
         _rule("stats-in", ["put"], ["ingress"], [stats]),

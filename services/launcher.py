@@ -95,6 +95,8 @@ class UpConfig:
     model: Path | None = None
     # The detector's --batch (None: it times its own cap, services.detector.batch_cap.timed_batch_cap).
     batch: int | None = None
+    # The detector's --detectors (None: one process per core, services.detector.core.default_processes).
+    detectors: int | None = None
     seed: int = SIM_SEED
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
@@ -202,6 +204,7 @@ def service_commands(
         "detector": [
             *(("--model", str(config.model)) if config.model else ()),
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
+            *(("--detectors", str(config.detectors)) if config.detectors is not None else ()),
         ],
         "tracker": [],
         "visualizer": sink,
@@ -319,6 +322,8 @@ class TrafficCounter:
 def up(config: UpConfig, stop: threading.Event) -> int:
     """Start, watch and stop the services; 0 on a clean stop (or a replay played through), 1 if a
     service kept dying, never came up, or the replay failed."""
+    if config.detectors is not None and config.detectors < 1:
+        raise ValueError(f"--detectors must be >= 1, got {config.detectors}")
     if config.replay is not None:
         robots = replay_robots(config.replay)  # a wrong bag or topic fails here, before anything starts
         log.info("replaying %s", ", ".join(f"{topic} as {robot}" for topic, robot in robots.items()))

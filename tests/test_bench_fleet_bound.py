@@ -38,3 +38,13 @@ def test_a_one_session_bound_counts_only_the_cores_it_used() -> None:
     one_thread = {**BOUND, "best_workers": 1, "best_threads": 1}
     (row,) = cpu_per_scan(fleet, one_thread, rate_hz=10.0, cores=4)
     assert row["network_ms_per_frame_at_bound"] == pytest.approx(3.33)
+
+
+def test_python_per_scan_times_every_section_of_the_detectors_own_work() -> None:
+    from bench.fleet_bound import python_per_scan
+    from services.detector.batch_cap import detector_model_and_batch
+
+    model, _ = detector_model_and_batch(None, None)
+    sections = python_per_scan(model, batches=2)
+    assert set(sections) == {"receive", "decode", "convert", "inference", "postprocess", "encode"}
+    assert all(ms > 0 for ms in sections.values()), sections

@@ -64,3 +64,16 @@ def test_a_batch_the_model_cannot_take_is_refused_before_any_process_starts(
         fleet_capacity.parse_step_args(["--model", str(SHIPPED_INT8_MODEL), "--batch", "4"])
     assert exit_info.value.code == 2
     assert "free batch axis" in capsys.readouterr().err
+
+
+def test_the_counters_of_several_processes_add_up() -> None:
+    from bench.report import summed_counters
+
+    first = {"pid": 1, "processed": 3, "rejected": {"bad_key": 1}, "shard": {"member": "a", "members": 2}}
+    second = {"pid": 2, "processed": 4, "rejected": {"bad_key": 2, "too_large": 1}, "shard": {"member": "b"}}
+    assert summed_counters([first, second]) == {
+        "pid": 1,
+        "processed": 7,
+        "rejected": {"bad_key": 3, "too_large": 1},
+        "shard": {"member": "a", "members": 2},
+    }

@@ -184,6 +184,8 @@ def test_a_batch_gives_each_robot_what_it_would_get_alone(
         "processed": 8,
         "inference_calls": 1,
         "dropped_stale": 0,
+        "not_ours": 0,
+        "handed_over": 0,
         "rejected": {},
     }
     assert sum(len(m.detections) for m in alone) >= 8, "the frames must hold objects for this test to bite"
@@ -226,6 +228,16 @@ def test_default_threads_leave_a_core_to_the_encoder_in_the_same_process() -> No
     assert default_intra_op_threads(default_workers(cpus=4), from_scans=False, cpus=4) == 1
 
 
+def test_several_processes_split_the_cores_between_them() -> None:
+    from services.detector.core import default_intra_op_threads, default_processes, default_workers
+
+    assert default_processes(cpus=4) == 4
+    assert default_workers(cpus=4, processes=4) == 1 and default_workers(cpus=8, processes=2) == 4
+    assert default_workers(cpus=2, processes=4) == 1  # never fewer than one thread
+    assert default_intra_op_threads(1, from_scans=False, cpus=2, processes=2) == 1  # not every core
+    assert default_intra_op_threads(1, from_scans=False, cpus=8, processes=2) == 4
+
+
 def test_pipeline_serves_a_sample_on_named_inference_threads(
     detector: OnnxDetector, replayed_tensors: list[tuple[StackedTensor, list]]
 ) -> None:
@@ -245,3 +257,40 @@ def test_pipeline_serves_a_sample_on_named_inference_threads(
     (message,) = published
     assert message.robot_id == tensor.robot_id and message.seq == tensor.seq
     assert names is None or "inference-0" in names  # None: no /proc, not Linux
+
+
+def test_pipeline_answers_only_the_robots_it_owns_when_it_receives_and_when_it_publishes(
+    detector: OnnxDetector, replayed_tensors: list[tuple[StackedTensor, list]]
+) -> None:
+    """Another process's robot is skipped undecoded; one that moves away mid-inference is not answered."""
+    published: list[Detections] = []
+    owned = {"mine", "leaving"}
+    gate = threading.Event()
+
+    def publish(detections: Detections) -> None:
+        published.append(detections)
+
+    def owns(robot_id: str) -> bool:
+        if robot_id == "leaving" and gate.is_set():
+            return False
+        return robot_id in owned
+
+    pipeline = InferencePipeline([detector], publish, owns=owns)
+    assert pipeline.not_ours(tensor_key("theirs")) and not pipeline.not_ours(tensor_key("mine"))
+    assert not pipeline.not_ours("not/a/triscan/key")  # left to handle_sample, which rejects it
+    tensor, _ = replayed_tensors[0]
+    for robot in ("mine", "theirs"):
+        copy = tensor.model_copy(update={"robot_id": robot})
+        pipeline.handle_sample(tensor_key(robot), encode_message(copy))
+    leaving = tensor.model_copy(update={"robot_id": "leaving"})
+    pipeline.handle_sample(tensor_key("leaving"), encode_message(leaving))
+    gate.set()  # accepted while owned, handed over before its detections are out
+    pipeline.start()
+    try:
+        assert wait_for(lambda: pipeline.core.counters.processed == 2, timeout=30.0)
+        assert wait_for(lambda: pipeline.core.counters.handed_over == 1, timeout=5.0)
+    finally:
+        pipeline.stop()
+    assert [m.robot_id for m in published] == ["mine"]
+    counters = pipeline.core.counters
+    assert (counters.received, counters.not_ours) == (2, 2)

@@ -77,6 +77,20 @@ def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything
         up(UpConfig(viewer="none", batch=0), threading.Event())
 
 
+def test_detectors_reach_the_detector_and_zero_is_refused_before_anything_starts() -> None:
+    import threading
+
+    from services.launcher import up
+
+    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    default = service_commands(UpConfig(viewer="none"), ports, None)["detector"]
+    assert flag_values(default, "--detectors") == []  # the detector picks: one process per core
+    three = service_commands(UpConfig(viewer="none", detectors=3), ports, None)["detector"]
+    assert flag_values(three, "--detectors") == ["3"]
+    with pytest.raises(ValueError, match="--detectors must be >= 1"):
+        up(UpConfig(viewer="none", detectors=0), threading.Event())
+
+
 def test_a_replay_replaces_the_simulator_and_gets_its_flags(tmp_path: Path) -> None:
     from services.bag_replay import ReplayConfig
 

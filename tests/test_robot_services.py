@@ -38,8 +38,12 @@ pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
 
 def start_service(module: str, port: int, connect: list[int], *extra: str) -> subprocess.Popen[bytes]:
+    # One detector process: lockstep needs every scan of a robot from its first in the process that
+    # serves it, and the probe robot cannot tell when a launch's other processes serve theirs
+    # (processes sharing a fleet: tests/test_detector_failover.py).
+    one = ("--detectors", "1") if module == "services.detector" else ()
     return start_loopback_service(
-        module, port, connect, *extra, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        module, port, connect, *extra, *one, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
     )
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from common.keys import shard_key, shard_members_key
 from common.messages import Detection, Detections, Message, Scan, StageTimings, decode_message, encode_message
 from security.zenoh_config import common_name, main, secure_config
 
@@ -308,3 +309,20 @@ def test_health_tokens_and_stats_still_flow(mesh: Mesh) -> None:
         time.sleep(0.02)
     publisher.put(b"{}")
     assert arrived.wait(ARRIVE_WAIT_S) and stats == [b"{}"]
+
+
+def test_shard_tokens_flow_so_detector_processes_can_share_a_fleet(mesh: Mesh) -> None:
+    """Detector processes on other hosts see each other's shard tokens through the ACL."""
+    watcher = mesh.secure("detector", listen=True)
+    other = mesh.secure("detector")
+    token = other.liveliness().declare_token(shard_key("detector", "a1f3"))
+    mesh.stack.callback(token.undeclare)
+    deadline = time.monotonic() + MATCH_WAIT_S
+    members: list[str] = []
+    while not members and time.monotonic() < deadline:
+        members = [
+            str(reply.ok.key_expr)
+            for reply in watcher.liveliness().get(shard_members_key("detector"), timeout=1.0)
+            if reply.ok
+        ]
+    assert members == [shard_key("detector", "a1f3")]

@@ -76,6 +76,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="detector: most robots per model call (default: it picks, 4 with the shipped -batch model)",
     )
     p.add_argument(
+        "--detectors",
+        type=int,
+        default=None,
+        help="detector processes sharing the robots (default: one per core)",
+    )
+    p.add_argument(
         "--seed", type=int, default=None, help=f"simulator seed (default {up('seed')}; training used 0)"
     )
     p.add_argument(
@@ -141,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         viewer=args.viewer,
         model=args.model,
         batch=args.batch,
+        detectors=args.detectors,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,

@@ -7,30 +7,42 @@ tensor into a newest-per-robot mailbox; inference threads drain it, so the detec
 behind (see :mod:`services.detector.core`). With ``--batch N`` and a ``-batch`` model, a thread runs
 up to N waiting robots' tensors in one model call, which a CPU does for less per frame; without
 ``--batch`` the detector times its model at start and picks the cap itself
-(:mod:`services.detector.batch_cap`).
+(:mod:`services.detector.batch_cap`). ``--detectors N`` (default: one per core) starts N-1 more
+processes like this one; the live detector processes, here or on other hosts of the same Zenoh
+network, share the robots among themselves (:mod:`services.shards`).
 """
 
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from common.inference import OnnxDetector
 from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
-from common.transport import ZenohSettings, settings_from_args
+from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.detector.batch_cap import (
     AUTO_BATCH,
     AUTO_BATCH_CALL_BUDGET_MS,
     detector_model_and_batch,
     timed_batch_cap,
 )
-from services.detector.core import DetectorCore, InferencePipeline, default_intra_op_threads, default_workers
+from services.detector.core import (
+    DetectorCore,
+    InferencePipeline,
+    default_intra_op_threads,
+    default_processes,
+    default_workers,
+)
 from services.encoder.core import DEFAULT_FORGET_AFTER_S
+from services.launcher import child_environment
 from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
@@ -39,8 +51,11 @@ from services.runtime import (
     service_parser,
     stop_event_on_signals,
 )
+from services.shards import ShardMembership, Siblings, add_processes_argument, sibling_commands
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+
+PROCESSES_FLAG = "--detectors"
 
 
 def run(
@@ -52,10 +67,19 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     batch: int = 1,
+    siblings: Siblings | None = None,
+    processes: int = 1,
 ) -> DetectorCore:
-    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
+    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
+
+    The process serves the robots that rendezvous hashing gives it among the live detector processes
+    (:mod:`services.shards`); ``siblings`` are the other processes of this launch, restarted if one dies.
+    It serves, and declares its health token, once ``processes`` detectors are live and settled, so
+    that a launch's token means all of its processes serve their shares.
+    """
     with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
         publishers = runtime.robot_publishers(detections_key)
+        shards = ShardMembership(runtime.session, "detector")
 
         def publish(detections: Detections) -> None:
             publishers.put(detections.robot_id, encode_message(detections))
@@ -66,23 +90,40 @@ def run(
             batch=batch,
             from_scans=from_scans,
             forget_after_s=forget_after_s,
+            owns=shards.owns,
         )
 
         def housekeeping() -> dict[str, object]:
             publishers.forget_silent(forget_after_s)  # no publisher leak as fleets change
-            return {**pipeline.housekeeping(), "robots": len(publishers)}
+            if siblings is not None:
+                siblings.restart_dead()
+            shard = shards.log_changes(forget_after_s)
+            return {**pipeline.housekeeping(), "robots": len(publishers), "shard": shard}
 
         pipeline.start()
         try:
             key = ALL_SCANS if from_scans else ALL_TENSORS
-            runtime.subscribe(key, pipeline.handle_sample)
+
+            def on_sample(sample: Any) -> None:
+                sample_key = str(sample.key_expr)
+                if not pipeline.not_ours(sample_key):  # another process's robot: no payload copy
+                    pipeline.handle_sample(sample_key, payload_bytes(sample))
+
+            runtime.subscribe_samples(key, on_sample)
+            shards.join()
+            shards.wait_settled(processes, stop)
             detector = pipeline.core.detector
             log.info(
-                "detector ready: %s (%s padding) on %s → detections", detector.model_id, detector.padding, key
+                "detector %s ready: %s (%s padding) on %s → detections",
+                shards.me[:8],
+                detector.model_id,
+                detector.padding,
+                key,
             )
             runtime.serve(housekeeping)
         finally:
-            pipeline.stop()
+            pipeline.stop()  # publishes nothing more, then gives its robots up
+            shards.leave()
     return pipeline.core
 
 
@@ -128,15 +169,19 @@ def main(argv: list[str] | None = None) -> int:
         action="store_false",
         help="ONNX Runtime threads sleep instead of spinning between frames (frees the cores they spin on)",
     )
+    add_processes_argument(parser, PROCESSES_FLAG, "one per core")
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
+    argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
-    if args.workers is not None and args.workers < 1:
-        parser.error(f"--workers must be >= 1, got {args.workers}")
-    workers = args.workers or default_workers()
+    for flag, value in (("--workers", args.workers), (PROCESSES_FLAG, args.detectors)):
+        if value is not None and value < 1:
+            parser.error(f"{flag} must be >= 1, got {value}")
+    processes = args.detectors or default_processes()
+    workers = args.workers or default_workers(processes=processes)
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
-    threads = args.threads or default_intra_op_threads(workers, args.from_scans)
+    threads = args.threads or default_intra_op_threads(workers, args.from_scans, processes=processes)
     try:
         model, batch = detector_model_and_batch(args.model, args.batch)
         detectors = [
@@ -162,15 +207,29 @@ def main(argv: list[str] | None = None) -> int:
             "/".join(f"{ms:.1f}" for ms in call_ms.values()),
             AUTO_BATCH_CALL_BUDGET_MS,
         )
-    run(
-        settings_from_args(args),
-        stop_event_on_signals(),
-        detectors,
-        from_scans=args.from_scans,
-        forget_after_s=args.forget_after,
-        duration_s=args.duration,
-        batch=batch,
-    )
+    siblings = None
+    if processes > 1 and not args.sibling:  # the others run this cap too: timed once, on an idle machine
+        extra = ("--batch", str(batch)) if args.batch is None else ()
+        commands = sibling_commands("services.detector", argv, PROCESSES_FLAG, processes, extra)
+        siblings = Siblings(commands, lambda command: subprocess.Popen(command, env=child_environment()))
+        siblings.start()
+        log.info("%d detector processes share the fleet: this one and pids %s", processes,
+                 ", ".join(str(p.pid) for p in siblings.processes))  # fmt: skip
+    try:
+        run(
+            settings_from_args(args),
+            stop_event_on_signals(),
+            detectors,
+            from_scans=args.from_scans,
+            forget_after_s=args.forget_after,
+            duration_s=args.duration,
+            batch=batch,
+            siblings=siblings,
+            processes=processes,
+        )
+    finally:
+        if siblings is not None:
+            siblings.stop()
     return 0
 
 

@@ -136,6 +136,10 @@ class DetectorCounters:
     processed: int = 0
     inference_calls: int = 0  # processed ÷ this is the mean batch size (``--batch``)
     dropped_stale: int = 0  # replaced by a newer tensor of the same robot before inference
+    # Another detector process serves the robot (services.shards): skipped before decoding, or, when
+    # the robot moved while its tensor was in the model, its detections not published.
+    not_ours: int = 0
+    handed_over: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # reason → count
 
     def to_dict(self) -> dict[str, object]:
@@ -144,6 +148,8 @@ class DetectorCounters:
             "processed": self.processed,
             "inference_calls": self.inference_calls,
             "dropped_stale": self.dropped_stale,
+            "not_ours": self.not_ours,
+            "handed_over": self.handed_over,
             "rejected": dict(self.rejected),
         }
 
@@ -215,6 +221,14 @@ class DetectorCore:
         with self._lock:
             self.counters.dropped_stale += 1
 
+    def note_not_ours(self) -> None:
+        with self._lock:
+            self.counters.not_ours += 1
+
+    def note_handed_over(self) -> None:
+        with self._lock:
+            self.counters.handed_over += 1
+
     def detect_many(
         self,
         tensors: Sequence[StackedTensor],
@@ -270,8 +284,20 @@ class DetectorCore:
         )
 
 
-def default_workers(cpus: int | None = None) -> int:
-    """Inference threads when the user gives none: one per core, each with a single-threaded session.
+def default_processes(cpus: int | None = None) -> int:
+    """Detector processes sharing the fleet when the user gives none (``--detectors``): one per core.
+
+    Each scan costs a detector process Python work (receiving, decoding, building and publishing the
+    message) that holds the GIL, so one process tops out far below a many-core machine whatever its
+    inference threads do; processes side by side, each serving its share of the robots
+    (:mod:`services.shards`), do not share a GIL (``bench.fleet_bound --detectors`` compares counts).
+    """
+    return cpus or os.cpu_count() or 1
+
+
+def default_workers(cpus: int | None = None, processes: int = 1) -> int:
+    """Inference threads of one process when the user gives none: its share of the cores, each thread
+    with a single-threaded session.
 
     ONNX Runtime splits one small 64×384 frame over several threads poorly: single-threaded sessions
     side by side, one per core, run more frames a second than one session spread over every core
@@ -279,20 +305,23 @@ def default_workers(cpus: int | None = None) -> int:
     little longer per frame (one core instead of all of them work on it), well inside its 100 ms
     period.
     """
-    return cpus or os.cpu_count() or 1
+    return max(1, (cpus or os.cpu_count() or 1) // processes)
 
 
-def default_intra_op_threads(workers: int, from_scans: bool, cpus: int | None = None) -> int | None:
+def default_intra_op_threads(
+    workers: int, from_scans: bool, cpus: int | None = None, processes: int = 1
+) -> int | None:
     """ONNX Runtime threads per worker when the user gives none (``None``: every core).
 
-    Several workers share the cores. With ``--from-scans`` the encoder's Zenoh callbacks run in this
-    process too, and an ONNX Runtime thread on every core then competes with them for the CPU, which
-    delays every scan's encoding (``bench.pipeline_latency --from-scans --threads N`` compares). So
-    one core is left to the rest of the process.
+    Several workers, and several processes (``--detectors``), share the cores. With ``--from-scans``
+    the encoder's Zenoh callbacks run in this process too, and an ONNX Runtime thread on every core
+    then competes with them for the CPU, which delays every scan's encoding (``bench.pipeline_latency
+    --from-scans --threads N`` compares). So one core is left to the rest of the process.
     """
     cpus = cpus or os.cpu_count() or 1
-    if workers > 1:
-        return max(1, cpus // workers)
+    share = max(1, cpus // processes)
+    if workers > 1 or processes > 1:
+        return max(1, share // workers)
     if from_scans:
         return max(1, cpus - 1)
     return None
@@ -325,6 +354,8 @@ class InferencePipeline:
     up to ``batch`` robots' waiting tensors per model call (a batch model is needed for more than 1);
     it never waits to fill a batch, so a lone robot is served as fast as with ``batch`` 1. With
     ``from_scans`` the samples are scans and an :class:`EncoderCore` in this process stacks them.
+    ``owns`` says whether this process serves a robot at the moment (:mod:`services.shards`): it is
+    asked when a sample arrives and again before its detections are published.
     """
 
     def __init__(
@@ -335,6 +366,7 @@ class InferencePipeline:
         batch: int = 1,
         from_scans: bool = False,
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
+        owns: Callable[[str], bool] | None = None,
     ) -> None:
         if not detectors:
             raise ValueError("need at least one detector")
@@ -352,6 +384,7 @@ class InferencePipeline:
             else None
         )
         self.batch = batch
+        self._owns = owns or (lambda _robot_id: True)
         self._publish = publish
         self._mailbox: LatestPerRobot[Pending] = LatestPerRobot()
         self._stop = threading.Event()
@@ -374,6 +407,18 @@ class InferencePipeline:
         for worker in self._workers:
             worker.join(timeout_s)
 
+    def not_ours(self, key: str) -> bool:
+        """True (and counted) for a sample of a robot another process serves: the Zenoh callback then
+        never copies its payload out. A key that does not parse is left to :meth:`handle_sample`."""
+        try:
+            robot_id, _ = parse_key(key)
+        except ValueError:
+            return False
+        if self._owns(robot_id):
+            return False
+        self.core.note_not_ours()
+        return True
+
     def handle_sample(self, key: str, payload: bytes) -> None:
         """A tensor (or, ``from_scans``, a scan) sample from Zenoh; cheap, never blocks on inference."""
         started_ns = time.perf_counter_ns()
@@ -381,6 +426,9 @@ class InferencePipeline:
             robot_id, _ = parse_key(key)
         except ValueError as exc:
             self.core.reject("bad_key", str(exc))
+            return
+        if not self._owns(robot_id):  # another process's robot: not even decoded
+            self.core.note_not_ours()
             return
         if self.encoder is not None:
             tensor = self.encoder.handle_payload(payload, robot_id)
@@ -423,7 +471,10 @@ class InferencePipeline:
                         self.core.reject("inference_error", f"{robot_id} seq {pending.tensor.seq}: {exc}")
                     results = []
                 for detections in results:
-                    self._publish(detections)
+                    if self._owns(detections.robot_id):
+                        self._publish(detections)
+                    else:  # the robot moved to another process while its tensor was in the model
+                        self.core.note_handed_over()
             finally:
                 for robot_id, _ in taken:  # only now: a robot's next tensor must not overtake this one
                     self._mailbox.release(robot_id)

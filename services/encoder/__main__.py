@@ -3,18 +3,23 @@
 Runs on the robot next to the detector (base dependencies only: no torch, PyBullet or rerun). The
 stream rules (first scans, gaps, restarts, silence) live in :mod:`services.encoder.core`; the session,
 health, counters and shutdown in :class:`services.runtime.ServiceRuntime`. This module wires them.
+``--encoders N`` starts N-1 more processes; all live encoder processes share the robots
+(:mod:`services.shards`), as the detector's do.
 """
 
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import threading
 
 from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding
-from common.keys import ALL_SCANS, tensor_key
+from common.keys import ALL_SCANS, parse_key, tensor_key
 from common.messages import encode_message
 from common.transport import ZenohSettings, settings_from_args
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
+from services.launcher import child_environment
 from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
@@ -23,8 +28,11 @@ from services.runtime import (
     service_parser,
     stop_event_on_signals,
 )
+from services.shards import ShardMembership, Siblings, add_processes_argument, sibling_commands
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
+
+PROCESSES_FLAG = "--encoders"
 
 
 def run(
@@ -36,24 +44,50 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     stack_period_s: float | None = None,
+    siblings: Siblings | None = None,
+    processes: int = 1,
 ) -> EncoderCore:
-    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters."""
+    """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
+
+    Like the detector, the process stacks the scans of the robots that rendezvous hashing gives it
+    among the live encoder processes (:mod:`services.shards`); a robot that moves here starts a fresh
+    FIFO, so its first tensor comes three scans later and none is sent twice. As the detector's, it
+    serves once ``processes`` encoders are live and settled.
+    """
     core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s, stack_period_s=stack_period_s)
     with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
         tensors = runtime.robot_publishers(tensor_key)
+        shards = ShardMembership(runtime.session, "encoder")
+        not_ours = 0
 
         def on_scan(key: str, payload: bytes) -> None:
+            nonlocal not_ours
+            try:
+                robot_id: str | None = parse_key(key)[0]
+            except ValueError:
+                robot_id = None  # the core refuses and counts it
+            if robot_id is not None and not shards.owns(robot_id):
+                not_ours += 1
+                return
             tensor = core.handle_sample(key, payload)
             if tensor is not None:
                 tensors.put(tensor.robot_id, encode_message(tensor))
 
         def housekeeping() -> dict[str, object]:
             tensors.forget(core.forget_silent())
-            return core.snapshot()
+            if siblings is not None:
+                siblings.restart_dead()
+            shard = shards.log_changes(forget_after_s)
+            return {**core.snapshot(), "not_ours": not_ours, "shard": shard}
 
         runtime.subscribe(ALL_SCANS, on_scan)
+        shards.join()
+        shards.wait_settled(processes, stop)
         log.info("encoder ready (padding %s, invalid returns %s): %s → tensor", padding, invalid, ALL_SCANS)
-        runtime.serve(housekeeping)
+        try:
+            runtime.serve(housekeeping)
+        finally:
+            shards.leave()
     return core
 
 
@@ -74,20 +108,36 @@ def main(argv: list[str] | None = None) -> int:
         help="stack scans this far apart, as the detector's model was trained (its triscan.stack_period_s); "
         "default: consecutive scans",
     )
+    add_processes_argument(parser, PROCESSES_FLAG, "1; more, here or on other hosts, share the robots")
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
+    argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     if args.stack_period_s is not None and not args.stack_period_s > 0:
         parser.error(f"--stack-period-s must be positive, got {args.stack_period_s}")
     configure_logging(args.verbose)
-    run(
-        settings_from_args(args),
-        stop_event_on_signals(),
-        padding=args.padding,
-        invalid=args.invalid,
-        forget_after_s=args.forget_after,
-        duration_s=args.duration,
-        stack_period_s=args.stack_period_s,
-    )
+    if args.encoders is not None and args.encoders < 1:
+        parser.error(f"{PROCESSES_FLAG} must be >= 1, got {args.encoders}")
+    processes = args.encoders or 1
+    siblings = None
+    if processes > 1 and not args.sibling:
+        commands = sibling_commands("services.encoder", argv, PROCESSES_FLAG, processes)
+        siblings = Siblings(commands, lambda command: subprocess.Popen(command, env=child_environment()))
+        siblings.start()
+    try:
+        run(
+            settings_from_args(args),
+            stop_event_on_signals(),
+            padding=args.padding,
+            invalid=args.invalid,
+            forget_after_s=args.forget_after,
+            duration_s=args.duration,
+            stack_period_s=args.stack_period_s,
+            siblings=siblings,
+            processes=processes,
+        )
+    finally:
+        if siblings is not None:
+            siblings.stop()
     return 0
 
 

@@ -1,0 +1,71 @@
+"""``services.encoder --encoders 2``: two encoder processes share the robots, each tensor sent once."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+import pytest
+
+from bench.harness import recorded_scans, start_loopback_service
+from common.keys import TENSOR, scan_key, service_stats_key, wildcard_key
+from common.messages import StackedTensor, decode_message, encode_message
+from common.transport import ZenohSettings, open_session, payload_bytes
+from services.launcher import free_tcp_ports, stop_processes
+from tests.support.health import service_pids
+from tests.support.waiting import wait_for
+
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
+
+ROBOTS = [f"shard{i}" for i in range(16)]  # all on one of two processes: 1 in 2**15
+TICKS = 30
+
+
+def test_two_encoder_processes_share_the_robots_and_send_each_tensor_once() -> None:
+    test_port, encoder_port = free_tcp_ports(2)
+    encoder = start_loopback_service(
+        "services.encoder", encoder_port, [test_port], "--encoders", "2", stdout=subprocess.DEVNULL
+    )
+    tensors: Counter[tuple[str, int]] = Counter()
+    lock = threading.Lock()
+
+    def on_tensor(sample: Any) -> None:
+        tensor = decode_message(payload_bytes(sample), StackedTensor)
+        with lock:
+            tensors[(tensor.robot_id, tensor.seq)] += 1
+
+    served: dict[int, int] = {}  # pid → robots it serves, from its own counters
+
+    def on_stats(sample: Any) -> None:
+        body = json.loads(payload_bytes(sample))
+        served[int(body["pid"])] = int(body["shard"]["robots_served"])
+
+    scans = recorded_scans(TICKS)
+    try:
+        with open_session(ZenohSettings.loopback(test_port)) as session:
+            session.declare_subscriber(wildcard_key(TENSOR), on_tensor)
+            session.declare_subscriber(service_stats_key("encoder"), on_stats)
+            assert wait_for(lambda: len(service_pids(session, "encoder", 0.5)) == 2, 60), "encoders not up"
+            publishers = {robot: session.declare_publisher(scan_key(robot)) for robot in ROBOTS}
+            for tick, scan in enumerate(scans):
+                for robot, publisher in publishers.items():
+                    publisher.put(encode_message(scan.model_copy(update={"robot_id": robot, "seq": tick})))
+                time.sleep(0.05)
+            last = TICKS - 1
+            assert wait_for(lambda: all(tensors[(robot, last)] for robot in ROBOTS), 10), sorted(tensors)
+
+            # Both processes took a share (each logs and counts the robots it serves).
+            def shared() -> bool:
+                return len(served) == 2 and sum(served.values()) == len(ROBOTS) and min(served.values()) > 0
+
+            assert wait_for(shared, 10), served
+    finally:
+        stop_processes({"encoder": encoder}, grace_s=20)
+    with lock:
+        assert max(tensors.values()) == 1, {key: n for key, n in tensors.items() if n > 1}
+        # The processes were up and settled before the first scan: every robot's stream is whole.
+        assert set(tensors) == {(robot, seq) for robot in ROBOTS for seq in range(2, TICKS)}
