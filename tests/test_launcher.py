@@ -82,7 +82,7 @@ def test_detectors_reach_the_detector_and_zero_is_refused_before_anything_starts
 
     from services.launcher import up
 
-    ports = dict(zip(SERVICES, (1, 2, 3, 4), strict=True))
+    ports = {name: port for port, name in enumerate(SERVICES, start=1)}
     default = service_commands(UpConfig(viewer="none"), ports, None)["detector"]
     assert flag_values(default, "--detectors") == []  # the detector picks: one process per core
     three = service_commands(UpConfig(viewer="none", detectors=3), ports, None)["detector"]
