@@ -37,9 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import add_detector_model_argument, proc_status_mb, start_loopback_service
+from bench.harness import add_detector_model_argument, proc_status_mb, start_loopback_service, tree_cpu_s
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
+from common.inference import model_facts
 from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.model_spec import default_model_path
@@ -47,6 +48,7 @@ from common.transport import ZenohSettings, open_session, parse_cfg_entry, paylo
 from services.detector.core import default_intra_op_threads, default_workers
 from services.launcher import free_tcp_ports, stop_processes
 from services.simulator.fleet import SimulatedFleet
+from services.simulator.sensors import DEFAULT_PROFILE, profile
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,6 +86,9 @@ class LatencyReport:
     zenoh_cfg: list[str] = field(default_factory=list)  # --cfg entries every process ran with
     bare_threads: int | None = None  # ONNX Runtime threads of the baseline and the detector (None: all)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)  # per child process
+    sensor: str = DEFAULT_PROFILE  # the simulated LiDAR profile (services.simulator.sensors)
+    # CPU seconds per second of the publishing window, per child (its sibling processes included)
+    cpu_cores: dict[str, float] = field(default_factory=dict)
     machine: MachineInfo = field(default_factory=machine_info)
 
 
@@ -97,14 +102,19 @@ def run(
     trace: Path | None = None,
     bare_frames: int = 300,
     zenoh_cfg: tuple[tuple[str, str], ...] = (),
+    sensor: str = DEFAULT_PROFILE,
 ) -> LatencyReport:
-    """Start the services, publish the simulated robots' scans through them, and time every answer."""
+    """Start the services, publish the simulated robots' scans through them, and time every answer.
+
+    ``sensor`` is the simulated LiDAR's profile, scanning at ``rate_hz``; the encoder stacks its scans
+    at the model's trained period, as the launcher starts it."""
     report = LatencyReport(
         "from-scans (2 processes)" if from_scans else "3 processes",
         (model or default_model_path()).name,
         robots,
         rate_hz,
         duration_s,
+        sensor=sensor,
     )
     model = model or default_model_path()
     report.zenoh_cfg = [f"{key}:{value}" for key, value in zenoh_cfg]
@@ -125,14 +135,21 @@ def run(
     try:
         with (
             open_session(dataclasses.replace(ZenohSettings.loopback(bench_port), cfg=zenoh_cfg)) as session,
-            SimulatedFleet(robots, rate_hz=rate_hz) as fleet,
+            SimulatedFleet(robots, rate_hz=rate_hz, spec=profile(sensor)) as fleet,
         ):
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
             publishers = {rid: session.declare_publisher(scan_key(rid)) for rid in fleet.robot_ids}
             wait_for_subscriber(session, scan_key(fleet.robot_ids[0]))
             if not from_scans:
                 wait_for_subscriber(session, tensor_key(fleet.robot_ids[0]))
+            cpu_before = {name: tree_cpu_s(p.pid) for name, p in children.items()}
+            started = time.monotonic()
             published = _publish_scans(fleet, publishers, rate_hz, duration_s, received)
+            elapsed = time.monotonic() - started
+            report.cpu_cores = {
+                name: round((tree_cpu_s(p.pid) - cpu_before[name]) / elapsed, 4)
+                for name, p in children.items()
+            }
             time.sleep(1.0)  # let the last detections arrive
             report.peak_rss_mb = {
                 name: round(proc_status_mb(p.pid, "VmHWM"), 1) for name, p in children.items()
@@ -162,6 +179,8 @@ def _start_services(
     """
     cfg = ZenohSettings(cfg=zenoh_cfg).to_cli()  # the --cfg flags, written as every service parses them
     detector_args = [*(["--threads", str(threads)] if threads else []), "--model", str(model), *cfg]
+    period = model_facts(model).stack_period_s  # the encoder stacks as the launcher has it stack
+    encoder_args = [*(["--stack-period-s", repr(period)] if period else []), *cfg]
     if from_scans:
         return {
             "detector": start_loopback_service(
@@ -170,7 +189,7 @@ def _start_services(
         }
     return {
         "encoder": start_loopback_service(
-            "services.encoder", encoder_port, [bench_port, detector_port], *cfg
+            "services.encoder", encoder_port, [bench_port, detector_port], *encoder_args
         ),
         "detector": start_loopback_service(
             "services.detector", detector_port, [bench_port, encoder_port], *detector_args

@@ -1,31 +1,47 @@
-"""What the robot carries: peak memory of encoder + detector while serving, and the model files.
+"""What the robot carries: peak memory of encoder + detector while serving, the model files, and the
+CPU a faster sensor costs.
 
 Runs the robot's processes under real load (one simulated robot at 10 Hz for ``--seconds``, via
 :mod:`bench.pipeline_latency`) in both deployments: encoder and detector as two processes, and the
 single ``--from-scans`` detector. Peak RSS is each process's ``VmHWM``; model sizes are every ONNX
 file under ``models/``, named by its path there (the default's directory is
-``common.model_spec.SHIPPED_DIR``).
+``common.model_spec.SHIPPED_DIR``). With ``--sensors``, the two processes serve each named sensor
+profile at its own rate in turn, and the report gives each one's CPU (cores busy): a model that
+declares its stacking period has the encoder stack a 40 Hz sensor's every 4th scan, so the detector
+should cost what it costs at 10 Hz.
 
     python -m bench.robot_footprint --seconds 30
+    python -m bench.robot_footprint --seconds 30 --sensors lds-01 ust-10lx --model M.onnx --out F.json
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
+from bench.machine import machine_info
 from bench.pipeline_latency import run as run_pipeline
 from bench.report import write_report
 from common.model_spec import MODELS_DIR
+from services.simulator.sensors import PROFILES
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--out", type=Path, default=Path("bench/results/robot_footprint.json"))
+    parser.add_argument(
+        "--sensors", nargs="+", choices=list(PROFILES), metavar="NAME",
+        help="instead: the CPU of encoder and detector serving each sensor profile at its own rate",
+    )  # fmt: skip
+    parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.sensors:
+        write_report(sensor_cpu(args.sensors, args.seconds, args.model), args.out)
+        return 0
     separate = run_pipeline(1, 10.0, args.seconds, from_scans=False, threads=None)
     combined = run_pipeline(1, 10.0, args.seconds, from_scans=True, threads=None)
     report = {
@@ -45,6 +61,28 @@ def main(argv: list[str] | None = None) -> int:
     }
     write_report(report, args.out)
     return 0
+
+
+def sensor_cpu(sensors: list[str], seconds: float, model: Path | None) -> dict[str, object]:
+    """Cores busy in the encoder and the detector while one robot streams each sensor at its rate."""
+    rows = {}
+    for name in sensors:
+        result = run_pipeline(
+            1, PROFILES[name].rate_hz, seconds, from_scans=False, threads=None, model=model, sensor=name
+        )
+        rows[name] = {
+            "rate_hz": PROFILES[name].rate_hz,
+            "beams": PROFILES[name].beams,
+            "cpu_cores": result.cpu_cores,
+            "scans_published": result.scans_published,
+            "scans_answered": result.scans_answered,
+        }
+    return {
+        "model": str(model) if model else "default",
+        "seconds": seconds,
+        "sensors": rows,
+        "machine": dataclasses.asdict(machine_info()),
+    }
 
 
 if __name__ == "__main__":
