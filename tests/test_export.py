@@ -124,7 +124,7 @@ def test_fp32_file_is_valid_with_fixed_input_and_output(fp32: Path) -> None:
     assert graph_input.type.tensor_type.elem_type == onnx.TensorProto.FLOAT
     assert _dims(graph_input) == list(INPUT_SHAPE) == [1, 3, 64, 384]
     assert all(d.HasField("dim_value") for d in graph_input.type.tensor_type.shape.dim), "no dynamic axes"
-    assert _dims(model.graph.output[0]) == [1, BOX_CHANNELS + len(CLASS_NAMES), NUM_ANCHORS] == [1, 8, 504]
+    assert _dims(model.graph.output[0]) == [1, BOX_CHANNELS + len(CLASS_NAMES), NUM_ANCHORS] == [1, 9, 504]
 
 
 def test_shape_check_rejects_dynamic_axes_and_other_outputs(fp32: Path) -> None:
@@ -434,7 +434,7 @@ def test_batch_variant_is_the_same_network_with_a_free_batch_axis(
         [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
         for v in (*model.graph.input, *model.graph.output)
     ]
-    assert dims == [[BATCH_AXIS, 3, 64, 384], [BATCH_AXIS, 8, 504]]
+    assert dims == [[BATCH_AXIS, 3, 64, 384], [BATCH_AXIS, 4 + len(CLASS_NAMES), 504]]
     meta, source_meta = onnx_metadata(out), onnx_metadata(source)
     assert meta["triscan.batch"] == BATCH_AXIS
     assert meta["triscan.batch_source"] == f"{source.name} sha256:{file_sha256(source)[:12]}"

@@ -80,6 +80,8 @@ def test_status_shows_the_rates_drops_and_latency_of_running_services() -> None:
             "1",
             "--workers",
             "1",
+            "--detectors",
+            "1",  # one process: the rates are this one's, not a sibling's without robots
             stdout=subprocess.DEVNULL,
         ),
     ]

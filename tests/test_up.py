@@ -162,7 +162,8 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
     answered = [key for key in judged if key in log.detections]
     assert len(answered) >= 0.9 * len(judged), f"{len(answered)}/{len(judged)} scans got detections"
     services = {s["service"]: s for s in json.loads(status.stdout)}
-    assert set(services) == {"simulator", "encoder", "detector", "visualizer"}, status.stdout + status.stderr
+    expected = {"simulator", "encoder", "detector", "tracker", "visualizer"}
+    assert set(services) == expected, status.stdout + status.stderr
     assert all(s["alive"] for s in services.values())
     assert (
         services["detector"]["counters"]["processed"] > 0
