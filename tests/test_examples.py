@@ -27,6 +27,7 @@ from common.keys import DETECTIONS, SCAN, wildcard_key
 from common.messages import Detections, MessageError, Scan, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports, stop_processes
+from tests.support.health import service_pids
 from tests.support.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,7 +111,9 @@ def test_publish_scans_example_gets_every_scan_answered_by_a_detector() -> None:
     try:
         with open_session(ZenohSettings.loopback(test_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
-            assert wait_for(lambda: detector_ready(session), timeout=60), "the detector never subscribed"
+            # Subscribed, and serving: its health token comes once it has settled which robots it serves.
+            ready = lambda: detector_ready(session) and bool(service_pids(session, "detector"))  # noqa: E731
+            assert wait_for(ready, timeout=60), "the detector never came up"
             run_example(detector_port, ROBOT)  # to the detector alone: its subscriber is the only match
             assert wait_for(lambda: SCANS - 1 in answered, timeout=20), sorted(answered)
             sub.undeclare()
