@@ -161,12 +161,14 @@ def test_up_headless_runs_the_loop_and_records_it(tmp_path: Path) -> None:
     assert len(judged) >= 0.6 * ROBOTS * 10 * judged_s, f"{len(judged)} scans in {judged_s:.1f} s"
     answered = [key for key in judged if key in log.detections]
     assert len(answered) >= 0.9 * len(judged), f"{len(answered)}/{len(judged)} scans got detections"
-    services = {s["service"]: s for s in json.loads(status.stdout)}
+    instances = json.loads(status.stdout)
+    services = {s["service"]: s for s in instances}
     expected = {"simulator", "encoder", "detector", "tracker", "visualizer"}
     assert set(services) == expected, status.stdout + status.stderr
-    assert all(s["alive"] for s in services.values())
+    assert all(s["alive"] for s in instances)
     assert (
-        services["detector"]["counters"]["processed"] > 0
+        # the detector's processes share the robots: some process has answered
+        sum(s["counters"]["processed"] for s in instances if s["service"] == "detector") > 0
         and services["encoder"]["counters"]["robots"] == ROBOTS
     )
     for (robot, seq), message in log.detections.items():
