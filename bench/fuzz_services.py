@@ -342,8 +342,10 @@ def _start_services() -> tuple[int, Children]:
         "encoder": start_loopback_service(
             "services.encoder", encoder_port, [fuzz_port, detector_port], **quiet
         ),
+        # One detector process: with siblings, a payload for a robot another process owns is dropped
+        # unread there, and the one process whose counters are read would not see it.
         "detector": start_loopback_service(
-            "services.detector", detector_port, [fuzz_port, encoder_port], **quiet
+            "services.detector", detector_port, [fuzz_port, encoder_port], "--detectors", "1", **quiet
         ),
         "ros2_bridge": start_loopback_service(
             "services.ros2_bridge",
