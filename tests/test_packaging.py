@@ -81,6 +81,7 @@ def test_a_wheel_installed_elsewhere_answers_a_tensor_with_its_default_model(tmp
     from common.messages import Detections, StackedTensor, decode_message, encode_message
     from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
     from services.launcher import free_tcp_ports
+    from tests.support.health import service_pids
     from tests.support.waiting import wait_for
     from training.evaluate import fresh_samples
 
@@ -125,7 +126,10 @@ def test_a_wheel_installed_elsewhere_answers_a_tensor_with_its_default_model(tmp
     )  # fmt: skip
     (port,) = free_tcp_ports(1)
     detector = subprocess.Popen(
-        [sys.executable, "-m", "services.detector", *ZenohSettings.loopback(port).to_cli()],
+        [
+            *(sys.executable, "-m", "services.detector", "--detectors", "1"),
+            *ZenohSettings.loopback(port).to_cli(),
+        ],
         cwd=elsewhere,
         env=env,
         stdout=subprocess.PIPE,
@@ -142,6 +146,8 @@ def test_a_wheel_installed_elsewhere_answers_a_tensor_with_its_default_model(tmp
         with open_session(ZenohSettings.loopback(None, [port])) as session:
             session.declare_subscriber(detections_key(ROBOT), collect)
             wait_for_subscriber(session, tensor_key(ROBOT))
+            # serving, not merely subscribed: its health token comes once it has settled its robots
+            assert wait_for(lambda: bool(service_pids(session, "detector")), 60), "the detector never came up"
             session.put(tensor_key(ROBOT), encode_message(message))
             assert wait_for(lambda: bool(answers), 60), "no detections came back"
     finally:
