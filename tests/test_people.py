@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from common.encoding import ANGLE_COLUMNS
-from services.simulator.labels import clip_to_field_of_view, label_scan
+from services.simulator.labels import PERSON_FOOTPRINT_RADIUS_M, clip_to_field_of_view, label_scan
 from services.simulator.people import (
     CADENCE_BASE,
     CADENCE_GAIN,
@@ -110,24 +110,30 @@ def test_each_beam_names_the_leg_it_hit() -> None:
     assert distances[1] == pytest.approx(distances[2]) and 1.9 < distances[1] < 2.0
 
 
-def test_a_person_is_labelled_by_the_legs_the_beams_hit() -> None:
+def test_a_person_is_labelled_by_the_footprint_about_their_legs() -> None:
     scenario = sample_scenario(0, seed=0)
-    pose = (-1.0, 0.0, 0.0)
-    legs = ((0.0, 0.1, 0.05), (0.0, -0.1, 0.05))
+    pose = (0.0, -1.0, 0.0)  # the person 1 m away at bearing 90°
+    legs = ((-0.1, 0.0, 0.05), (0.1, 0.0, 0.05))
     bearings = DEFAULT_SPEC.bearings_rad
     ranges = np.full(len(bearings), np.inf)
     hits = np.full(len(bearings), -2, dtype=np.int16)
-    ahead = [1, 2, 3, 4, 5]  # beams 1°-5° left: the left leg (y = +0.1 at 1 m is 5.7°)
-    hits[ahead] = leg_object(0, 0)
-    ranges[ahead] = 0.96
+    seen = [91, 92, 93, 94, 95]  # beams on the leg at x = -0.1 m (5.7° left of the midpoint)
+    hits[seen] = leg_object(0, 0)
+    ranges[seen] = 0.96
     labels = label_scan(scenario, pose, bearings, ranges, hits, 3.5, "zero", (legs,))
     person = [label for label in labels if label.class_id == PERSON]
     assert len(person) == 1 and person[0].visible and person[0].beams_on_object == 5
-    ((x1, y1, x2, y2),) = person[0].boxes_px
-    assert 2 <= x1 < x2 <= 10, "only the seen leg spans the box"
-    near = math.hypot(1.0, 0.1)
-    assert y1 == math.floor((near - 0.05) * 63 / 4) and y2 == math.floor((near + 0.05) * 63 / 4) + 1
-    hits[ahead[1:]] = -2  # one beam is not enough
+    # The 0.3 m disc about the legs' midpoint, whichever leg the beams saw: ±17.46° and 0.7-1.3 m.
+    half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M))
+    assert person[0].boxes_px == (
+        (
+            float(math.floor(90 - half + 0.5)),
+            float(math.floor(0.7 * 63 / 4)),
+            float(math.floor(90 + half + 0.5) + 1),
+            float(math.floor(1.3 * 63 / 4) + 1),
+        ),
+    )
+    hits[seen[1:]] = -2  # one beam is not enough
     labels = label_scan(scenario, pose, bearings, ranges, hits, 3.5, "zero", (legs,))
     assert not next(label for label in labels if label.class_id == PERSON).visible
 

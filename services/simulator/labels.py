@@ -5,6 +5,7 @@ object's footprint is projected into (bearing, range): the box spans the arc tha
 and the range interval from its nearest boundary point to its farthest corner, snapped outward to
 whole raster pixels — exactly the pixels a return from that object can light. An object is a target
 only if the sensor saw it: at least two beams of scan t−1 hit it (for the doorway: pass through it).
+A person's footprint is a disc about the midpoint of their legs (:data:`PERSON_FOOTPRINT_RADIUS_M`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from services.simulator.people import leg_object
 from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario
 
 MIN_BEAMS_ON_OBJECT = 2
+# A walking person's legs stay within about 0.3 m of their midpoint (half a fast step; docs/people.md).
+PERSON_FOOTPRINT_RADIUS_M = 0.3
 Box = tuple[float, float, float, float]
 
 
@@ -153,20 +156,27 @@ def clip_to_field_of_view(
 def _person_polar(
     legs: Sequence[tuple[float, float, float]], lidar_pose: tuple[float, float, float]
 ) -> tuple[float, float, float, float, float]:
-    """(centre bearing, arc min, arc max, range min, range max) of a person's visible legs' circles."""
-    local = _to_sensor_frame(np.array([leg[:2] for leg in legs]), lidar_pose)
-    distances = np.hypot(local[:, 0], local[:, 1])
-    bearings = np.degrees(np.arctan2(local[:, 1], local[:, 0]))
-    center = float(np.mod(np.degrees(np.arctan2(local[:, 1].mean(), local[:, 0].mean())), 360.0))
-    radii = np.array([leg[2] for leg in legs])
-    halves = np.degrees(np.arcsin(np.minimum(radii / np.maximum(distances, 1e-9), 1.0)))
-    offsets = np.mod(bearings - center + 180.0, 360.0) - 180.0
+    """(centre bearing, arc min, arc max, range min, range max) of a person's footprint.
+
+    The footprint is the disc of :data:`PERSON_FOOTPRINT_RADIUS_M` about the midpoint of the legs (the
+    person's position), not the legs themselves: a leg shows the sensor only its near side, a few
+    centimetres deep, so leg-sized boxes are one to three rows tall, and at that size the row or two no
+    scan can place (a leg's far side, a hidden leg) decides whether a box reaches IoU 0.5. A box about
+    the person is as big as a chair's, and its centre is where the person stands.
+    """
+    centres = np.array([leg[:2] for leg in legs], dtype=np.float64)
+    local = _to_sensor_frame(centres.mean(axis=0), lidar_pose)
+    distance = float(np.hypot(local[0], local[1]))
+    center = float(np.mod(np.degrees(np.arctan2(local[1], local[0])), 360.0))
+    if distance <= PERSON_FOOTPRINT_RADIUS_M:
+        return center, 0.0, 360.0, 0.0, distance + PERSON_FOOTPRINT_RADIUS_M
+    half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M / distance))
     return (
         center,
-        center + float((offsets - halves).min()),
-        center + float((offsets + halves).max()),
-        float(max((distances - radii).min(), 0.0)),
-        float((distances + radii).max()),
+        center - half,
+        center + half,
+        distance - PERSON_FOOTPRINT_RADIUS_M,
+        distance + PERSON_FOOTPRINT_RADIUS_M,
     )
 
 
@@ -185,8 +195,8 @@ def label_scan(
     ``true_ranges`` and ``hit_object`` are the noise-free first hit of each beam and the index in
     ``scenario.objects`` of what it hit (−1 wall, −2 nothing within range, a person's legs
     :func:`services.simulator.people.leg_object`). ``people_legs`` holds each person's two leg
-    circles (x, y, r) at this scan: a person's box spans the legs that at least one beam hit, and the
-    person is a target when at least two beams hit them. ``range_max`` is the labelling range: the
+    circles (x, y, r) at this scan: a person's box spans their footprint (:func:`_person_polar`), and
+    the person is a target when at least two beams hit their legs. ``range_max`` is the labelling range: the
     sensor's reach within the raster's full scale. Boxes keep to the sensor's field of view.
     """
     labels: list[ObjectLabel] = []
@@ -201,12 +211,8 @@ def label_scan(
     candidates.append((DOORFRAME, scenario.door.frame, door_beams))
     polar = [(class_id, footprint_polar(rect, lidar_pose), beams) for class_id, rect, beams in candidates]
     for person, legs in enumerate(people_legs):
-        leg_beams = [int(np.count_nonzero(hits == leg_object(person, leg))) for leg in range(len(legs))]
-        seen = [leg for leg, beams in zip(legs, leg_beams, strict=True) if beams > 0]
-        if seen:
-            polar.append((PERSON, _person_polar(seen, lidar_pose), sum(leg_beams)))
-        else:
-            polar.append((PERSON, _person_polar(legs, lidar_pose), 0))
+        beams = int(np.count_nonzero(np.isin(hits, [leg_object(person, leg) for leg in range(len(legs))])))
+        polar.append((PERSON, _person_polar(legs, lidar_pose), beams))
     for class_id, (center, lo, hi, rmin, rmax), beams in polar:
         arc = clip_to_field_of_view(center, lo, hi, bearings_rad)
         visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max and arc is not None
