@@ -3,7 +3,6 @@ synthetic bag end to end, one-line refusals, and (slow) a real recording of the 
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import os
@@ -24,7 +23,6 @@ from training.real_eval import (
     Positions,
     RealEvalError,
     Scope,
-    _FrameMatching,
     detector_for,
     evaluate_bag,
     leg_hits,
@@ -82,6 +80,11 @@ def test_matching_is_optimal_not_greedy() -> None:
 def test_a_detection_exactly_at_the_radius_matches_and_one_beyond_does_not() -> None:
     assert within_radius(np.array([[0.5, 0.0]]), np.array([[0.0, 0.0]]), 0.5).all()
     assert not within_radius(np.array([[0.5001, 0.0]]), np.array([[0.0, 0.0]]), 0.5).any()
+    # On the curve: a lone detection 0.5 m from a lone person is found at r = 0.5 (precision = recall
+    # = 1) and missed at r = 0.4999 (both 0).
+    at_radius = [frame([(0.9, 0.5, 0.0)], [(0.0, 0.0)])]
+    assert precision_recall_curve(at_radius, 0.5).peak_f1 == pytest.approx(1.0)
+    assert precision_recall_curve(at_radius, 0.4999).peak_f1 == 0.0
 
 
 def test_detections_in_frames_without_people_are_false_alarms_and_ties_go_later_first() -> None:
@@ -101,54 +104,52 @@ def test_runs_without_detections_or_without_people() -> None:
     assert precision_recall_curve([], 0.5).ap is None
 
 
-def brute_force_matching(near: np.ndarray) -> int:
-    """The largest number of one-to-one pairs within the radius, by trying every assignment."""
-    dets, people = near.shape
-    if dets < people:
-        return brute_force_matching(near.T)
-    return max(
-        (
-            sum(bool(near[d, p]) for p, d in enumerate(perm))
-            for perm in itertools.permutations(range(dets), people)
+def test_a_later_detection_reassigns_the_earlier_ones_along_a_chain() -> None:
+    # Frame 0: people A (0, 0), B (0.5, 0), C (1, 0). Frame 1: person D (3, 3). Four people in all.
+    #   0.9 at (0.25, 0):  0.25 m from A and B, 0.75 m from C
+    #   0.8 at (0.75, 0):  0.25 m from B and C, 0.75 m from A
+    #   0.7 at (3, 3.4):   0.40 m from D (frame 1)
+    #   0.6 at (-0.1, 0):  0.10 m from A, 0.60 m from B
+    #   0.3 at (1, 0.1):   0.10 m from C, 0.51 m from B
+    # r = 0.3, accepted in score order (TP, precision, recall):
+    #   0.9: A or B                                   1, 1/1, 1/4
+    #   0.8: the other of A, B / C                    2, 2/2, 2/4
+    #   0.7: D lies 0.4 m off: a false alarm          2, 2/3, 2/4
+    #   0.6: only A; the optimum moves 0.9 to B and
+    #        0.8 to C, so all three of frame 0 match  3, 3/4, 3/4
+    #   0.3: only C, already taken: a false alarm     3, 3/5, 3/4
+    # AP = 0.25 · 1 + 0 + 0.25 · (2/3 + 3/4) / 2 + 0 = 1/4 + 17/96 = 41/96.
+    # F1 along the curve: 0.4, 2/3, 4/7, 3/4, 2/3 -> peak 3/4.
+    # r = 0.5: D is found too, the 0.3 detection still only reaches C (0.51 m from B):
+    #   TP 1, 2, 3, 4, 4; precision 1, 1, 1, 1, 4/5; recall 1/4, 2/4, 3/4, 1, 1.
+    # AP = 3 · 0.25 · 1 = 0.75 (the curve starts at recall 1/4); peak F1 = 1.
+    frames = [
+        frame(
+            [(0.9, 0.25, 0.0), (0.8, 0.75, 0.0), (0.6, -0.1, 0.0), (0.3, 1.0, 0.1)],
+            [(0.0, 0.0), (0.5, 0.0), (1.0, 0.0)],
         ),
-        default=0,
-    )
+        frame([(0.7, 3.0, 3.4)], [(3.0, 3.0)]),
+    ]
+    tight = precision_recall_curve(frames, 0.3)
+    np.testing.assert_allclose(tight.thresholds, [0.9, 0.8, 0.7, 0.6, 0.3])
+    np.testing.assert_allclose(tight.precisions, [1.0, 1.0, 2 / 3, 3 / 4, 3 / 5])
+    np.testing.assert_allclose(tight.recalls, [0.25, 0.5, 0.5, 0.75, 0.75])
+    assert (tight.ap, tight.peak_f1) == (pytest.approx(41 / 96), pytest.approx(0.75))
+    wide = precision_recall_curve(frames, 0.5)
+    np.testing.assert_allclose(wide.precisions, [1.0, 1.0, 1.0, 1.0, 0.8])
+    np.testing.assert_allclose(wide.recalls, [0.25, 0.5, 0.75, 1.0, 1.0])
+    assert (wide.ap, wide.peak_f1) == (pytest.approx(0.75), pytest.approx(1.0))
 
 
-def test_incremental_matching_stays_maximum_after_every_detection() -> None:
-    rng = np.random.default_rng(7)
-    for _ in range(300):
-        people = rng.uniform(0, 1.5, (int(rng.integers(0, 5)), 2))
-        dets = rng.uniform(0, 1.5, (int(rng.integers(1, 6)), 2))
-        matching = _FrameMatching(people, 0.4)
-        for k in range(len(dets)):
-            matching.add(dets[k])
-            assert matching.matched == brute_force_matching(within_radius(dets[: k + 1], people, 0.4))
-
-
-def test_curve_equals_scipy_linear_sum_assignment_after_every_detection() -> None:
-    """The protocol as DR-SPAAM's code runs it: re-solve the frame's assignment per detection."""
-    optimize = pytest.importorskip("scipy.optimize")
-    rng = np.random.default_rng(3)
-    frames = []
-    for _ in range(25):
-        people = rng.uniform(0, 4, (int(rng.integers(0, 4)), 2))
-        dets = rng.uniform(0, 4, (int(rng.integers(0, 8)), 2))
-        frames.append(FrameDetections(rng.random(len(dets)).round(2), dets, people))
-    curve = precision_recall_curve(frames, 0.5)
-    accepted: list[list[int]] = [[] for _ in frames]
-    tps = np.zeros(len(frames), int)
-    order = [(s, f, i) for f, fr in enumerate(frames) for i, s in enumerate(fr.scores)]
-    order = [order[k] for k in np.argsort([s for s, _, _ in order], kind="stable")[::-1]]
-    total = sum(len(f.people) for f in frames)
-    for k, (_, f, i) in enumerate(order):
-        accepted[f].append(i)
-        if len(frames[f].people):
-            far = ~within_radius(frames[f].people, frames[f].xy[accepted[f]], 0.5)
-            rows, cols = optimize.linear_sum_assignment(far)
-            tps[f] = int((~far[rows, cols]).sum())
-        assert curve.precisions[k] == pytest.approx(tps.sum() / (k + 1))
-        assert curve.recalls[k] == pytest.approx(tps.sum() / total)
+def test_an_assigned_pair_beyond_the_radius_is_no_true_positive() -> None:
+    # One person at (0, 0). The assignment pairs the 0.9 detection, 1 m off, with them (cost 1 is the
+    # best there is), but it is a false alarm; the 0.5 detection 0.1 m off then takes the person.
+    #   0.9: TP 0, precision 0, recall 0;   0.5: TP 1, precision 1/2, recall 1.
+    # AP = the trapezoid from (0, 0) to (1, 1/2) = 1/4; peak F1 = 2 · 1/2 · 1 / (3/2) = 2/3.
+    curve = precision_recall_curve([frame([(0.9, 1.0, 0.0), (0.5, 0.1, 0.0)], [(0.0, 0.0)])], 0.3)
+    np.testing.assert_allclose(curve.precisions, [0.0, 0.5])
+    np.testing.assert_allclose(curve.recalls, [0.0, 1.0])
+    assert (curve.ap, curve.peak_f1) == (pytest.approx(0.25), pytest.approx(2 / 3))
 
 
 # --------------------------------------------------------------------------------------------------

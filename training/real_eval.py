@@ -19,7 +19,7 @@ or a person outside it is not counted at all):
 * **Every bag**: detections per class at the operating confidence and per minute; on a bag declared
   people-free, the person detections per minute are its false people per minute.
 
-Nothing here needs torch: numpy, onnxruntime and rosbags.
+Nothing here needs torch: numpy, scipy, onnxruntime and rosbags.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any, Final, NamedTuple
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 from common.encoding import R_MAX_M, ScanError, ScanStacker
 from common.inference import OnnxDetector
@@ -127,42 +128,26 @@ def within_radius(a_xy: np.ndarray, b_xy: np.ndarray, radius: float) -> np.ndarr
 
 
 class _FrameMatching:
-    """A maximum matching between one frame's accepted detections and its people, grown one detection
-    at a time.
-
-    DR-SPAAM solves ``linear_sum_assignment`` on the binary cost ``distance > r`` after every accepted
-    detection; the pairs within ``r`` of that optimal assignment form a maximum matching of the
-    "within r" graph, so only its size matters. A new detection can only add one pair, and only by an
-    augmenting path that starts at it (any other would have existed before), so one search per
-    detection keeps the matching maximum: the same counts, without a quadratic re-solve per step.
-    """
+    """One frame's accepted detections and its people, re-assigned as DR-SPAAM does after each
+    detection: ``linear_sum_assignment`` on the binary cost ``distance > r``; only the assigned pairs
+    within ``r`` are true positives (the assignment also pairs what lies too far apart)."""
 
     def __init__(self, people_xy: np.ndarray, radius: float) -> None:
         self._people = np.asarray(people_xy, dtype=np.float64).reshape(-1, 2)
         self._radius = radius
-        self._near: list[list[int]] = []  # per accepted detection: the people within radius
-        self._owner = [-1] * len(self._people)  # per person: the detection matched to them
+        self._accepted: list[np.ndarray] = []
         self.matched = 0
 
-    def add(self, xy: np.ndarray) -> bool:
-        """Accept a detection at ``xy``; True if it made the matching one pair larger."""
-        near = np.flatnonzero(within_radius(np.asarray(xy)[None], self._people, self._radius)[0])
-        self._near.append(near.tolist())
-        if self._augment(len(self._near) - 1, set()):
-            self.matched += 1
-            return True
-        return False
-
-    def _augment(self, detection: int, visited: set[int]) -> bool:
-        for person in self._near[detection]:
-            if person in visited:
-                continue
-            visited.add(person)
-            owner = self._owner[person]
-            if owner < 0 or self._augment(owner, visited):
-                self._owner[person] = detection
-                return True
-        return False
+    def add(self, xy: np.ndarray) -> int:
+        """Accept a detection at ``xy``; the change in this frame's true positives (0 or 1)."""
+        self._accepted.append(np.asarray(xy, dtype=np.float64).reshape(2))
+        if not len(self._people):
+            return 0
+        far = ~within_radius(self._people, np.stack(self._accepted), self._radius)
+        rows, cols = linear_sum_assignment(far)
+        matched = int(np.count_nonzero(~far[rows, cols]))
+        gained, self.matched = matched - self.matched, matched
+        return gained
 
 
 @dataclass(frozen=True)
