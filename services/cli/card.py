@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.cli.command import Command
+from services.cli.command import Command, add_recipe_argument, add_recipe_option
 
 GATE_FLAGS = ("seed", "scenarios", "positions", "frame_stride")  # --gate-*: the quality gate's worlds
 
@@ -21,15 +21,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-fp32", type=Path, required=True, help="metrics.json of the fp32 test-split eval")
     p.add_argument("--eval-int8", type=Path, required=True, help="metrics.json of the INT8 test-split eval")
     p.add_argument("--eval-gate", type=Path, required=True, help="metrics.json of the quality-gate set eval")
-    p.add_argument(
-        "--recipe", type=Path, default=None,
-        help="the recipe file the run and the export used, named in the card; its [eval.gate] gives every "
-        "unset --gate-* flag (default: training/recipes/default.toml)",
-    )  # fmt: skip
+    add_recipe_argument(
+        p,
+        "the recipe file the run and the export used, named in the card; its [eval.gate] gives every "
+        "unset --gate-* flag",
+    )
     for flag in GATE_FLAGS:
-        p.add_argument(
-            f"--gate-{flag.replace('_', '-')}", type=int, default=None, help="(default: the recipe's)"
-        )
+        add_recipe_option(p, f"--gate-{flag.replace('_', '-')}", type=int)
     p.add_argument("--train-command", required=True, help="the exact training command, quoted in the card")
     p.add_argument("--notes", type=Path, default=None, help="markdown file with known limits and status")
     p.add_argument(

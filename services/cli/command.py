@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+FROM_RECIPE = "(default: the recipe's)"  # the help of an option whose unset value is the recipe's
 
 
 @dataclass(frozen=True)
@@ -28,3 +31,19 @@ def given_or_default(args: argparse.Namespace, defaults: object, names: tuple[st
         name: getattr(defaults, name) if getattr(args, name) is None else getattr(args, name)
         for name in names
     }
+
+
+def add_recipe_argument(p: argparse.ArgumentParser, role: str) -> None:
+    """``--recipe FILE``, whose ``role`` says what the command reads from it; unset, the shipped recipe
+    (``training.recipe.SHIPPED_RECIPE``)."""
+    p.add_argument(
+        "--recipe", type=Path, default=None, help=f"{role} (default: training/recipes/default.toml)"
+    )
+
+
+def add_recipe_option(
+    p: argparse.ArgumentParser, flag: str, *, help: str = FROM_RECIPE, **kwargs: Any
+) -> None:
+    """An option that is None unless given, so that :func:`given_or_default` (or the command) takes the
+    recipe's value in its place."""
+    p.add_argument(flag, default=None, help=help, **kwargs)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from common.encoding import PADDINGS
 from common.model_spec import BOX_GRIDS
-from services.cli.command import Command
+from services.cli.command import Command, add_recipe_argument
 from services.simulator.sensors import PROFILES
 
 # The --fresh worlds' settings when no --preset gives them.
@@ -40,10 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="a recorded ROS bag: people, legs or false detections on real scans (docs/real-recordings.md)",
     )  # fmt: skip
     _add_bag_arguments(p.add_argument_group("recorded bags (--bag)"))
-    p.add_argument(
-        "--recipe", type=Path, default=None,
-        help="recipe file holding --preset (default: training/recipes/default.toml)",
-    )  # fmt: skip
+    add_recipe_argument(p, "recipe file holding --preset")
     p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split of --data")
     p.add_argument(
         "--seed",

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from common.encoding import PADDINGS
 from common.model_spec import BOX_GRIDS
-from services.cli.command import Command, given_or_default
+from services.cli.command import Command, add_recipe_argument, add_recipe_option, given_or_default
 
 RECIPE_FLAGS = ("box_grid", "calib_count", "calib_method", "float_modules", "activations")  # [export] keys
 
@@ -31,19 +31,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="file stem (default: triscan-<network>-<padding>[-invalid-<rule>]: triscan-yolov8p-zero)",
     )
     p.add_argument("--padding", choices=PADDINGS, default=None, help="default: read from the data set")
-    p.add_argument(
-        "--recipe", type=Path, default=None,
-        help="recipe file whose [export] table gives every unset INT8 flag and --box-grid "
-        "(default: training/recipes/default.toml)",
-    )  # fmt: skip
-    p.add_argument(
-        "--box-grid", choices=BOX_GRIDS, default=None,
+    add_recipe_argument(p, "recipe file whose [export] table gives every unset INT8 flag and --box-grid")
+    add_recipe_option(
+        p, "--box-grid", choices=BOX_GRIDS,
         help="recorded for the detector: 'pixel' rounds box edges to whole pixels, as labels are (recipe)",
     )  # fmt: skip
-    p.add_argument("--calib-count", type=int, default=None, help="val images used to calibrate INT8 (recipe)")
-    p.add_argument("--calib-method", choices=CALIB_METHODS, default=None, help="(default: the recipe's)")
-    p.add_argument(
-        "--float-modules", type=int, default=None,
+    add_recipe_option(p, "--calib-count", type=int, help="val images used to calibrate INT8 (recipe)")
+    add_recipe_option(p, "--calib-method", choices=CALIB_METHODS)
+    add_recipe_option(
+        p, "--float-modules", type=int,
         help="leading network modules INT8 keeps float (1: the stem alone, 0: none; default: the recipe's; "
         "`python -m training.int8_recipes` scores the choices)",
     )  # fmt: skip
@@ -56,12 +52,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="keep every conv of the Detect head float (box and class branches): tighter INT8 boxes, "
         "about a quarter more time per frame",
     )  # fmt: skip
-    p.add_argument(
-        "--activations",
-        choices=ACTIVATION_TYPES,
-        default=None,
+    add_recipe_option(
+        p, "--activations", choices=ACTIVATION_TYPES,
         help="INT8 activation type: uint8 for x86 (VNNI), int8 for ARM (default: the recipe's)",
-    )
+    )  # fmt: skip
     p.add_argument("--compare-count", type=int, default=20, help="val images for the INT8-vs-fp32 check")
     p.add_argument("--timing-runs", type=int, default=200, help="latency runs per model (0 skips)")
     p.add_argument("--report", type=Path, default=None, help="also write the JSON report to this file")

@@ -9,11 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.cli.command import Command, given_or_default
+from services.cli.command import Command, add_recipe_argument, add_recipe_option, given_or_default
 
-RECIPE_HELP = (
-    "recipe file whose [train] table gives every unset flag (default: training/recipes/default.toml)"
-)
 RECIPE_FLAGS = ("epochs", "batch", "patience", "workers", "seed", "fraction")  # [train] keys, flag names
 
 
@@ -42,18 +39,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("--data", type=Path, required=True, help="data.yaml written by `triscan dataset`")
     p.add_argument("--out", type=Path, default=Path("runs/triscan"), help="run directory")
-    p.add_argument("--recipe", type=Path, default=None, help=RECIPE_HELP)
-    p.add_argument("--epochs", type=int, default=None, help="(default: the recipe's)")
-    p.add_argument("--batch", type=int, default=None, help="(default: the recipe's)")
-    p.add_argument(
-        "--patience", type=int, default=None, help="early stopping: epochs without val improvement (recipe)"
+    add_recipe_argument(p, "recipe file whose [train] table gives every unset flag")
+    add_recipe_option(p, "--epochs", type=int)
+    add_recipe_option(p, "--batch", type=int)
+    add_recipe_option(
+        p, "--patience", type=int, help="early stopping: epochs without val improvement (recipe)"
     )
-    p.add_argument("--workers", type=int, default=None, help="data loader processes (default: the recipe's)")
+    add_recipe_option(p, "--workers", type=int, help="data loader processes (default: the recipe's)")
     p.add_argument("--device", default="", help="'cpu', '0', ... (default: GPU if present, else CPU)")
-    p.add_argument("--seed", type=int, default=None, help="(default: the recipe's)")
-    p.add_argument(
-        "--fraction", type=float, default=None, help="share of the training images to use (recipe)"
-    )
+    add_recipe_option(p, "--seed", type=int)
+    add_recipe_option(p, "--fraction", type=float, help="share of the training images to use (recipe)")
     p.add_argument(
         "--init", type=Path, default=None, metavar="WEIGHTS",
         help="start from these weights instead of random ones, e.g. a shipped .pt to fine-tune on your "
