@@ -116,7 +116,9 @@ def _switches_per_robot_minute(scores: dict[str, Any], tracks: dict[str, list[Tr
     return round(switches / minutes, 2) if minutes else None
 
 
-def live(seconds: float, robots: int, seed: int, record: Path | None = None) -> dict[str, Any]:
+def live(
+    seconds: float, robots: int, seed: int, record: Path | None = None, model: Path | None = None
+) -> dict[str, Any]:
     (port,) = free_tcp_ports(1)
     truths: dict[str, dict[int, GroundTruth]] = defaultdict(dict)
     tracks: dict[str, list[Tracks]] = defaultdict(list)
@@ -145,6 +147,7 @@ def live(seconds: float, robots: int, seed: int, record: Path | None = None) -> 
     command = [
         sys.executable, "-m", "services.cli", "up", "--viewer", "none", "--duration", str(seconds),
         "--robots", str(robots), "--seed", str(seed), "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast",
+        *(("--model", str(model)) if model is not None else ()),
     ]  # fmt: skip
     with open_session(ZenohSettings.loopback(free_tcp_ports(1)[0], [port])) as session:
         up = subprocess.Popen(command)
@@ -278,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     live_p.add_argument("--seed", type=int, default=1)
     live_p.add_argument("--out", type=Path, default=Path("bench/results/tracking_live.json"))
     live_p.add_argument("--record", type=Path, default=None, help="keep the detections and truth here")
+    live_p.add_argument("--model", type=Path, default=None, help="detector model (default: shipped)")
     offline_p = sub.add_parser("offline", help="a fresh tracker over a --record'ed run, scored the same way")
     offline_p.add_argument("recording", type=Path)
     offline_p.add_argument("--out", type=Path, default=Path("bench/results/tracking_offline.json"))
@@ -288,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.mode == "live":
-        report = live(args.seconds, args.robots, args.seed, args.record)
+        report = live(args.seconds, args.robots, args.seed, args.record, args.model)
     elif args.mode == "offline":
         report = offline(args.recording)
     else:
