@@ -136,6 +136,7 @@ def parse_key(key: str, *, prefix: str = PREFIX) -> tuple[str, str]:
 HEALTH: Final[str] = "@health"
 STATS: Final[str] = "@stats"
 SHARDS: Final[str] = "@shards"
+SOURCES: Final[str] = "@sources"
 HEALTH_PREFIX: Final[str] = f"{PREFIX}/{HEALTH}"  # liveliness tokens: triscan/@health/<service>/<instance>
 STATS_PREFIX: Final[str] = f"{PREFIX}/{STATS}"  # JSON counters: triscan/@stats/<service>/<instance>
 ALL_HEALTH: Final[str] = f"{HEALTH_PREFIX}/**"
@@ -143,6 +144,10 @@ ALL_STATS: Final[str] = f"{STATS_PREFIX}/**"
 # Liveliness tokens of the processes that share a fleet: triscan/@shards/<service>/<member>. The member is
 # the process's Zenoh id, unique across hosts (a pid is not: every container's first process is 1).
 SHARDS_PREFIX: Final[str] = f"{PREFIX}/{SHARDS}"
+# Liveliness tokens of whoever publishes a topic for a robot: triscan/@sources/<topic>/<robot>/<source>. The
+# source is the publisher's Zenoh id, so two encoders that both hold a robot's tensors for a moment (an
+# encoder handover) hold two tokens, and the robot stays announced until the last one goes.
+SOURCES_PREFIX: Final[str] = f"{PREFIX}/{SOURCES}"
 
 
 def health_key(service: str, instance: str) -> str:
@@ -170,6 +175,21 @@ def shard_members_key(service: str) -> str:
     return f"{SHARDS_PREFIX}/{validate_robot_id(service)}/*"
 
 
+def source_key(topic: str, robot_id: str, source: str) -> str:
+    """Liveliness token of one publisher of ``topic`` for ``robot_id``: subscribers that serve only some
+    robots (the detector processes sharing a fleet) subscribe to a robot's key once it is announced."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    return f"{SOURCES_PREFIX}/{topic}/{validate_robot_id(robot_id)}/{validate_robot_id(source)}"
+
+
+def topic_sources_key(topic: str) -> str:
+    """Every announced source of ``topic``, all robots (``triscan/@sources/tensor/*/*``)."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    return f"{SOURCES_PREFIX}/{topic}/*/*"
+
+
 def _parse_service_key(key: str, prefix: str, what: str) -> tuple[str, str]:
     head = prefix + "/"
     if not isinstance(key, str) or not key.startswith(head) or key.count("/") != prefix.count("/") + 2:
@@ -193,6 +213,21 @@ def parse_shard_key(key: str) -> tuple[str, str]:
     return _parse_service_key(key, SHARDS_PREFIX, "shard")
 
 
+def parse_source_key(key: str) -> tuple[str, str, str]:
+    """``triscan/@sources/<topic>/<robot>/<source>`` → (topic, robot, source)."""
+    head = SOURCES_PREFIX + "/"
+    parts = key[len(head) :].split("/") if isinstance(key, str) and key.startswith(head) else []
+    if len(parts) != 3 or parts[0] not in TOPICS:
+        raise ValueError(f"{key!r} is not a triscan source key ({head}<topic>/<robot_id>/<source>)")
+    topic, robot_id, source = parts
+    try:
+        validate_robot_id(robot_id)
+        validate_robot_id(source)
+    except ValueError as exc:
+        raise ValueError(f"source key {key!r}: {exc}") from None
+    return topic, robot_id, source
+
+
 # --- access-control patterns of the secure mode (security/zenoh_config.py) --------------------------
 
 
@@ -210,3 +245,8 @@ def service_keys(prefix: str = PREFIX) -> tuple[str, str]:
 def shard_keys(prefix: str = PREFIX) -> str:
     """The shard tokens of a deployment's prefix (``@`` chunks are matched by no wildcard)."""
     return f"{_validate_prefix(prefix)}/{SHARDS}/**"
+
+
+def source_keys(prefix: str = PREFIX) -> str:
+    """The source tokens of a deployment's prefix (``triscan/@sources/**``)."""
+    return f"{_validate_prefix(prefix)}/{SOURCES}/**"

@@ -8,7 +8,9 @@ else) notices a dead peer without polling. Once a second it publishes its counte
 :class:`ServiceRuntime` does all of that, plus ``--duration`` and clean shutdown (every subscriber,
 publisher and token undeclared, the session closed: a session left open with a callback subscriber
 hangs the interpreter at exit). :class:`RobotPublishers` holds one publisher per robot, declared on
-first use and forgotten with its robot, so a fleet that changes over time does not leak them. A
+first use and forgotten with its robot, so a fleet that changes over time does not leak them; the
+encoder's also announce each robot's tensors (:func:`announce_source`), which is how the detector
+processes that share a fleet know which robots' tensors to subscribe to. A
 service's ``run`` is then: build its pure core, subscribe the core's handlers, and hand
 :meth:`ServiceRuntime.serve` a housekeeping function that returns the counters to publish.
 """
@@ -27,7 +29,7 @@ from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import Any, NoReturn
 
-from common.keys import health_key, stats_key
+from common.keys import health_key, source_key, stats_key
 from common.transport import (
     ZenohSettings,
     ZenohSetupError,
@@ -166,40 +168,88 @@ class StatsPublisher:
         self._publisher.undeclare()
 
 
+ANNOUNCE_LEAD_S = 0.1
+"""How long after announcing a robot :class:`RobotPublishers` holds its first sample back: the source
+token's way to the subscriber that serves the robot and that subscriber's way back take milliseconds
+on one network, and a sample published before it arrives is lost. A robot streaming at its own rate
+is announced with its first scan, a few scan periods before its first tensor, and never waits."""
+
+
+def announce_source(session: Any, robot_id: str, topic: str) -> Any:
+    """Declare that this session publishes ``topic`` for ``robot_id`` (a liveliness token on
+    :func:`common.keys.source_key`); returns the token, to undeclare when the robot's samples stop.
+
+    The detector processes that share a fleet subscribe only to the tensors of announced robots they
+    serve, so whoever puts tensors (the encoder through :class:`RobotPublishers`, a test, a bench)
+    announces each robot first, then waits for a subscriber (:func:`common.transport.wait_for_subscriber`)."""
+    return session.liveliness().declare_token(source_key(topic, robot_id, str(session.zid())))
+
+
 class RobotPublishers:
     """One Zenoh publisher per robot on ``key_of(robot_id)``, declared on first use.
 
     Thread-safe (Zenoh callbacks and inference threads both publish). A robot not published for
     ``forget_after_s`` is forgotten by :meth:`forget_silent`, and :meth:`forget` drops the ones a
-    core has forgotten itself, so publishers live exactly as long as their robot.
+    core has forgotten itself, so publishers live exactly as long as their robot. With
+    ``announce_topic`` (the topic ``key_of`` builds keys of) every robot's publisher comes with its
+    source token (:func:`announce_source`), declared by :meth:`announce` or the first :meth:`put` and
+    undeclared with the publisher, and a robot's first samples wait until :data:`ANNOUNCE_LEAD_S`
+    after the announcement.
     """
 
-    def __init__(self, session: Any, key_of: Callable[[str], str]) -> None:
+    def __init__(
+        self, session: Any, key_of: Callable[[str], str], *, announce_topic: str | None = None
+    ) -> None:
         self._session = session
         self._key_of = key_of
+        self._announce_topic = announce_topic
         self._publishers: dict[str, Any] = {}
+        self._tokens: dict[str, Any] = {}
         self._last_put: dict[str, float] = {}
+        self._held_until: dict[str, float] = {}  # announced robots whose lead has not passed yet
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
         with self._lock:
             return len(self._publishers)
 
-    def put(self, robot_id: str, payload: bytes) -> None:
+    def _declare(self, robot_id: str, now: float) -> Any:
+        """The robot's publisher, declared (and announced) if new; call with the lock held."""
+        publisher = self._publishers.get(robot_id)
+        if publisher is None:
+            publisher = self._publishers[robot_id] = self._session.declare_publisher(self._key_of(robot_id))
+            self._last_put[robot_id] = now  # forget_silent counts the silence from here
+            if self._announce_topic is not None:
+                self._tokens[robot_id] = announce_source(self._session, robot_id, self._announce_topic)
+                self._held_until[robot_id] = now + ANNOUNCE_LEAD_S
+        return publisher
+
+    def announce(self, robot_id: str) -> None:
+        """Declare the robot's publisher (and source token) ahead of its first :meth:`put`."""
         with self._lock:
-            publisher = self._publishers.get(robot_id)
-            if publisher is None:
-                publisher = self._publishers[robot_id] = self._session.declare_publisher(
-                    self._key_of(robot_id)
-                )
-            self._last_put[robot_id] = time.monotonic()
+            self._declare(robot_id, time.monotonic())
+
+    def put(self, robot_id: str, payload: bytes) -> None:
+        now = time.monotonic()
+        with self._lock:
+            publisher = self._declare(robot_id, now)
+            self._last_put[robot_id] = now
+            held_until = self._held_until.get(robot_id) if self._held_until else None
+            if held_until is not None and held_until <= now:
+                del self._held_until[robot_id]
+        if held_until is not None and held_until > now:
+            time.sleep(held_until - now)  # once per robot, and only when it was announced just now
         publisher.put(payload)
 
     def forget(self, robot_ids: Iterable[str]) -> None:
         with self._lock:
             for robot_id in robot_ids:
                 publisher = self._publishers.pop(robot_id, None)
+                token = self._tokens.pop(robot_id, None)
                 self._last_put.pop(robot_id, None)
+                self._held_until.pop(robot_id, None)
+                if token is not None:
+                    token.undeclare()
                 if publisher is not None:
                     publisher.undeclare()
 
@@ -293,8 +343,10 @@ class ServiceRuntime:
         self._declared.append(entity)
         return entity
 
-    def robot_publishers(self, key_of: Callable[[str], str]) -> RobotPublishers:
-        publishers = RobotPublishers(self.session, key_of)
+    def robot_publishers(
+        self, key_of: Callable[[str], str], *, announce_topic: str | None = None
+    ) -> RobotPublishers:
+        publishers = RobotPublishers(self.session, key_of, announce_topic=announce_topic)
         self._robot_publishers.append(publishers)
         return publishers
 

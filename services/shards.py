@@ -152,8 +152,9 @@ class ShardMembership:
     """The Zenoh side of a :class:`ShardView`: this process's token and a watch on the others'.
 
     :meth:`join` declares the token (once the service is wired and able to serve) and starts the
-    liveliness subscriber, whose history gives the members already up. :meth:`log_changes` (the
-    service's housekeeping) logs the robots gained and lost.
+    liveliness subscriber, whose history gives the members already up; its ``on_members`` hears of
+    every change too (:class:`services.shard_subscriptions.OwnedSubscriptions`). :meth:`log_changes`
+    (the service's housekeeping) logs the robots gained and lost.
     """
 
     def __init__(self, session: Any, service: str, *, settle_s: float = SETTLE_S) -> None:
@@ -166,7 +167,7 @@ class ShardMembership:
         self._token: Any = None
         self._subscriber: Any = None
 
-    def join(self) -> None:
+    def join(self, on_members: Callable[[frozenset[str]], None] | None = None) -> None:
         import zenoh
 
         def on_change(sample: Any) -> None:
@@ -183,6 +184,8 @@ class ShardMembership:
                     self._members.discard(member)
                 members = set(self._members)
             self.view.set_members(members)
+            if on_members is not None:
+                on_members(frozenset(members | {self.me}))
             log.info("%s processes sharing the fleet: %d (%s)", self.service, len(members | {self.me}),
                      ", ".join(sorted(m[:8] for m in members | {self.me})))  # fmt: skip
 

@@ -125,3 +125,38 @@ def test_parse_key_respects_prefix() -> None:
 
 def test_topics_are_the_spec_topics() -> None:
     assert set(keys.TOPICS) == {"scan", "tensor", "detections", "truth", "tracks"}
+
+
+def test_source_keys_round_trip_and_are_matched_by_their_topic_pattern() -> None:
+    key = keys.source_key("tensor", "tb3-1", "a1f3")
+    assert key == "triscan/@sources/tensor/tb3-1/a1f3"
+    assert keys.parse_source_key(key) == ("tensor", "tb3-1", "a1f3")
+    assert keys.topic_sources_key("tensor") == "triscan/@sources/tensor/*/*"
+    assert keys.source_keys("lab/triscan") == "lab/triscan/@sources/**"
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "triscan/@sources/tensor/tb3",  # no source
+        "triscan/@sources/tensor/tb3/a1f3/extra",
+        "triscan/@sources/lidar/tb3/a1f3",  # unknown topic
+        "triscan/@sources/tensor/*/a1f3",  # a pattern, not a robot
+        "triscan/@sources/tensor/tb3/",
+        "triscan/@shards/detector/a1f3",
+        "triscan/tb3/tensor",
+    ],
+)
+def test_parse_source_key_rejects(key: str) -> None:
+    with pytest.raises(ValueError, match="source key"):
+        keys.parse_source_key(key)
+
+
+@pytest.mark.parametrize("robot_id", ["", "a/b", "*", "a b"])
+def test_source_key_refuses_what_is_not_one_chunk(robot_id: str) -> None:
+    with pytest.raises(ValueError):
+        keys.source_key("tensor", robot_id, "a1f3")
+    with pytest.raises(ValueError):
+        keys.source_key("tensor", "tb3", robot_id)
+    with pytest.raises(ValueError, match="unknown topic"):
+        keys.topic_sources_key("lidar")

@@ -6,9 +6,9 @@ import threading
 import time
 from collections.abc import Callable
 
-from common.keys import scan_key
+from common.keys import TENSOR, scan_key, source_key, tensor_key, topic_sources_key
 from common.transport import ZenohSettings, open_session
-from services.runtime import RobotPublishers, ServiceRuntime
+from services.runtime import ANNOUNCE_LEAD_S, RobotPublishers, ServiceRuntime
 from tests.support.health import service_pids
 from tests.support.waiting import wait_for
 
@@ -49,3 +49,29 @@ def test_robot_publishers_forget_silent_robots(free_port: Callable[[], int]) -> 
         publishers.put("r1", b"c")  # a robot that speaks again gets a fresh publisher
         publishers.forget(["r1", "unknown"])
         assert len(publishers) == 0
+
+
+def test_robot_publishers_announce_each_robot_until_it_is_forgotten(free_port: Callable[[], int]) -> None:
+    port = free_port()
+    with (
+        open_session(ZenohSettings.loopback(port)) as session,
+        open_session(ZenohSettings.loopback(None, [port])) as watcher,
+    ):
+
+        def sources() -> list[str]:
+            replies = watcher.liveliness().get(topic_sources_key(TENSOR), timeout=1.0)
+            return sorted(str(reply.ok.key_expr) for reply in replies if reply.ok)
+
+        publishers = RobotPublishers(session, tensor_key, announce_topic=TENSOR)
+        publishers.announce("r1")
+        started = time.monotonic()
+        publishers.put("r1", b"a")  # its first sample waits out the lead the subscriber needs
+        assert time.monotonic() - started >= ANNOUNCE_LEAD_S * 0.9
+        publishers.put("r2", b"b")
+        zid = str(session.zid())
+        expected = [source_key(TENSOR, "r1", zid), source_key(TENSOR, "r2", zid)]
+        assert wait_for(lambda: sources() == expected, timeout=10)
+        publishers.forget(["r1"])
+        assert wait_for(lambda: sources() == expected[1:], timeout=10)
+        publishers.close()
+        assert wait_for(lambda: sources() == [], timeout=10)

@@ -1,4 +1,4 @@
-"""``python -m services.detector``: tensors in on ``triscan/*/tensor``, detections out on ``.../detections``.
+"""``python -m services.detector``: robots' ``triscan/<robot>/tensor`` in, ``.../detections`` out.
 
 The robot's perception process (base dependencies only: numpy, onnxruntime, zenoh, msgpack, pydantic).
 ``--from-scans`` runs the encoder in the same process and subscribes to ``triscan/*/scan`` instead,
@@ -9,7 +9,10 @@ up to N waiting robots' tensors in one model call, which a CPU does for less per
 ``--batch`` the detector times its model at start and picks the cap itself
 (:mod:`services.detector.batch_cap`). ``--detectors N`` (default: one per core) starts N-1 more
 processes like this one; the live detector processes, here or on other hosts of the same Zenoh
-network, share the robots among themselves (:mod:`services.shards`).
+network, share the robots among themselves (:mod:`services.shards`), and each subscribes only to the
+tensors of the announced robots it serves (:mod:`services.shard_subscriptions`). ``--from-scans``
+subscribes to every robot's scans instead: scans come from robots, bridges and users' code that
+announce nothing.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from common.inference import OnnxDetector
-from common.keys import ALL_SCANS, ALL_TENSORS, detections_key
+from common.keys import ALL_SCANS, TENSOR, detections_key, tensor_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
@@ -51,6 +54,7 @@ from services.runtime import (
     service_parser,
     stop_event_on_signals,
 )
+from services.shard_subscriptions import OwnedSubscriptions
 from services.shards import ShardMembership, Siblings, add_processes_argument, sibling_commands
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -75,7 +79,8 @@ def run(
     The process serves the robots that rendezvous hashing gives it among the live detector processes
     (:mod:`services.shards`); ``siblings`` are the other processes of this launch, restarted if one dies.
     It serves, and declares its health token, once ``processes`` detectors are live and settled, so
-    that a launch's token means all of its processes serve their shares.
+    that a launch's token means all of its processes serve their shares. Tensors are subscribed per
+    robot it serves, once the robot's source is announced; scans (``from_scans``) on a wildcard.
     """
     with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
         publishers = runtime.robot_publishers(detections_key)
@@ -93,36 +98,50 @@ def run(
             owns=shards.owns,
         )
 
+        def on_sample(sample: Any) -> None:
+            sample_key = str(sample.key_expr)
+            if not pipeline.not_ours(sample_key):  # another process's robot: no payload copy
+                pipeline.handle_sample(sample_key, payload_bytes(sample))
+
+        tensors = (
+            None
+            if from_scans
+            else OwnedSubscriptions(runtime.session, shards.me, TENSOR, tensor_key, on_sample)
+        )
+
         def housekeeping() -> dict[str, object]:
             publishers.forget_silent(forget_after_s)  # no publisher leak as fleets change
             if siblings is not None:
                 siblings.restart_dead()
             shard = shards.log_changes(forget_after_s)
+            if tensors is not None:
+                tensors.set_members(shards.view.members)  # a missed membership change heals here
+                shard["subscribed_robots"] = len(tensors)
             return {**pipeline.housekeeping(), "robots": len(publishers), "shard": shard}
 
         pipeline.start()
         try:
-            key = ALL_SCANS if from_scans else ALL_TENSORS
-
-            def on_sample(sample: Any) -> None:
-                sample_key = str(sample.key_expr)
-                if not pipeline.not_ours(sample_key):  # another process's robot: no payload copy
-                    pipeline.handle_sample(sample_key, payload_bytes(sample))
-
-            runtime.subscribe_samples(key, on_sample)
-            shards.join()
+            if tensors is None:
+                runtime.subscribe_samples(ALL_SCANS, on_sample)
+                shards.join()
+            else:
+                shards.join(tensors.set_members)
             shards.wait_settled(processes, stop)
+            if tensors is not None:  # once settled: a robot it subscribes to is one it serves
+                tensors.start()
             detector = pipeline.core.detector
             log.info(
                 "detector %s ready: %s (%s padding) on %s → detections",
                 shards.me[:8],
                 detector.model_id,
                 detector.padding,
-                key,
+                ALL_SCANS if tensors is None else "the tensors of the announced robots it serves",
             )
             runtime.serve(housekeeping)
         finally:
             pipeline.stop()  # publishes nothing more, then gives its robots up
+            if tensors is not None:
+                tensors.close()
             shards.leave()
     return pipeline.core
 

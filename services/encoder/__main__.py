@@ -4,7 +4,9 @@ Runs on the robot next to the detector (base dependencies only: no torch, PyBull
 stream rules (first scans, gaps, restarts, silence) live in :mod:`services.encoder.core`; the session,
 health, counters and shutdown in :class:`services.runtime.ServiceRuntime`. This module wires them.
 ``--encoders N`` starts N-1 more processes; all live encoder processes share the robots
-(:mod:`services.shards`), as the detector's do.
+(:mod:`services.shards`), as the detector's do. Each announces the robots whose tensors it publishes
+(:func:`services.runtime.announce_source`), from a robot's first scan on: the detector processes
+subscribe to the tensors of the announced robots they serve.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import sys
 import threading
 
 from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding
-from common.keys import ALL_SCANS, parse_key, tensor_key
+from common.keys import ALL_SCANS, TENSOR, parse_key, tensor_key
 from common.messages import encode_message
 from common.transport import ZenohSettings, settings_from_args
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
@@ -56,7 +58,7 @@ def run(
     """
     core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s, stack_period_s=stack_period_s)
     with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
-        tensors = runtime.robot_publishers(tensor_key)
+        tensors = runtime.robot_publishers(tensor_key, announce_topic=TENSOR)
         shards = ShardMembership(runtime.session, "encoder")
         not_ours = 0
 
@@ -69,12 +71,15 @@ def run(
             if robot_id is not None and not shards.owns(robot_id):
                 not_ours += 1
                 return
+            if robot_id is not None:  # from its first scan: its detector subscribes before its first tensor
+                tensors.announce(robot_id)
             tensor = core.handle_sample(key, payload)
             if tensor is not None:
                 tensors.put(tensor.robot_id, encode_message(tensor))
 
         def housekeeping() -> dict[str, object]:
             tensors.forget(core.forget_silent())
+            tensors.forget_silent(forget_after_s)  # robots announced whose scans the core refused
             if siblings is not None:
                 siblings.restart_dead()
             shard = shards.log_changes(forget_after_s)
