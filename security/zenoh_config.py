@@ -40,6 +40,7 @@ from common.keys import (
     scan_key,
     service_keys,
     shard_keys,
+    source_keys,
     validate_robot_id,
     wildcard_key,
 )
@@ -85,11 +86,12 @@ def access_control(robots: Sequence[str], *, simulator: bool = True, prefix: str
     data = everything_key(prefix)
     health, stats = service_keys(prefix)
     shards = shard_keys(prefix)
+    sources = source_keys(prefix)  # which robots' tensors are published: the detectors subscribe by them
 
     rules: list[dict[str, Any]] = [
         # Declaring interest and watching health: every member, both ways, so subscriptions propagate.
-        _rule("observe", _OBSERVE_MESSAGES, ["ingress", "egress"], [data, health, stats, shards]),
-        _rule("health-tokens", ["liveliness_token"], ["ingress", "egress"], [health, shards]),
+        _rule("observe", _OBSERVE_MESSAGES, ["ingress", "egress"], [data, health, stats, shards, sources]),
+        _rule("health-tokens", ["liveliness_token"], ["ingress", "egress"], [health, shards, sources]),
         # A node may send (and forward) every publication it holds; receivers check the source.
         _rule("send", ["put"], ["egress"], [data, stats]),
         _rule("stats-in", ["put"], ["ingress"], [stats]),

@@ -22,9 +22,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.keys import shard_key, shard_members_key
+from common.keys import TENSOR, shard_key, shard_members_key, topic_sources_key
 from common.messages import Detection, Detections, Message, Scan, StageTimings, decode_message, encode_message
 from security.zenoh_config import common_name, main, secure_config
+from services.runtime import announce_source
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -326,3 +327,20 @@ def test_shard_tokens_flow_so_detector_processes_can_share_a_fleet(mesh: Mesh) -
             if reply.ok
         ]
     assert members == [shard_key("detector", "a1f3")]
+
+
+def test_tensor_source_tokens_flow_so_detectors_know_which_robots_to_subscribe_to(mesh: Mesh) -> None:
+    """An encoder's announcement of a robot's tensors reaches a detector on another host through the ACL."""
+    watcher = mesh.secure("detector", listen=True)
+    encoder = mesh.secure("encoder")
+    token = announce_source(encoder, "r1", TENSOR)
+    mesh.stack.callback(token.undeclare)
+    deadline = time.monotonic() + MATCH_WAIT_S
+    sources: list[str] = []
+    while not sources and time.monotonic() < deadline:
+        sources = [
+            str(reply.ok.key_expr)
+            for reply in watcher.liveliness().get(topic_sources_key(TENSOR), timeout=1.0)
+            if reply.ok
+        ]
+    assert sources == [f"triscan/@sources/tensor/r1/{encoder.zid()}"]
