@@ -1,10 +1,12 @@
-"""Three detector processes share a fleet over Zenoh liveliness; ``kill -9`` of one moves its robots.
+"""Detector processes share a fleet over Zenoh liveliness: ``kill -9`` of one of three moves its robots,
+and each of two receives only the tensors of the robots it serves.
 
 The test publishes recorded tensors for a dozen robots at 10 Hz (the robots' stand-in of
 ``bench.fleet_capacity``), starts three ``services.detector --detectors 1`` processes on loopback,
 waits until every robot is answered, kills the process serving the most robots with SIGKILL and
 checks that its robots are answered again within 2 s, that no (robot, seq) is ever answered twice,
-and that no robot goes unanswered.
+and that no robot goes unanswered. The robots announce their tensors, as the encoder does, so each
+process subscribes to its own robots' only (services.shard_subscriptions).
 """
 
 from __future__ import annotations
@@ -21,12 +23,13 @@ import pytest
 
 from bench.fleet_capacity import stamped
 from bench.harness import start_loopback_service
-from common.keys import DETECTIONS, service_stats_key, tensor_key, wildcard_key
+from common.keys import DETECTIONS, TENSOR, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, decode_message
 from common.model_spec import SHIPPED_MODEL
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
+from services.runtime import announce_source
 from services.shards import owner_of
 from tests.support.scan_replay import replay_scans
 from tests.support.waiting import wait_for
@@ -74,8 +77,10 @@ class Fleet(threading.Thread):
         encoder = EncoderCore("zero")
         self.frames = [t for s in replay_scans("fleet", 12) if (t := encoder.push(s.scan)) is not None]
         self.publishers = {robot: session.declare_publisher(tensor_key(robot)) for robot in ROBOTS}
+        self.sources = [announce_source(session, robot, TENSOR) for robot in ROBOTS]  # detectors subscribe
         self.halt = threading.Event()
         self.last_seq = -1
+        self.sent = 0
 
     def run(self) -> None:
         period_ns = round(1e9 / RATE_HZ)
@@ -85,23 +90,16 @@ class Fleet(threading.Thread):
             for robot, publisher in self.publishers.items():
                 publisher.put(stamped(frame, robot, tick, time.time_ns(), period_ns))
             self.last_seq = tick + 2  # bench.fleet_capacity.frame_seq of a tensor
+            self.sent += len(self.publishers)
             tick += 1
+
+
+ONE_THREAD = ("--model", str(SHIPPED_MODEL), "--batch", "1", "--workers", "1", "--threads", "1")
 
 
 def test_killing_one_of_three_detectors_moves_its_robots_within_two_seconds() -> None:
     test_port, *ports = free_tcp_ports(1 + DETECTORS)
-    args = (
-        "--detectors",
-        "1",
-        "--model",
-        str(SHIPPED_MODEL),
-        "--batch",
-        "1",
-        "--workers",
-        "1",
-        "--threads",
-        "1",
-    )
+    args = ("--detectors", "1", *ONE_THREAD)
     detectors = {
         port: start_loopback_service(
             "services.detector",
@@ -155,3 +153,61 @@ def test_killing_one_of_three_detectors_moves_its_robots_within_two_seconds() ->
             assert not twice, f"answered more than once: {twice}"
     finally:
         stop_processes({str(p): process for p, process in detectors.items()}, grace_s=20)
+
+
+def test_two_detector_processes_each_receive_only_the_tensors_of_the_robots_they_serve() -> None:
+    """``--detectors 2``: every tensor reaches its robot's owner and no other process (``not_ours`` stays
+    0), and every robot is answered by exactly one process."""
+    test_port, port = free_tcp_ports(2)
+    detector = start_loopback_service(
+        "services.detector",
+        port,
+        [test_port],
+        "--detectors",
+        "2",
+        *ONE_THREAD,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    stats: dict[int, dict[str, Any]] = {}  # pid → its newest counters
+    lock = threading.Lock()
+
+    def on_stats(sample: Any) -> None:
+        body = json.loads(payload_bytes(sample))
+        with lock:
+            stats[int(body["pid"])] = body
+
+    def newest() -> list[dict[str, Any]]:
+        with lock:
+            return list(stats.values())
+
+    answers = Answers()
+    try:
+        with open_session(ZenohSettings.loopback(test_port)) as session:
+            session.declare_subscriber(wildcard_key(DETECTIONS), answers)
+            session.declare_subscriber(service_stats_key("detector"), on_stats)
+            # Counters come once a launch's processes all serve, settled: no robot moves from here on.
+            assert wait_for(lambda: len(stats) == 2, 90), f"detectors up: {list(stats)}"
+            fleet = Fleet(session)  # announces every robot
+            for publisher in fleet.publishers.values():  # each robot's owner has subscribed
+                assert wait_for(lambda p=publisher: p.matching_status.matching, 30)
+            fleet.start()
+            started = time.monotonic()
+            assert wait_for(lambda: all(answers.answered_since(r, started) for r in ROBOTS), 60)
+            fleet.halt.set()
+            fleet.join()
+            assert wait_for(lambda: sum(int(s["received"]) for s in newest()) == fleet.sent, 10), (
+                f"{fleet.sent} tensors sent, received {[s['received'] for s in newest()]}"
+            )
+            members = [s["shard"]["member"] for s in newest()]
+            for body in newest():
+                mine = [robot for robot in ROBOTS if owner_of(robot, members) == body["shard"]["member"]]
+                assert mine, "rendezvous gave a process no robot: a dozen robots over two should not"
+                assert body["not_ours"] == 0, body
+                assert body["shard"]["subscribed_robots"] == len(mine), body
+                assert body["robots"] == len(mine), body  # it answered its own robots, no other
+            with answers.lock:
+                twice = {key: n for key, n in answers.count.items() if n > 1}
+            assert not twice, f"answered more than once: {twice}"
+    finally:
+        stop_processes({str(port): detector}, grace_s=20)

@@ -77,10 +77,11 @@ def _installed_environment(site: Path) -> dict[str, str]:
 
 @pytest.mark.slow
 def test_a_wheel_installed_elsewhere_answers_a_tensor_with_its_default_model(tmp_path: Path) -> None:
-    from common.keys import detections_key, tensor_key
+    from common.keys import TENSOR, detections_key, tensor_key
     from common.messages import Detections, StackedTensor, decode_message, encode_message
     from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
     from services.launcher import free_tcp_ports
+    from services.runtime import announce_source
     from tests.support.health import service_pids
     from tests.support.waiting import wait_for
     from training.evaluate import fresh_samples
@@ -145,11 +146,13 @@ def test_a_wheel_installed_elsewhere_answers_a_tensor_with_its_default_model(tmp
     try:
         with open_session(ZenohSettings.loopback(None, [port])) as session:
             session.declare_subscriber(detections_key(ROBOT), collect)
+            announced = announce_source(session, ROBOT, TENSOR)  # the detector subscribes to announced robots
             wait_for_subscriber(session, tensor_key(ROBOT))
             # serving, not merely subscribed: its health token comes once it has settled its robots
             assert wait_for(lambda: bool(service_pids(session, "detector")), 60), "the detector never came up"
             session.put(tensor_key(ROBOT), encode_message(message))
             assert wait_for(lambda: bool(answers), 60), "no detections came back"
+            announced.undeclare()
     finally:
         detector.terminate()
         log, _ = detector.communicate(timeout=30)
