@@ -58,7 +58,7 @@ import zenoh
 
 from bench.harness import start_loopback_service
 from bench.report import write_report
-from common.keys import ALL_STATS, DETECTIONS, parse_key, scan_key, tensor_key, wildcard_key
+from common.keys import ALL_STATS, DETECTIONS, TENSOR, parse_key, scan_key, tensor_key, wildcard_key
 from common.messages import (
     MAX_PAYLOAD_BYTES,
     Detections,
@@ -74,6 +74,7 @@ from services.launcher import free_tcp_ports, stop_processes
 from services.ros2_bridge.core import DEFAULT_SCAN_TOPIC, BridgeConfig, BridgeCore
 from services.ros2_bridge.rmw_zenoh import GID_SIZE, data_key, encode_attachment, qualified_topic
 from services.ros2_bridge.ros_types import LASER_SCAN, TYPE_HASH_NOT_SUPPORTED, dds_type_name, ros_types
+from services.runtime import announce_source
 from services.sim_bag import T0_NS, laser_scan_message, recorded_scans
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -406,6 +407,7 @@ class FuzzSession:
     scans: list[Scan]
     good_pub: Any  # the good robot's scan publisher
     ros_good: RosScans
+    fuzz_source: Any  # the fuzz robot's tensor source token: the detector subscribes to announced robots
     expected_encoder: EncoderCore = field(default_factory=lambda: EncoderCore("zero"))
     expected_detector: Counter[str] = field(default_factory=Counter)
     expected_bridge: BridgeCore = field(default_factory=lambda: BridgeCore(BRIDGE_CONFIG))
@@ -418,13 +420,15 @@ class FuzzSession:
 
     @classmethod
     def ready(cls, session: Any, scans: list[Scan]) -> FuzzSession:
-        """Wait until the services subscribe to the good keys, so the first put is not lost."""
+        """Wait until the services subscribe to the good keys and the fuzz robot's tensors, so the
+        first put is not lost (the good robots' tensors come from the encoder, which announces them)."""
         ros_good = RosScans(ROS_GOOD_ROBOT)
+        fuzz_source = announce_source(session, FUZZ_ROBOT, TENSOR)
         wait_for_subscriber(session, scan_key(GOOD_ROBOT), 60)
-        wait_for_subscriber(session, tensor_key(GOOD_ROBOT), 60)
+        wait_for_subscriber(session, tensor_key(FUZZ_ROBOT), 60)
         wait_for_subscriber(session, ros_good.key, 60)  # the bridge hears every ROS sample sent
         good_pub = session.declare_publisher(scan_key(GOOD_ROBOT), **BLOCK)
-        return cls(session, scans, good_pub, ros_good)
+        return cls(session, scans, good_pub, ros_good, fuzz_source)
 
     def send_ros(self, sample: RosSample) -> Scan | None:
         """Put a ROS sample; returns the Scan the bridge should forward (the local core's)."""

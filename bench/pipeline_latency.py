@@ -41,12 +41,13 @@ from bench.harness import add_detector_model_argument, proc_status_mb, start_loo
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, write_report
 from common.inference import model_facts
-from common.keys import DETECTIONS, scan_key, tensor_key, wildcard_key
+from common.keys import DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, decode_message, encode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, parse_cfg_entry, payload_bytes, wait_for_subscriber
 from services.detector.core import default_intra_op_threads, default_workers
 from services.launcher import free_tcp_ports, stop_processes
+from services.runtime import wait_for_service
 from services.simulator.fleet import SimulatedFleet
 from services.simulator.sensors import DEFAULT_PROFILE, profile
 
@@ -140,8 +141,8 @@ def run(
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
             publishers = {rid: session.declare_publisher(scan_key(rid)) for rid in fleet.robot_ids}
             wait_for_subscriber(session, scan_key(fleet.robot_ids[0]))
-            if not from_scans:
-                wait_for_subscriber(session, tensor_key(fleet.robot_ids[0]))
+            if not from_scans:  # it subscribes to a robot's tensors once the encoder announces the robot
+                wait_for_service(session, "detector")
             cpu_before = {name: tree_cpu_s(p.pid) for name, p in children.items()}
             started = time.monotonic()
             published = _publish_scans(fleet, publishers, rate_hz, duration_s, received)

@@ -46,13 +46,13 @@ import zenoh
 from bench.harness import add_detector_model_argument, start_loopback_service
 from bench.machine import MachineInfo, machine_info
 from bench.report import latency_quantiles_ms, summed_counters, write_report
-from common.keys import ALL_STATS, DETECTIONS, scan_key, tensor_key, wildcard_key
+from common.keys import ALL_STATS, DETECTIONS, scan_key, wildcard_key
 from common.messages import Detections, Scan, decode_message
 from common.model_spec import default_model_path
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.bag_replay import ReplayConfig, replay
 from services.launcher import free_tcp_ports, stop_processes
-from services.runtime import STATS_PERIOD_S
+from services.runtime import STATS_PERIOD_S, wait_for_service
 from services.simulator.defaults import SCAN_RATE_HZ
 
 log = logging.getLogger("bench.replay_answered")
@@ -201,8 +201,8 @@ def run(
                 session.declare_subscriber(ALL_STATS, answers.on_stats),
             ]
             wait_for_subscriber(session, scan_key(ROBOT), wait_s)
-            if not connect:  # an external detector may run --from-scans: no tensor subscriber then
-                wait_for_subscriber(session, tensor_key(ROBOT), wait_s)
+            if not connect:  # it subscribes to the robot's tensors once the encoder announces them
+                wait_for_service(session, "detector", wait_s)
             publishers = Publishers(session)
             _prime(bag, publishers.put, answers, wait_s)
             log.info("pipeline answered the priming replay: measuring %s at speed %g", bag, speed)

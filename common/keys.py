@@ -155,6 +155,11 @@ def health_key(service: str, instance: str) -> str:
     return f"{HEALTH_PREFIX}/{validate_robot_id(service)}/{validate_robot_id(instance)}"
 
 
+def service_health_key(service: str) -> str:
+    """The health tokens of every instance of one service (``triscan/@health/detector/*``)."""
+    return f"{HEALTH_PREFIX}/{validate_robot_id(service)}/*"
+
+
 def stats_key(service: str, instance: str) -> str:
     """Where one running service publishes its counters."""
     return f"{STATS_PREFIX}/{validate_robot_id(service)}/{validate_robot_id(instance)}"

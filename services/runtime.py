@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import Any, NoReturn
 
-from common.keys import health_key, source_key, stats_key
+from common.keys import health_key, service_health_key, source_key, stats_key
 from common.transport import (
     ZenohSettings,
     ZenohSetupError,
@@ -141,6 +141,18 @@ def _stop_when_orphaned(stop: threading.Event, parent_pid: int) -> None:
 def declare_health(session: Any, service: str) -> Any:
     """Declare this process's liveliness token; keep the returned object alive while serving."""
     return session.liveliness().declare_token(health_key(service, str(os.getpid())))
+
+
+def wait_for_service(session: Any, service: str, timeout_s: float = 30.0) -> None:
+    """Block until an instance of ``service`` holds its health token, wired and serving (a detector then
+    subscribes to the tensors of every robot announced from here on); ``TimeoutError`` after
+    ``timeout_s``. A bench that feeds the encoder scans waits so before its robots' first tensors."""
+    deadline = time.monotonic() + timeout_s
+    pattern = service_health_key(service)
+    while not any(reply.ok is not None for reply in session.liveliness().get(pattern, timeout=1.0)):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no {service} came up within {timeout_s:.0f} s")
+        time.sleep(0.05)
 
 
 class StatsPublisher:
