@@ -189,6 +189,17 @@ def test_a_second_detection_of_a_tracked_object_opens_no_track() -> None:
     assert person is not None and core.counters.tracks_created == 2
 
 
+def test_people_side_by_side_are_two_people_where_furniture_that_close_is_one_object() -> None:
+    core = TrackerCore()  # the defaults: 0.6 m for furniture, 0.4 m for people
+    for k in range(4):
+        core.update(message(k, [det(2.0, 0.0, "desk"), det(0.0, 2.0, "person")], pose(0, 0, 0)))
+    assert core.counters.tracks_created == 2
+    both = [det(2.0, 0.0, "desk"), det(2.0, 0.5, "desk"), det(0.0, 2.0, "person"), det(0.5, 2.0, "person")]
+    core.update(message(4, both, pose(0, 0, 0)))
+    assert core.counters.duplicates == 1  # the second desk 0.5 m off is the same desk seen twice
+    assert core.counters.tracks_created == 3  # the second person 0.5 m off is someone else
+
+
 def test_a_tentative_track_dies_quickly_and_ids_are_never_reused() -> None:
     core = TrackerCore(TrackerConfig(tentative_misses=1))
     first = core.update(message(0, [det(1.0, 1.0)]))

@@ -115,7 +115,11 @@ class TrackerConfig:
     tentative_misses: int = 2
     delete_after_s: float = 1.5
     still_delete_after_s: float = 30.0
-    duplicate_m: float = 0.4  # furniture in the odometry frame: it is where it was when seen again
+    # A second detection this close to a track its scan already updated is the same object seen twice.
+    # Furniture: a split desk or a doorframe's two jambs lie up to about 0.6 m from the track's centre.
+    # People walk side by side 0.5-0.7 m apart, so theirs is tighter.
+    duplicate_m: float = 0.6
+    person_duplicate_m: float = 0.4
     jump_m: float = 1.0
     jump_rad: float = math.radians(30.0)
     score_smoothing: float = 0.3  # weight of the newest detection's score in the track's running score
@@ -438,14 +442,16 @@ class TrackerCore:
         return self._message(message, robot, pose)
 
     def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
-        """A second detection of an object a track already follows: within ``duplicate_m`` of a
-        confirmed track of the same group (furniture or person) that a detection of this scan updated."""
+        """A second detection of an object a track already follows: within ``duplicate_m`` (a person:
+        ``person_duplicate_m``) of a confirmed track of the same group (furniture or person) that a
+        detection of this scan updated."""
         person = det.class_name == "person"
+        radius = self.config.person_duplicate_m if person else self.config.duplicate_m
         return any(
             t.state == "confirmed"
             and t.misses == 0
             and (CLASS_NAMES[t.class_id] == "person") == person
-            and math.hypot(t.x - point[0], t.y - point[1]) < self.config.duplicate_m
+            and math.hypot(t.x - point[0], t.y - point[1]) < radius
             for t in tracks
         )
 
