@@ -221,6 +221,17 @@ def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
                 for x in ((xc - w / 2) * 384 + 0.5, (xc + w / 2) * 384 - 0.5):
                     inside = (first <= x <= 360.0) or (0.0 <= x <= last + 1.0)
                     assert inside, (label, row, first, last)
+    # The evaluator reads a five-class set: a person's box crosses the seam only where it reaches it.
+    from training.evaluate import PERSON_ID, dataset_samples
+
+    people = []
+    for split in ("train", "val", "test"):
+        for sample in dataset_samples(tmp_path / "a", split):
+            assert sample.crosses_seam is not None and len(sample.crosses_seam) == len(sample.classes)
+            labels = zip(sample.boxes, sample.classes, sample.crosses_seam, strict=True)
+            people += [(box, crosses) for box, class_id, crosses in labels if class_id == PERSON_ID]
+    assert len(people) > 10
+    assert all(box[0] <= 0.0 or box[2] >= ANGLE_COLUMNS for box, crosses in people if crosses)
 
 
 def test_the_live_simulator_has_people_walking_and_labels_them() -> None:

@@ -42,6 +42,8 @@ from training.png import read_tensor_png
 if TYPE_CHECKING:
     from services.simulator.lidar import LidarSpec
 
+PERSON_ID = CLASS_NAMES.index("person")  # labelled, but not part of a scenario
+
 log = logging.getLogger(__name__)
 
 IOU_THRESHOLDS = np.linspace(0.5, 0.95, 10)  # the COCO ladder behind mAP@0.5:0.95
@@ -100,7 +102,7 @@ def _seam_flags_of_dataset(dataset_dir: Path) -> dict[str, dict[int, bool]] | No
 
     ``None`` for a data set without them (e.g. recorded on a real robot in the YOLO layout).
     """
-    from services.simulator.labels import arc_crosses_seam, footprint_polar
+    from services.simulator.labels import arc_crosses_seam, footprint_polar, person_footprint_polar
     from services.simulator.scenario import Scenario
 
     scenarios_file, samples_file = dataset_dir / "scenarios.jsonl", dataset_dir / "samples.jsonl"
@@ -117,12 +119,27 @@ def _seam_flags_of_dataset(dataset_dir: Path) -> dict[str, dict[int, bool]] | No
             continue
         sample = json.loads(line)
         scenario = scenarios[int(sample["scenario"])]
-        pose = tuple(float(v) for v in sample["lidar_pose"])
+        x, y, yaw = (float(v) for v in sample["lidar_pose"])
+        pose = (x, y, yaw)
         flags[Path(sample["image"]).stem] = {
             class_id: arc_crosses_seam(*footprint_polar(scenario.footprint_of(class_id), pose)[:3])
-            for class_id in range(len(FURNITURE_CLASSES))  # people are not part of the scenario
+            for class_id in range(len(FURNITURE_CLASSES))
         }
+        # People are not part of the scenario: whether any of this sample's people crosses the seam.
+        flags[Path(sample["image"]).stem][PERSON_ID] = any(
+            arc_crosses_seam(*person_footprint_polar(legs, pose)[:3])
+            for legs in sample.get("people_legs", ())
+        )
     return flags
+
+
+def _crosses(class_id: int, box: np.ndarray, of_class: dict[int, bool]) -> bool:
+    """Whether a label's object crosses the seam. A sample's people are not told apart in its labels,
+    so a person's box counts when some person of the sample crosses and the box reaches the seam's
+    column 0 or 360, where the seam rule clips it."""
+    if class_id != PERSON_ID:
+        return of_class[class_id]
+    return of_class[PERSON_ID] and bool(box[0] <= 0.0 or box[2] >= ANGLE_COLUMNS)
 
 
 def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSample]:
@@ -138,7 +155,9 @@ def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSamp
         crosses = None
         if seam_flags is not None:
             of_class = seam_flags[image.stem]
-            crosses = np.array([of_class[int(c)] for c in classes], dtype=bool)
+            crosses = np.array(
+                [_crosses(int(c), b, of_class) for c, b in zip(classes, boxes, strict=True)], dtype=bool
+            )
         yield EvalSample(image.stem, read_tensor_png(image), boxes, classes, crosses)
 
 

@@ -153,7 +153,7 @@ def clip_to_field_of_view(
     return best
 
 
-def _person_polar(
+def person_footprint_polar(
     legs: Sequence[tuple[float, float, float]], lidar_pose: tuple[float, float, float]
 ) -> tuple[float, float, float, float, float]:
     """(centre bearing, arc min, arc max, range min, range max) of a person's footprint.
@@ -195,7 +195,7 @@ def label_scan(
     ``true_ranges`` and ``hit_object`` are the noise-free first hit of each beam and the index in
     ``scenario.objects`` of what it hit (−1 wall, −2 nothing within range, a person's legs
     :func:`services.simulator.people.leg_object`). ``people_legs`` holds each person's two leg
-    circles (x, y, r) at this scan: a person's box spans their footprint (:func:`_person_polar`), and
+    circles (x, y, r) at this scan: a person's box spans their footprint (:func:`person_footprint_polar`), and
     the person is a target when at least two beams hit their legs. ``range_max`` is the labelling range: the
     sensor's reach within the raster's full scale. Boxes keep to the sensor's field of view.
     """
@@ -212,7 +212,7 @@ def label_scan(
     polar = [(class_id, footprint_polar(rect, lidar_pose), beams) for class_id, rect, beams in candidates]
     for person, legs in enumerate(people_legs):
         beams = int(np.count_nonzero(np.isin(hits, [leg_object(person, leg) for leg in range(len(legs))])))
-        polar.append((PERSON, _person_polar(legs, lidar_pose), beams))
+        polar.append((PERSON, person_footprint_polar(legs, lidar_pose), beams))
     for class_id, (center, lo, hi, rmin, rmax), beams in polar:
         arc = clip_to_field_of_view(center, lo, hi, bearings_rad)
         visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max and arc is not None
