@@ -64,6 +64,12 @@ def _validate_prefix(prefix: str) -> str:
     return prefix
 
 
+def _validate_topic(topic: str) -> str:
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    return topic
+
+
 def _key(robot_id: str, topic: str, prefix: str) -> str:
     return f"{_validate_prefix(prefix)}/{validate_robot_id(robot_id)}/{topic}"
 
@@ -95,8 +101,7 @@ def tracks_key(robot_id: str, *, prefix: str = PREFIX) -> str:
 
 def wildcard_key(topic: str, *, prefix: str = PREFIX) -> str:
     """Key expression matching ``topic`` for every robot, so one service can serve a whole fleet."""
-    if topic not in TOPICS:
-        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    _validate_topic(topic)
     return f"{_validate_prefix(prefix)}/*/{topic}"
 
 
@@ -183,15 +188,13 @@ def shard_members_key(service: str) -> str:
 def source_key(topic: str, robot_id: str, source: str) -> str:
     """Liveliness token of one publisher of ``topic`` for ``robot_id``: subscribers that serve only some
     robots (the detector processes sharing a fleet) subscribe to a robot's key once it is announced."""
-    if topic not in TOPICS:
-        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    _validate_topic(topic)
     return f"{SOURCES_PREFIX}/{topic}/{validate_robot_id(robot_id)}/{validate_robot_id(source)}"
 
 
 def topic_sources_key(topic: str) -> str:
     """Every announced source of ``topic``, all robots (``triscan/@sources/tensor/*/*``)."""
-    if topic not in TOPICS:
-        raise ValueError(f"unknown topic {topic!r}; known topics: {', '.join(TOPICS)}")
+    _validate_topic(topic)
     return f"{SOURCES_PREFIX}/{topic}/*/*"
 
 

@@ -166,6 +166,16 @@ def delivered(session: Any, key: str, payload: bytes, inbox: Inbox) -> bool:
         publisher.undeclare()
 
 
+def _live_tokens(session: Any, pattern: str) -> list[str]:
+    """The liveliness tokens ``session`` sees on ``pattern``, asked until some answer or the wait ends."""
+    deadline = time.monotonic() + MATCH_WAIT_S
+    tokens: list[str] = []
+    while not tokens and time.monotonic() < deadline:
+        replies = session.liveliness().get(pattern, timeout=1.0)
+        tokens = [str(reply.ok.key_expr) for reply in replies if reply.ok]
+    return tokens
+
+
 def drop_access_control(config: dict[str, Any]) -> None:
     """A rogue writes its own config: it can always switch its own checks off."""
     del config["access_control"]
@@ -295,17 +305,11 @@ def test_health_tokens_and_stats_still_flow(mesh: Mesh) -> None:
 
     subscriber = watcher.declare_subscriber("triscan/@stats/**", on_stats)
     mesh.stack.callback(subscriber.undeclare)
-    deadline = time.monotonic() + MATCH_WAIT_S
-    alive: list[str] = []
-    while not alive and time.monotonic() < deadline:
-        alive = [
-            str(reply.ok.key_expr)
-            for reply in watcher.liveliness().get("triscan/@health/**", timeout=1.0)
-            if reply.ok
-        ]
+    alive = _live_tokens(watcher, "triscan/@health/**")
     assert alive == ["triscan/@health/detector/1"]
     publisher = detector.declare_publisher("triscan/@stats/detector/1")
     mesh.stack.callback(publisher.undeclare)
+    deadline = time.monotonic() + MATCH_WAIT_S
     while not publisher.matching_status.matching and time.monotonic() < deadline:
         time.sleep(0.02)
     publisher.put(b"{}")
@@ -318,14 +322,7 @@ def test_shard_tokens_flow_so_detector_processes_can_share_a_fleet(mesh: Mesh) -
     other = mesh.secure("detector")
     token = other.liveliness().declare_token(shard_key("detector", "a1f3"))
     mesh.stack.callback(token.undeclare)
-    deadline = time.monotonic() + MATCH_WAIT_S
-    members: list[str] = []
-    while not members and time.monotonic() < deadline:
-        members = [
-            str(reply.ok.key_expr)
-            for reply in watcher.liveliness().get(shard_members_key("detector"), timeout=1.0)
-            if reply.ok
-        ]
+    members = _live_tokens(watcher, shard_members_key("detector"))
     assert members == [shard_key("detector", "a1f3")]
 
 
@@ -335,12 +332,5 @@ def test_tensor_source_tokens_flow_so_detectors_know_which_robots_to_subscribe_t
     encoder = mesh.secure("encoder")
     token = announce_source(encoder, "r1", TENSOR)
     mesh.stack.callback(token.undeclare)
-    deadline = time.monotonic() + MATCH_WAIT_S
-    sources: list[str] = []
-    while not sources and time.monotonic() < deadline:
-        sources = [
-            str(reply.ok.key_expr)
-            for reply in watcher.liveliness().get(topic_sources_key(TENSOR), timeout=1.0)
-            if reply.ok
-        ]
+    sources = _live_tokens(watcher, topic_sources_key(TENSOR))
     assert sources == [f"triscan/@sources/tensor/r1/{encoder.zid()}"]
