@@ -222,6 +222,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the robots send tensors (their own encoder on board): the detector alone on this host",
     )
     parser.add_argument(
+        "--from-scans",
+        action="store_true",
+        help="the robots send scans and the detector processes encode their own robots' (no encoder)",
+    )
+    parser.add_argument(
         "--detectors",
         type=int,
         default=None,
@@ -261,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
                 "--ladder", ",".join(map(str, ladder)), "--seconds", str(args.seconds),
                 "--rate", str(args.rate), "--detector-defaults", "--out", str(fleet_json),
                 *(("--encode-on-robots",) if args.encode_on_robots else ()),
+                *(("--from-scans",) if args.from_scans else ()),
                 *(("--detectors", str(args.detectors)) if args.detectors else ()),
             ]
         )  # fmt: skip

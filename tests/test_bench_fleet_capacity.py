@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bench import fleet_capacity
-from bench.fleet_capacity import frame_seq, stamped
+from bench.fleet_capacity import RecordedFrame
 from common.inference import OnnxDetector
 from common.messages import Scan, StackedTensor, decode_message
 from common.model_spec import SHIPPED_INT8_MODEL, default_model_path
@@ -27,13 +27,15 @@ def recorded_tensor() -> StackedTensor:
 
 def test_a_restamped_tensor_passes_the_detectors_validation_as_the_robots_own() -> None:
     recorded = recorded_tensor()
+    frame = RecordedFrame(recorded)
     core = DetectorCore(OnnxDetector(default_model_path(batched=True), intra_op_threads=1))
     for tick in (0, 1, 57):
         stamp = STAMP_NS + tick * PERIOD_NS
-        tensor = core.decode(stamped(recorded, "fleet007", tick, stamp, PERIOD_NS), key_robot_id="fleet007")
+        tensor = core.decode(frame.payload("fleet007", tick, stamp, PERIOD_NS), key_robot_id="fleet007")
         assert tensor is not None, core.counters.to_dict()
-        seq = frame_seq(recorded, tick)
+        seq = frame.seq(tick)
         assert (tensor.robot_id, tensor.seq, tensor.stamp_ns) == ("fleet007", seq, stamp)
+        assert seq == tick + 2  # the tensor's newest scan; its oldest is never negative
         assert tensor.scan_seqs == (seq - 2, seq - 1, seq)
         assert np.diff(tensor.scan_stamps_ns).tolist() == [PERIOD_NS, PERIOD_NS]
         assert tensor.scan_stamps_ns[2] == tensor.stamp_ns
@@ -43,10 +45,9 @@ def test_a_restamped_tensor_passes_the_detectors_validation_as_the_robots_own() 
 
 def test_a_restamped_scan_keeps_the_tick_as_its_seq() -> None:
     recorded = replay_scans("r1", 1)[0].scan
-    payload = stamped(recorded, "fleet001", 12, STAMP_NS, PERIOD_NS)
+    payload = RecordedFrame(recorded).payload("fleet001", 12, STAMP_NS, PERIOD_NS)
     scan = decode_message(payload, Scan)
-    assert (scan.robot_id, scan.seq, scan.stamp_ns) == ("fleet001", frame_seq(recorded, 12), STAMP_NS)
-    assert scan.seq == 12
+    assert (scan.robot_id, scan.seq, scan.stamp_ns) == ("fleet001", 12, STAMP_NS)
     np.testing.assert_array_equal(scan.ranges, recorded.ranges)
 
 

@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 import zenoh
 
-from bench.fleet_capacity import stamped
+from bench.fleet_capacity import RecordedFrame
 from bench.harness import start_loopback_service
 from common.keys import DETECTIONS, TENSOR, service_stats_key, tensor_key, wildcard_key
 from common.messages import Detections, decode_message
@@ -76,7 +76,8 @@ class Fleet(threading.Thread):
     def __init__(self, session: Any) -> None:
         super().__init__(daemon=True)
         encoder = EncoderCore("zero")
-        self.frames = [t for s in replay_scans("fleet", 12) if (t := encoder.push(s.scan)) is not None]
+        tensors = [t for s in replay_scans("fleet", 12) if (t := encoder.push(s.scan)) is not None]
+        self.frames = [RecordedFrame(tensor) for tensor in tensors]
         # BLOCK: a loaded host's publisher would otherwise drop a burst of a dozen 73 KB tensors, and the
         # tests check where tensors go, not how many survive the queue.
         block = zenoh.CongestionControl.BLOCK
@@ -94,8 +95,8 @@ class Fleet(threading.Thread):
         while not self.halt.wait(1.0 / RATE_HZ):
             frame = self.frames[tick % len(self.frames)]
             for robot, publisher in self.publishers.items():
-                publisher.put(stamped(frame, robot, tick, time.time_ns(), period_ns))
-            self.last_seq = tick + 2  # bench.fleet_capacity.frame_seq of a tensor
+                publisher.put(frame.payload(robot, tick, time.time_ns(), period_ns))
+            self.last_seq = frame.seq(tick)
             self.sent += len(self.publishers)
             tick += 1
 
