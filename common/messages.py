@@ -10,6 +10,17 @@ therefore turns *every* way a payload can be wrong into one exception type, ``Me
 ``reason`` is a short fixed token a service can count, and whose text names the offending field in one
 line, so a service can log, count and drop a bad sample and keep serving.
 
+The stacked tensor's raster is binary (0 or ``common.encoding.HIT``) and sparse: one lit pixel per beam
+per channel, a few hundred of each channel's 24,576. Schema version 3 lets it travel as its lit pixels
+(:class:`LitRasterSpec`), a few kilobytes instead of 73,728 bytes that every hop (msgpack, Zenoh, the
+detector's copy and decode) would pay for. The rule that picks the form: ``encode_message`` writes a
+version-3 tensor's raster as its lit pixels when the raster is binary and that form is the smaller,
+and densely otherwise (a raster with other values can only travel dense); versions 1 and 2 are always
+dense, and a version-3 reader accepts both forms. Like every message, a tensor built without an
+explicit version gets the lowest version that holds it, and so travels dense; a producer opts in with
+``schema_version=LIT_PIXELS_VERSION``, as the encoder does. A build that speaks only 1 and 2 refuses
+such a tensor as "schema_version 3 is not supported (this build speaks 1, 2)".
+
 Arrays held by models are always C-contiguous, little-endian and read-only. Read-only is the price
 of not copying on decode (``np.frombuffer`` views the unpacked bytes); it also keeps frozen models
 honestly immutable. Call ``.copy()`` on an array to get a writable one.
@@ -32,26 +43,33 @@ from pydantic import (
     Field,
     GetCoreSchemaHandler,
     GetJsonSchemaHandler,
+    SerializationInfo,
     ValidationError,
+    ValidationInfo,
+    field_serializer,
     field_validator,
     model_validator,
 )
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import core_schema
 
+from common.encoding import HIT
 from common.keys import validate_robot_id
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS, TENSOR_SHAPE
 
-SCHEMA_VERSION: Final[int] = 2
+SCHEMA_VERSION: Final[int] = 3
 """The newest schema this build writes and reads; it also reads every older one down to version 1.
 
 Version 2 added fields without changing any: ``odom`` (the robot's pose) on scans, tensors and
-detections, and the ``tracks`` message. A message built without an explicit version gets, and travels
-as, the *lowest* version that holds it, so a version-1 reader keeps reading every message without
-odometry, and the first one with odometry reaches it as "schema_version 2 is not supported (this
-build speaks 1)" rather than as an unknown field.
+detections, and the ``tracks`` message. Version 3 adds the lit-pixel form of a tensor's raster
+(:data:`LIT_PIXELS_VERSION`). A message built without an explicit version gets, and travels as, the
+*lowest* version that holds it, so a version-1 reader keeps reading every message without odometry,
+and the first one with odometry reaches it as "schema_version 2 is not supported (this build speaks
+1)" rather than as an unknown field.
 """
-SUPPORTED_SCHEMA_VERSIONS: Final[tuple[int, ...]] = (1, 2)
+SUPPORTED_SCHEMA_VERSIONS: Final[tuple[int, ...]] = (1, 2, 3)
+LIT_PIXELS_VERSION: Final[int] = 3
+"""The version whose tensors travel as their lit pixels (module docstring); a producer asks for it."""
 MAX_PAYLOAD_BYTES: Final[int] = 4 * 1024 * 1024
 MAX_BEAMS: Final[int] = 8192
 MAX_TRUTH_OBJECTS: Final[int] = 64
@@ -64,6 +82,8 @@ _MAX_ARRAY_LEN: Final[int] = 1024
 _MAX_MAP_LEN: Final[int] = 64
 
 _TWO_PI: Final[float] = 2.0 * math.pi
+# encode_message's serialisation context: fields with a compact wire form (the tensor) write it only then.
+_WIRE: Final[dict[str, bool]] = {"wire": True}
 
 
 class MessageError(ValueError):
@@ -164,19 +184,23 @@ class NDArraySpec:
             out = arr.copy(order="C")
         return self._finish(out)
 
-    def _from_map(self, value: dict[Any, Any]) -> np.ndarray:
-        if set(value) != {"dtype", "shape", "data"}:
-            raise ValueError(
-                f"array map must have exactly the keys dtype, shape, data; got {sorted(map(str, value))}"
-            )
-        dtype_name, shape_raw, data = value["dtype"], value["shape"], value["data"]
+    def _declared(self, dtype_name: Any, shape_raw: Any) -> tuple[np.dtype[Any], tuple[int, ...], int]:
+        """A wire map's dtype and shape, checked: what the map declares, before any buffer is touched."""
         dt = self._wire_names.get(dtype_name) if isinstance(dtype_name, str) else None
         if dt is None:
             raise ValueError(f"dtype must be {self._describe_allowed()} (little-endian), got {dtype_name!r}")
         if not isinstance(shape_raw, list | tuple) or not all(type(d) is int and d >= 0 for d in shape_raw):
             raise ValueError(f"shape must be a list of non-negative ints, got {shape_raw!r}")
         shape = tuple(shape_raw)
-        count = self._check_shape(shape)
+        return dt, shape, self._check_shape(shape)
+
+    def _from_map(self, value: dict[Any, Any]) -> np.ndarray:
+        if set(value) != {"dtype", "shape", "data"}:
+            raise ValueError(
+                f"array map must have exactly the keys dtype, shape, data; got {sorted(map(str, value))}"
+            )
+        data = value["data"]
+        dt, shape, count = self._declared(value["dtype"], value["shape"])
         if not isinstance(data, bytes | bytearray):
             # ValueError, not TypeError: pydantic only turns ValueError into a ValidationError.
             raise ValueError(f"data must be bytes, got {type(data).__name__}")
@@ -214,10 +238,128 @@ class NDArraySpec:
         }
 
 
+_LIT_KEYS: Final[frozenset[str]] = frozenset({"dtype", "shape", "counts", "lit"})
+_LIT_INDEX: Final[np.dtype[Any]] = np.dtype("<u2")
+
+
+@dataclass(frozen=True)
+class LitRasterSpec(NDArraySpec):
+    """A fixed-shape uint8 raster of planes (last axis: channels) that may also travel as its lit pixels.
+
+    The lit form is ``{"dtype", "shape", "counts", "lit"}``: ``counts`` holds one count per channel,
+    and ``lit`` the channels' pixel indices one channel after the other, each channel's strictly
+    increasing, as little-endian uint16 (``row * width + column`` within the plane). A listed pixel is
+    ``HIT``, every other 0. Two bytes per lit pixel against a dense byte per pixel and channel: an
+    encoder raster, with one lit pixel per beam per channel, shrinks some thirty-fold; a bitmap would
+    cost a fixed eighth of the dense form whatever the scan, and varint deltas would need a byte loop
+    to decode, where uint16 indices are a numpy view that scatters straight into the dense array.
+
+    Decoding checks everything a dense map's decoding does, and first, on the declared numbers alone
+    (before anything is allocated), that the counts are in range and add up to the bytes; then that
+    every index lies in the plane and each channel's are sorted and unique. The result is the same
+    read-only dense array either form gives, so nothing downstream knows which form came.
+    """
+
+    def __post_init__(self) -> None:
+        plane = [d for d in self.shape[:-1] if d is not None]
+        if None in self.shape or math.prod(plane) > 1 << (8 * _LIT_INDEX.itemsize):
+            raise ValueError(
+                f"lit pixels need a fixed shape whose planes fit uint16 indices, got {self.shape}"
+            )
+
+    def _from_map(self, value: dict[Any, Any]) -> np.ndarray:
+        return self._from_lit(value) if "lit" in value else super()._from_map(value)
+
+    def _from_lit(self, value: dict[Any, Any]) -> np.ndarray:
+        if set(value) != _LIT_KEYS:
+            raise ValueError(
+                f"lit-pixel map must have exactly the keys {', '.join(sorted(_LIT_KEYS))}; "
+                f"got {sorted(map(str, value))}"
+            )
+        dt, shape, count = self._declared(value["dtype"], value["shape"])
+        channels, plane = shape[-1], count // shape[-1]
+        counts_raw, lit = value["counts"], value["lit"]
+        if not isinstance(counts_raw, list | tuple) or len(counts_raw) != channels:
+            got = (
+                f"{len(counts_raw)} items"
+                if isinstance(counts_raw, list | tuple)
+                else type(counts_raw).__name__
+            )
+            raise ValueError(f"counts must be a list of {channels} ints, one per channel, got {got}")
+        for channel, n in enumerate(counts_raw):
+            if type(n) is not int or not 0 <= n <= plane:
+                raise ValueError(f"counts[{channel}] must be an int in 0..{plane}, got {n!r}")
+        if not isinstance(lit, bytes | bytearray):
+            raise ValueError(f"lit must be bytes, got {type(lit).__name__}")
+        total = sum(counts_raw)
+        if len(lit) != total * _LIT_INDEX.itemsize:
+            raise ValueError(
+                f"counts add up to {total} pixels, expected {total * _LIT_INDEX.itemsize} bytes of lit, "
+                f"got {len(lit)}"
+            )
+        indices = np.frombuffer(lit, dtype=_LIT_INDEX)
+        ends = np.cumsum(counts_raw)
+        outside = np.flatnonzero(indices >= plane)
+        if outside.size:
+            at = int(outside[0])
+            raise ValueError(
+                f"lit index {indices[at]} of channel {np.searchsorted(ends, at, side='right')} is outside "
+                f"the {plane}-pixel plane"
+            )
+        # Each channel's indices rise strictly; a step down is only legal where the next channel begins.
+        falls = np.diff(indices.astype(np.int32)) <= 0
+        starts = ends[:-1]
+        falls[starts[(starts >= 1) & (starts < total)] - 1] = False
+        if falls.any():
+            at = int(np.argmax(falls)) + 1
+            raise ValueError(
+                f"lit indices of channel {np.searchsorted(ends, at, side='right')} must be sorted and "
+                f"unique, got {indices[at]} after {indices[at - 1]}"
+            )
+        dense = np.zeros(count, dtype=dt)
+        channel_of = np.repeat(np.arange(channels, dtype=np.intp), counts_raw)
+        dense[indices.astype(np.intp) * channels + channel_of] = HIT
+        return self._finish(dense.reshape(shape))
+
+    @staticmethod
+    def lit_map(arr: np.ndarray) -> dict[str, Any] | None:
+        """The lit-pixel form of a validated raster, or None where dense is the only or the smaller form."""
+        channels = arr.shape[-1]
+        flat = np.flatnonzero(arr)
+        if flat.size * _LIT_INDEX.itemsize >= arr.size or not bool((arr.reshape(-1)[flat] == HIT).all()):
+            return None
+        channel = flat % channels
+        # flat is ascending, so a stable sort by channel leaves each channel's pixels ascending.
+        pixels = (flat // channels)[np.argsort(channel, kind="stable")]
+        return {
+            "dtype": arr.dtype.str,
+            "shape": list(arr.shape),
+            "counts": np.bincount(channel, minlength=channels).tolist(),
+            "lit": pixels.astype(_LIT_INDEX).tobytes(),
+        }
+
+    def __get_pydantic_json_schema__(
+        self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        lit = {
+            "type": "object",
+            "description": f"{self._describe_allowed()} {self._shape_text()} as its lit pixels: per channel, "
+            "sorted little-endian uint16 indices row * width + column, their counts in counts",
+            "properties": {
+                "dtype": {"type": "string"},
+                "shape": {"type": "array", "items": {"type": "integer"}},
+                "counts": {"type": "array", "items": {"type": "integer"}},
+                "lit": {"type": "string", "format": "binary"},
+            },
+            "required": sorted(_LIT_KEYS),
+        }
+        return {"oneOf": [super().__get_pydantic_json_schema__(schema, handler), lit]}
+
+
 RangesArray = Annotated[
     np.ndarray, NDArraySpec(dtypes=("float32",), shape=(None,), min_elements=1, max_elements=MAX_BEAMS)
 ]
-TensorArray = Annotated[np.ndarray, NDArraySpec(dtypes=("uint8",), shape=TENSOR_SHAPE)]
+TensorArray = Annotated[np.ndarray, LitRasterSpec(dtypes=("uint8",), shape=TENSOR_SHAPE)]
 CornersArray = Annotated[np.ndarray, NDArraySpec(dtypes=("float32",), shape=(4, 2), finite=True)]
 
 # --------------------------------------------------------------------------------------------------
@@ -327,9 +469,13 @@ class Message(WireModel):
     def _lowest_version(cls, data: Any) -> Any:
         # A message built without an explicit version gets the lowest that holds it (see SCHEMA_VERSION).
         if isinstance(data, dict) and "schema_version" not in data:
-            used = [v for name, v in cls.FIELD_VERSIONS.items() if data.get(name) is not None]
-            data = {**data, "schema_version": max([cls.MIN_VERSION, *used])}
+            data = {**data, "schema_version": max([cls.MIN_VERSION, *cls._versions_used(data)])}
         return data
+
+    @classmethod
+    def _versions_used(cls, data: dict[str, Any]) -> list[int]:
+        """The versions that what ``data`` holds needs: each optional field's that is set."""
+        return [v for name, v in cls.FIELD_VERSIONS.items() if data.get(name) is not None]
 
     @model_validator(mode="after")
     def _fields_exist_in_version(self) -> Message:
@@ -393,6 +539,34 @@ class StackedTensor(Message):
     scan_stamps_ns: tuple[NonNegInt, NonNegInt, NonNegInt]
     encode_ms: NonNegFloat = 0.0  # the encoder's time for the newest scan (raster + stack), for Detections
     odom: Odometry | None = None  # of the newest scan (scan t), copied from it
+
+    @classmethod
+    def _versions_used(cls, data: dict[str, Any]) -> list[int]:
+        lit = isinstance(data.get("tensor"), dict) and "lit" in data["tensor"]
+        return [*super()._versions_used(data), *([LIT_PIXELS_VERSION] if lit else [])]
+
+    @field_validator("tensor", mode="before")
+    @classmethod
+    def _lit_pixels_need_their_version(cls, value: Any, info: ValidationInfo) -> Any:
+        version = info.data.get("schema_version")  # absent when it failed its own check
+        if (
+            isinstance(value, dict)
+            and "lit" in value
+            and version is not None
+            and version < LIT_PIXELS_VERSION
+        ):
+            raise ValueError(f"lit pixels need schema_version >= {LIT_PIXELS_VERSION}, got {version}")
+        return value
+
+    @field_serializer("tensor")
+    def _tensor_form(self, tensor: np.ndarray, info: SerializationInfo) -> dict[str, Any]:
+        # The rule of the module docstring. Only encode_message asks for the wire form: model_dump keeps
+        # the dense map, which rebuilds the message under any version.
+        if info.context is _WIRE and self.schema_version >= LIT_PIXELS_VERSION:
+            lit = LitRasterSpec.lit_map(tensor)
+            if lit is not None:
+                return lit
+        return NDArraySpec.serialize(tensor)
 
     @model_validator(mode="after")
     def _seq_is_newest(self) -> StackedTensor:
@@ -578,7 +752,7 @@ def encode_message(msg: Message) -> bytes:
         raise TypeError(f"only top-level messages can be encoded, got {type(msg).__name__}")
     body: dict[str, Any] = {"kind": type(msg).KIND}
     unset = {name for name in type(msg).FIELD_VERSIONS if getattr(msg, name) is None}
-    body.update(msg.model_dump(exclude=unset))
+    body.update(msg.model_dump(exclude=unset, context=_WIRE))
     return msgpack.packb(body, use_bin_type=True)
 
 

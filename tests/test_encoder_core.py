@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 
+import msgpack
 import numpy as np
 import pytest
 
 from common.encoding import ScanError, ScanStacker, encode_scan
-from common.messages import Odometry, Scan, StackedTensor, decode_message, encode_message
+from common.messages import LIT_PIXELS_VERSION, Odometry, Scan, StackedTensor, decode_message, encode_message
 from services.encoder.core import EncoderCore
+from services.sim_bag import recorded_scans
 
 DEG = math.radians(1.0)
 
@@ -258,3 +260,18 @@ def test_odometry_of_the_newest_scan_travels_into_the_tensor_and_a_nan_pose_is_r
     assert core.counters.odom_not_finite == 1 and not core.counters.rejected
     without = core.push(scan("r1", 4))
     assert without is not None and without.odom is None
+
+
+def test_tensors_travel_as_their_lit_pixels_and_decode_to_the_dense_raster() -> None:
+    """What the encoder process publishes (``encode_message`` of the core's tensor) for simulated scans."""
+    core = EncoderCore("zero")
+    tensors = [t for s in recorded_scans(8, seed=11) if (t := core.push(s)) is not None]
+    assert len(tensors) == 6
+    for tensor in tensors:
+        payload = encode_message(tensor)
+        body = msgpack.unpackb(payload)
+        assert (
+            body["schema_version"] == LIT_PIXELS_VERSION and "lit" in body["tensor"] and len(payload) < 4096
+        )
+        decoded = decode_message(payload, StackedTensor)
+        assert decoded == tensor and decoded.tensor.tobytes() == tensor.tensor.tobytes()

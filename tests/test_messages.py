@@ -13,8 +13,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
+from common import messages
+from common.encoding import HIT
 from common.messages import (
     CLASS_NAMES,
+    LIT_PIXELS_VERSION,
     MAX_BEAMS,
     MAX_DETECTIONS,
     MAX_PAYLOAD_BYTES,
@@ -350,7 +353,7 @@ def test_model_is_decoupled_from_callers_array() -> None:
         ({"angle_increment": 2 * DEG}, "field of view"),
         ({"robot_id": "a/b"}, "robot_id"),
         ({"seq": -1}, "seq"),
-        ({"schema_version": 3}, "schema_version"),
+        ({"schema_version": 4}, "schema_version"),
         ({"schema_version": 1, "odom": make_odom()}, "odom needs schema_version >= 2"),
         ({"frame_id": ""}, "frame_id"),
     ],
@@ -420,7 +423,7 @@ def test_models_are_frozen_and_forbid_extra() -> None:
 
 def test_messages_travel_as_the_lowest_version_that_holds_them() -> None:
     """Odometry and tracks are version 2; everything else stays readable by a version-1 build."""
-    assert SCHEMA_VERSION == max(SUPPORTED_SCHEMA_VERSIONS) == 2
+    assert SCHEMA_VERSION == max(SUPPORTED_SCHEMA_VERSIONS) == 3
     for plain in (make_scan(), make_tensor(), make_detections(), make_truth()):
         body = body_of(plain)
         assert body["schema_version"] == 1 and "odom" not in body
@@ -520,7 +523,7 @@ def test_shape_byte_length_mismatch_message_is_exact() -> None:
         (pack(7), "not_a_map", ("int",)),
         (encode_message(make_tensor()), "wrong_kind", ("'tensor'", "'scan'")),
         (without(make_scan(), "kind"), "wrong_kind", ("None",)),
-        (with_field(make_scan(), schema_version=3), "schema_version", ("3", "speaks 1, 2")),
+        (with_field(make_scan(), schema_version=4), "schema_version", ("4", "speaks 1, 2, 3")),
         (with_field(make_scan(), schema_version="1"), "schema_version", ("'1'",)),
         (with_field(make_scan(), schema_version=True), "schema_version", ("True",)),
         (without(make_scan(), "schema_version"), "schema_version", ("missing",)),
@@ -631,6 +634,207 @@ def test_message_error_is_value_error_with_reason() -> None:
 
 
 # --------------------------------------------------------------------------------------------------
+# Tensors as their lit pixels (schema version 3)
+# --------------------------------------------------------------------------------------------------
+
+PLANE = TENSOR_SHAPE[0] * TENSOR_SHAPE[1]
+
+
+def binary_raster(seed: int = 3, empty_channels: tuple[int, ...] = ()) -> np.ndarray:
+    """What the encoder makes: per channel one lit pixel per one-degree beam, at a random range row."""
+    rng = np.random.default_rng(seed)
+    raster = np.zeros(TENSOR_SHAPE, dtype=np.uint8)
+    for channel in set(range(TENSOR_SHAPE[2])) - set(empty_channels):
+        raster[rng.integers(0, TENSOR_SHAPE[0], size=360), np.arange(360), channel] = HIT
+    return raster
+
+
+def make_lit_tensor(**overrides: Any) -> StackedTensor:
+    return make_tensor(**{"tensor": binary_raster(), "schema_version": LIT_PIXELS_VERSION, **overrides})
+
+
+def with_lit(**changes: Any) -> bytes:
+    body = body_of(make_lit_tensor())
+    body["tensor"].update(changes)
+    return pack(body)
+
+
+def lit_indices(tensor: StackedTensor) -> np.ndarray:
+    return np.frombuffer(body_of(tensor)["tensor"]["lit"], dtype="<u2").copy()
+
+
+def with_indices(indices: np.ndarray) -> bytes:
+    return with_lit(lit=indices.astype("<u2").tobytes())
+
+
+@pytest.mark.parametrize(
+    "raster",
+    [
+        binary_raster(),
+        binary_raster(empty_channels=(0,)),
+        binary_raster(empty_channels=(1, 2)),
+        np.zeros(TENSOR_SHAPE, np.uint8),
+    ],
+    ids=["full", "first_empty", "last_two_empty", "dark"],
+)
+def test_lit_pixels_round_trip_bit_identical(raster: np.ndarray) -> None:
+    msg = make_lit_tensor(tensor=raster, odom=make_odom())
+    payload = encode_message(msg)
+    wire = msgpack.unpackb(payload)["tensor"]
+    assert set(wire) == {"dtype", "shape", "counts", "lit"} and wire["shape"] == list(TENSOR_SHAPE)
+    assert wire["counts"] == [int(np.count_nonzero(raster[:, :, c])) for c in range(3)]
+    decoded = decode_message(payload, StackedTensor)
+    assert decoded == msg and decoded.schema_version == LIT_PIXELS_VERSION
+    assert decoded.tensor.tobytes() == raster.tobytes() and decoded.tensor.dtype == np.uint8
+    assert not decoded.tensor.flags.writeable and decoded.tensor.flags.c_contiguous
+
+
+def test_lit_indices_are_each_channels_sorted_pixels() -> None:
+    raster = binary_raster()
+    wire = body_of(make_lit_tensor(tensor=raster))["tensor"]
+    indices, ends = np.frombuffer(wire["lit"], dtype="<u2"), np.cumsum([0, *wire["counts"]])
+    for c in range(3):
+        rows, cols = np.nonzero(raster[:, :, c])
+        np.testing.assert_array_equal(indices[ends[c] : ends[c + 1]], np.sort(rows * TENSOR_SHAPE[1] + cols))
+
+
+def test_a_lit_tensor_payload_is_a_few_kilobytes() -> None:
+    assert len(encode_message(make_lit_tensor())) < 4096 < 70_000 < len(encode_message(make_tensor()))
+
+
+@pytest.mark.parametrize(
+    ("raster", "why"),
+    [
+        (
+            np.random.default_rng(0).integers(0, 256, size=TENSOR_SHAPE, dtype=np.uint8),
+            "values other than 0/255",
+        ),
+        (np.where(binary_raster() > 0, np.uint8(1), np.uint8(0)), "lit with 1, not HIT"),
+        (np.full(TENSOR_SHAPE, HIT, np.uint8), "dense is smaller"),
+    ],
+)
+def test_a_version_3_raster_travels_dense_where_lit_pixels_cannot_hold_it(
+    raster: np.ndarray, why: str
+) -> None:
+    msg = make_lit_tensor(tensor=raster)
+    wire = body_of(msg)["tensor"]
+    assert set(wire) == {"dtype", "shape", "data"}, why
+    assert decode_message(encode_message(msg), StackedTensor) == msg
+
+
+def test_which_version_a_tensor_travels_as() -> None:
+    """Built without a version a tensor is the lowest that holds it, dense; a producer opts in to 3."""
+    plain = make_tensor(tensor=binary_raster())
+    assert plain.schema_version == 1 and set(body_of(plain)["tensor"]) == {"dtype", "shape", "data"}
+    assert body_of(make_tensor(tensor=binary_raster(), odom=make_odom()))["schema_version"] == 2
+    # Built from a lit-pixel map, only version 3 holds it.
+    from_map = StackedTensor(
+        **{
+            **make_tensor().model_dump(exclude={"schema_version"}),
+            "tensor": body_of(make_lit_tensor())["tensor"],
+        }
+    )
+    assert (
+        from_map.schema_version == LIT_PIXELS_VERSION
+        and from_map.tensor.tobytes() == binary_raster().tobytes()
+    )
+
+
+def test_model_dump_stays_dense_so_a_message_rebuilds_under_any_version() -> None:
+    lit = make_lit_tensor()
+    dumped = lit.model_dump()
+    assert set(dumped["tensor"]) == {"dtype", "shape", "data"}
+    assert StackedTensor(**{**dumped, "schema_version": 2}).tensor.tobytes() == lit.tensor.tobytes()
+
+
+def test_version_3_readers_accept_the_dense_form_and_older_versions() -> None:
+    dense = body_of(make_tensor(tensor=binary_raster(), odom=make_odom()))
+    assert dense["schema_version"] == 2
+    assert decode_message(pack(dense), StackedTensor) == make_tensor(tensor=binary_raster(), odom=make_odom())
+    as_v3 = decode_message(pack({**dense, "schema_version": 3}), StackedTensor)
+    assert as_v3.schema_version == 3 and as_v3.tensor.tobytes() == binary_raster().tobytes()
+
+
+def test_lit_pixels_under_an_older_version_are_refused() -> None:
+    for version in (1, 2):
+        expect_error(
+            with_field(make_lit_tensor(), schema_version=version),
+            StackedTensor,
+            "invalid",
+            f"tensor: lit pixels need schema_version >= 3, got {version}",
+        )
+
+
+def test_a_build_that_speaks_1_and_2_refuses_version_3_by_its_version(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """What docs/services.md promises an older detector says when a newer encoder's tensor reaches it."""
+    lit, older = encode_message(make_lit_tensor()), encode_message(make_tensor(odom=make_odom()))
+    monkeypatch.setattr(messages, "SUPPORTED_SCHEMA_VERSIONS", (1, 2))
+    err = expect_error(lit, StackedTensor, "schema_version")
+    assert str(err) == "tensor: schema_version 3 is not supported (this build speaks 1, 2)"
+    assert decode_message(older, StackedTensor).schema_version == 2
+
+
+def _moved(at: int, to: int) -> np.ndarray:
+    indices = lit_indices(make_lit_tensor())
+    indices[at] = to
+    return indices
+
+
+_N = int(np.count_nonzero(binary_raster()[:, :, 0]))  # pixels of channel 0, so channel 1 starts at _N
+
+
+@pytest.mark.parametrize(
+    ("payload", "fragments"),
+    [
+        (
+            with_lit(extra=1),
+            ("lit-pixel map must have exactly the keys counts, dtype, lit, shape", "'extra'"),
+        ),
+        (with_lit(data=b""), ("exactly the keys",)),
+        (with_lit(dtype="<f4"), ("uint8", "'<f4'")),
+        (with_lit(shape=[64, 360, 3]), ("shape [64, 384, 3]",)),
+        (with_lit(shape=[64, 384]), ("3-d",)),
+        (with_lit(shape=[2**62, 384, 3]), ("shape",)),
+        (with_lit(counts="360,360,360"), ("counts must be a list of 3 ints, one per channel, got str",)),
+        (with_lit(counts=[360, 360]), ("got 2 items",)),
+        (with_lit(counts=[-1, 360, 360]), ("counts[0] must be an int in 0..24576, got -1",)),
+        (with_lit(counts=[360, PLANE + 1, 360]), ("counts[1] must be an int in 0..24576, got 24577",)),
+        (with_lit(counts=[360, 360, 2**40]), ("counts[2]", str(2**40))),
+        (with_lit(counts=[360, 360.0, 360]), ("counts[1]", "360.0")),
+        (with_lit(counts=[True, 360, 360]), ("counts[0]", "True")),
+        (with_lit(lit="x" * 2160), ("lit must be bytes, got str",)),
+        (
+            with_lit(counts=[360, 360, 359]),
+            ("counts add up to 1079 pixels, expected 2158 bytes of lit, got 2160",),
+        ),
+        (with_lit(lit=bytes(2161)), ("expected 2160 bytes of lit, got 2161",)),
+        (with_indices(_moved(5, PLANE)), ("lit index 24576 of channel 0 is outside the 24576-pixel plane",)),
+        (with_indices(_moved(3 * 360 - 1, 65535)), ("lit index 65535 of channel 2 is outside",)),
+        (
+            with_indices(_moved(_N + 7, 0)),
+            ("lit indices of channel 1 must be sorted and unique", "got 0 after"),
+        ),
+        (with_indices(_moved(_N - 1, 0)), ("channel 0 must be sorted and unique",)),
+    ],
+)
+def test_decode_rejects_bad_lit_pixel_maps(payload: bytes, fragments: tuple[str, ...]) -> None:
+    expect_error(payload, StackedTensor, "invalid", "tensor: ", *fragments)
+
+
+def test_decode_rejects_a_repeated_lit_pixel() -> None:
+    indices = lit_indices(make_lit_tensor())
+    indices[_N + 4] = indices[_N + 3]
+    err = expect_error(with_indices(indices), StackedTensor, "invalid")
+    twice = indices[_N + 3]
+    assert (
+        str(err)
+        == f"tensor: tensor: lit indices of channel 1 must be sorted and unique, got {twice} after {twice}"
+    )
+
+
+# --------------------------------------------------------------------------------------------------
 # Properties
 # --------------------------------------------------------------------------------------------------
 
@@ -687,7 +891,7 @@ msgpack_values = st.recursive(
 
 @settings(max_examples=300, deadline=None)
 @given(
-    st.sampled_from([make_scan(), make_tensor(), make_detections(), make_truth()]),
+    st.sampled_from([make_scan(), make_tensor(), make_lit_tensor(), make_detections(), make_truth()]),
     st.data(),
     msgpack_values,
 )

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 from common.encoding import InvalidRule, Padding, ScanError, ScanStacker
 from common.keys import parse_key
-from common.messages import MessageError, Scan, StackedTensor, decode_message
+from common.messages import LIT_PIXELS_VERSION, MessageError, Scan, StackedTensor, decode_message
 
 log = logging.getLogger(__name__)
 
@@ -282,6 +282,7 @@ class EncoderCore:
         self.counters.published += 1
         tensor.flags.writeable = False  # no one else holds it: the message keeps it without a copy
         return StackedTensor(
+            schema_version=LIT_PIXELS_VERSION,  # travels as its lit pixels (common.messages)
             robot_id=scan.robot_id,
             seq=scan.seq,
             stamp_ns=scan.stamp_ns,
