@@ -6,8 +6,9 @@ under a reason. This process publishes, on the real keys:
 * a **good stream**: one robot's consecutive real scans; each must come back as detections;
 * **bad payloads** on scan and tensor keys of other robots: random bytes, truncated msgpack of real
   messages, wrong types, wrong shapes and dtypes, NaN/inf in every numeric field, arrays far beyond the
-  limits, payloads over the 4 MiB cap, unknown kinds and schema versions, payloads whose robot id
-  differs from the key's, and keys that are not valid robot ids;
+  limits, lit-pixel tensors whose counts, bytes or indices lie, payloads over the 4 MiB cap, unknown
+  kinds and schema versions, payloads whose robot id differs from the key's, and keys that are not
+  valid robot ids;
 * **bad ROS 2 payloads** on the ROS 2 bridge's scan key (rmw_zenoh style, ``0/rosfuzz/scan/<type>/
   <hash>``): bytes that are not CDR, truncated CDR, trailing bytes, a wrong type hash, a missing or
   malformed rmw_zenoh attachment, absurd and lying beam counts, NaN/inf/zero angles, too many beams
@@ -58,8 +59,10 @@ import zenoh
 
 from bench.harness import start_loopback_service
 from bench.report import write_report
+from common.encoding import HIT
 from common.keys import ALL_STATS, DETECTIONS, TENSOR, parse_key, scan_key, tensor_key, wildcard_key
 from common.messages import (
+    LIT_PIXELS_VERSION,
     MAX_PAYLOAD_BYTES,
     Detections,
     MessageError,
@@ -129,6 +132,24 @@ def mutations(scan: Scan, tensor: StackedTensor, rng: random.Random) -> list[tup
     def array(dtype: str, shape: list[int], data: bytes) -> dict[str, Any]:
         return {"dtype": dtype, "shape": shape, "data": data}
 
+    def lit(**changes: Any) -> Callable[[], bytes]:
+        """The tensor's lit-pixel map (``fuzz_tensor`` travels as one) with ``changes``."""
+        return with_field(tensor_raw, "tensor", {**tensor_raw["tensor"], **changes})
+
+    def lit_indices(change: Callable[[np.ndarray], None]) -> Callable[[], bytes]:
+        indices = np.frombuffer(tensor_raw["tensor"]["lit"], dtype="<u2").copy()
+        change(indices)
+        return lit(lit=indices.tobytes())
+
+    def outside(indices: np.ndarray) -> None:
+        indices[-1] = 0xFFFF
+
+    def unsorted(indices: np.ndarray) -> None:
+        indices[:2] = indices[1::-1]
+
+    def repeated(indices: np.ndarray) -> None:
+        indices[1] = indices[0]
+
     nan_ranges = np.full(360, np.nan, dtype="<f4").tobytes()
     blind_seq = iter(range(1, 1 << 62))
 
@@ -176,6 +197,14 @@ def mutations(scan: Scan, tensor: StackedTensor, rng: random.Random) -> list[tup
         ("tensor_bad_padding", with_field(tensor_raw, "padding", "mirror")),
         ("tensor_seqs_inconsistent", with_field(tensor_raw, "scan_seqs", [1, 2, 3])),
         ("tensor_encode_ms_nan", with_field(tensor_raw, "encode_ms", math.nan)),
+        ("tensor_lit_under_version_2", with_field(tensor_raw, "schema_version", 2)),
+        ("tensor_lit_extra_key", lit(data=b"")),
+        ("tensor_lit_counts_huge", lit(counts=[1 << 40, 0, 0])),
+        ("tensor_lit_counts_short", lit(counts=[360, 360])),
+        ("tensor_lit_bytes_short", lit(lit=tensor_raw["tensor"]["lit"][:-2])),
+        ("tensor_lit_index_outside", lit_indices(outside)),
+        ("tensor_lit_unsorted", lit_indices(unsorted)),
+        ("tensor_lit_repeated", lit_indices(repeated)),
     ]
 
 
@@ -359,11 +388,15 @@ def _start_services() -> tuple[int, Children]:
     return fuzz_port, children
 
 
-def _fuzz_tensor() -> StackedTensor:
-    """A valid tensor of the fuzz robot: the real message the tensor mutations are derived from."""
+def fuzz_tensor() -> StackedTensor:
+    """A valid tensor of the fuzz robot: the real message the tensor mutations are derived from. Like
+    the encoder's, it is version 3 with one lit pixel per beam per channel, so it travels as its lit
+    pixels."""
+    raster = np.zeros((64, 384, 3), np.uint8)
+    raster[20, :360, :] = HIT
     return StackedTensor(
-        robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=np.zeros((64, 384, 3), np.uint8), padding="zero",
-        scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
+        schema_version=LIT_PIXELS_VERSION, robot_id=FUZZ_ROBOT, seq=2, stamp_ns=1, tensor=raster,
+        padding="zero", scan_seqs=(0, 1, 2), scan_stamps_ns=(1, 1, 1),
     )  # fmt: skip
 
 
@@ -502,7 +535,7 @@ def _send_bad_payloads(fuzz: FuzzSession, bad: int, ros_bad: int, good_every: in
     """The fuzz proper: each bad payload with a bad ROS sample beside it, a good scan every ``good_every``."""
     ros_fuzz = ros_bad_payloads(ros_bad, fuzz.scans[0].model_copy(update={"robot_id": ROS_FUZZ_ROBOT}), seed)
     fuzz_scan = fuzz.scans[0].model_copy(update={"robot_id": FUZZ_ROBOT})
-    for i, (name, topic, robot, payload) in enumerate(bad_payloads(bad, fuzz_scan, _fuzz_tensor(), seed)):
+    for i, (name, topic, robot, payload) in enumerate(bad_payloads(bad, fuzz_scan, fuzz_tensor(), seed)):
         fuzz.send_bad(name, topic, robot, payload)
         if (ros := next(ros_fuzz, None)) is not None:
             fuzz.send_ros_fuzz(*ros)
