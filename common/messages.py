@@ -16,10 +16,10 @@ per channel, a few hundred of each channel's 24,576. Schema version 3 lets it tr
 detector's copy and decode) would pay for. The rule that picks the form: ``encode_message`` writes a
 version-3 tensor's raster as its lit pixels when the raster is binary and that form is the smaller,
 and densely otherwise (a raster with other values can only travel dense); versions 1 and 2 are always
-dense, and a version-3 reader accepts both forms. Like every message, a tensor built without an
-explicit version gets the lowest version that holds it, and so travels dense; a producer opts in with
-``schema_version=LIT_PIXELS_VERSION``, as the encoder does. A build that speaks only 1 and 2 refuses
-such a tensor as "schema_version 3 is not supported (this build speaks 1, 2)".
+dense, and a version-3 reader accepts both forms. Like every message, a tensor built from an array
+without an explicit version gets the lowest version that holds it, and so travels dense; a producer
+opts in with ``schema_version=LIT_PIXELS_VERSION``, as the encoder does. A build that speaks only 1
+and 2 refuses such a tensor as "schema_version 3 is not supported (this build speaks 1, 2)".
 
 Arrays held by models are always C-contiguous, little-endian and read-only. Read-only is the price
 of not copying on decode (``np.frombuffer`` views the unpacked bytes); it also keeps frozen models
@@ -527,7 +527,10 @@ class Scan(Message):
 
 
 class StackedTensor(Message):
-    """Three consecutive rasters stacked as the network input (channel 0 = t-2, 1 = t-1, 2 = t)."""
+    """Three consecutive rasters stacked as the network input (channel 0 = t-2, 1 = t-1, 2 = t).
+
+    The raster's wire form, dense or its lit pixels, follows the message's version (module docstring).
+    """
 
     KIND: ClassVar[str] = "tensor"
     FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2}
