@@ -868,6 +868,20 @@ def test_random_valid_scans_round_trip(scan: Scan) -> None:
     assert decoded.ranges.tobytes() == scan.ranges.tobytes()
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.0, 1e-4, 0.01, 0.3, 0.6]), st.booleans())
+def test_random_rasters_round_trip_at_version_3(seed: int, density: float, binary: bool) -> None:
+    """Whichever form the serialiser picks (lit pixels, or dense past half lit or for other values)."""
+    rng = np.random.default_rng(seed)
+    raster = np.where(rng.random(TENSOR_SHAPE) < density, HIT, np.uint8(0)).astype(np.uint8)
+    if not binary:
+        raster[rng.integers(0, 64), rng.integers(0, 384), rng.integers(0, 3)] = 7
+    msg = make_lit_tensor(tensor=raster)
+    payload = encode_message(msg)
+    assert ("lit" in msgpack.unpackb(payload)["tensor"]) == (binary and density < 0.5)
+    assert decode_message(payload, StackedTensor).tensor.tobytes() == raster.tobytes()
+
+
 @settings(max_examples=400, deadline=None)
 @given(st.binary(max_size=512), st.sampled_from([Scan, StackedTensor, Detections, GroundTruth]))
 def test_random_bytes_only_raise_message_error(payload: bytes, expected: type[Message]) -> None:
