@@ -100,6 +100,24 @@ def test_people_stay_walkable_and_clear_of_furniture_the_robot_and_each_other() 
     assert sample_people(sample_scenario(0, seed=21), robot, 0.1, 5.0, 0, rng) == []
 
 
+def test_most_sampled_people_walk_for_the_whole_motion() -> None:
+    """People a robot meets are mostly passing by: over a 5 s motion most of a sampled person's time is
+    spent walking, and a walker is already under way at the first scan (the real recordings' walkers)."""
+    rng = np.random.default_rng(5)
+    robot = np.array([[-1.2, -1.2, 0.0]] * 50)
+    walking_share, moving_at_start = [], []
+    for index in range(6):
+        scenario = sample_scenario(index, seed=22)
+        for _ in range(8):
+            for person in sample_people(scenario, robot, 0.1, 5.0, 4, rng):
+                walking_share.append(float(np.mean(person.speeds > 0.3)))
+                moving_at_start.append(bool(person.speeds[: round(0.5 / TIME_STEP_S)].max() > 0.3))
+    assert len(walking_share) > 40
+    # Walks that started up to half the motion late and ended before it did gave 0.16 and 0.31.
+    assert np.mean(walking_share) > 0.5, np.mean(walking_share)
+    assert np.mean(moving_at_start) > 0.5, np.mean(moving_at_start)
+
+
 def test_each_beam_names_the_leg_it_hit() -> None:
     person = _build([(2.0, 0.0)], [], [], 0.0, 1.0, 0.05, 0.2, 0.0)  # facing +x: legs at y = ±0.1
     rays = np.array([[math.cos(a), math.sin(a)] for a in np.radians([0.0, 2.9, -2.9, 45.0])])

@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 SPLITS = ("train", "val", "test")
 SPLIT_FRACTIONS = (0.85, 0.10, 0.05)
 HEADINGS_DEG = np.arange(0, 360, 45)
-STATIONARY_SHARE = 0.25  # of the motions with people, those where the robot stands still
+STATIONARY_SHARE = 0.5  # of the motions with people, those where the robot stands still
 
 
 @dataclass(frozen=True)

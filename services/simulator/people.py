@@ -3,8 +3,8 @@
 A 2D LiDAR at about 0.17 m sees a person as two leg cross-sections (docs/people.md has the sources of
 the sizes and the gait used here):
 
-* each leg is a circle of 0.04–0.07 m radius (lower calf over a sock or trousers); wide trousers and
-  skirts widen it, up to 0.09 m;
+* each leg is a circle of 0.055–0.08 m radius (lower calf in trousers: the width real recordings show
+  at scan height, docs/people.md); wide trousers and skirts widen it, up to 0.10 m;
 * the legs stand ``step_width_m`` apart across the walking direction;
 * walking at speed v, the cadence is ``CADENCE_BASE + CADENCE_GAIN·v`` steps/s, so a step is
   ``v / cadence`` long: 0.64 m and 2.0 steps/s at 1.3 m/s, shrinking to nothing as v → 0;
@@ -43,6 +43,7 @@ INSIDE_HALF_M = ROOM_HALF_M - 0.25  # centres inside the room stay this far insi
 OUTSIDE_DEPTH_M = 0.8  # how far beyond the door a path may start or end
 PLACEMENT_TRIES = 30
 BEHAVIOURS = ("cross", "door", "visit", "stand", "group")
+BEHAVIOUR_SHARES = (0.3, 0.2, 0.2, 0.1, 0.2)  # most people a robot meets are passing by
 
 
 def leg_object(person: int, leg: int) -> int:
@@ -245,31 +246,86 @@ def _walking_speed(rng: np.random.Generator) -> float:
     return float(rng.uniform(0.8, MAX_SPEED_MPS)) if rng.random() < 0.7 else float(rng.uniform(0.3, 0.8))
 
 
+def _fill(
+    points: list[tuple[float, float]],
+    scenario: Scenario,
+    duration_s: float,
+    rng: np.random.Generator,
+    *,
+    pause_share: float,
+    pauses_s: tuple[float, float],
+    beside_share: float,
+) -> tuple[list[tuple[float, float]], list[float], list[float]]:
+    """Extend a walk from ``points[-1]`` spot to spot (free floor, or beside the desk or the chair for
+    ``beside_share`` of the spots) along walkable straight legs until ``duration_s`` is filled, each leg
+    at its own walking speed, with a pause of ``pauses_s`` at ``pause_share`` of the spots. Walks end
+    early only where no walkable spot is found (the person then stands there)."""
+    points = list(points)
+    speeds: list[float] = []
+    pauses: list[float] = []
+    elapsed = 0.0
+    while elapsed < duration_s + 2.0:
+        for _ in range(PLACEMENT_TRIES):
+            beside = rng.random() < beside_share
+            target = _beside_furniture(scenario, rng) if beside else _free_point(scenario, rng)
+            if _segment_walkable(points[-1], target, scenario):
+                break
+        else:
+            break
+        speed = _walking_speed(rng)
+        pause = float(rng.uniform(*pauses_s)) if rng.random() < pause_share else 0.0
+        elapsed += math.dist(points[-1], target) / speed + pause
+        points.append(target)
+        speeds.append(speed)
+        pauses.append(pause)
+    return points, speeds, pauses
+
+
 def _plan(behaviour: str, scenario: Scenario, duration_s: float, rng: np.random.Generator) -> _Plan:
-    speed = _walking_speed(rng)
-    start = float(rng.uniform(-2.0, 0.5 * duration_s))
+    """One person's plan for a robot motion. Walkers are under way from the motion's first scan and
+    walk for all of it: people a robot meets are mostly passing by, and what their legs do between
+    the stacked scans is the cue the network reads."""
+    start = float(rng.uniform(-2.0, 0.0))
     if behaviour == "stand":
         spot = _beside_furniture(scenario, rng) if rng.random() < 0.6 else _free_point(scenario, rng)
         return _Plan([spot], [], [], 0.0)
-    if behaviour == "visit":  # walk to the desk or chair and stand there, or stop a while and go on
+    if behaviour == "visit":  # walk to the desk or chair, stop a while there (or stay), then go on
         spot = _beside_furniture(scenario, rng)
+        stays = rng.random() < 0.3
         points = [_free_point(scenario, rng), spot]
-        pauses = [float(rng.uniform(0.5, 3.0)) if rng.random() < 0.5 else duration_s]
-        if pauses[0] < duration_s:
-            points.append(_free_point(scenario, rng))
-            pauses.append(0.0)
-        return _Plan(points, [speed] * (len(points) - 1), pauses, start)
-    if behaviour == "door":  # in or out through the doorway
+        speeds, pauses = [_walking_speed(rng)], [duration_s if stays else float(rng.uniform(0.5, 3.0))]
+        if not stays:
+            points, more_speeds, more_pauses = _fill(
+                points, scenario, duration_s, rng, pause_share=0.2, pauses_s=(0.5, 2.0), beside_share=0.3
+            )
+            speeds, pauses = speeds + more_speeds, pauses + more_pauses
+        return _Plan(points, speeds, pauses, start)
+    if behaviour == "door":  # in through the doorway and on about the room, or the same walk out
         outside, doorway = _door_points(scenario, rng)
-        inner = [_free_point(scenario, rng) for _ in range(int(rng.integers(1, 3)))]
-        points = [outside, doorway, *inner]
+        points, speeds, pauses = _fill(
+            [outside, doorway],
+            scenario,
+            duration_s,
+            rng,
+            pause_share=0.1,
+            pauses_s=(0.5, 2.0),
+            beside_share=0.2,
+        )
+        speeds, pauses = [_walking_speed(rng), *speeds], [0.0, *pauses]
         if rng.random() < 0.5:
-            points.reverse()
-        return _Plan(points, [speed] * (len(points) - 1), [0.0] * (len(points) - 1), start)
-    # cross: a walk across the room, with a turn at one or two intermediate points
-    points = [_free_point(scenario, rng) for _ in range(int(rng.integers(2, 4)))]
-    pauses = [float(rng.uniform(0.5, 2.0)) if rng.random() < 0.2 else 0.0 for _ in points[1:]]
-    return _Plan(points, [speed] * (len(points) - 1), pauses, start)
+            points, speeds, pauses = points[::-1], speeds[::-1], [*pauses[-2::-1], 0.0]
+        return _Plan(points, speeds, pauses, start)
+    # cross: walks across the room from spot to spot, now and then stopping briefly
+    points, speeds, pauses = _fill(
+        [_free_point(scenario, rng)],
+        scenario,
+        duration_s,
+        rng,
+        pause_share=0.2,
+        pauses_s=(0.5, 2.0),
+        beside_share=0.0,
+    )
+    return _Plan(points, speeds, pauses, start)
 
 
 def _fits(
@@ -300,7 +356,7 @@ def _build_plan(plan: _Plan, duration_s: float, rng: np.random.Generator, latera
             n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9)
             shifted.append((point[0] + lateral_m * n[0], point[1] + lateral_m * n[1]))
         points = shifted
-    radius = float(rng.uniform(0.04, 0.07)) if rng.random() < 0.85 else float(rng.uniform(0.07, 0.09))
+    radius = float(rng.uniform(0.055, 0.08)) if rng.random() < 0.85 else float(rng.uniform(0.08, 0.10))
     return _build(
         points,
         plan.speeds,
@@ -308,7 +364,7 @@ def _build_plan(plan: _Plan, duration_s: float, rng: np.random.Generator, latera
         plan.start_s,
         duration_s,
         leg_radius_m=radius,
-        step_width_m=float(rng.uniform(0.12, 0.22)) + 2 * (radius - 0.05),
+        step_width_m=float(rng.uniform(0.12, 0.22)) + 2 * (radius - 0.065),
         initial_heading=float(rng.uniform(-math.pi, math.pi)),
     )
 
@@ -330,7 +386,7 @@ def sample_people(
     robot_xy = np.asarray(robot_path, dtype=np.float64)[:, :2]
     placed: list[Person] = []
     while len(placed) < wanted:
-        behaviour = BEHAVIOURS[int(rng.integers(0, len(BEHAVIOURS)))]
+        behaviour = str(rng.choice(BEHAVIOURS, p=BEHAVIOUR_SHARES))
         size = int(rng.integers(2, 4)) if behaviour == "group" else 1
         size = min(size, wanted - len(placed))
         group: list[Person] = []
@@ -364,25 +420,13 @@ def _wander(scenario: Scenario, duration_s: float, rng: np.random.Generator) -> 
     out of the door and back in), standing a while at some, until ``duration_s`` is filled."""
     if rng.random() < 0.3:
         outside, doorway = _door_points(scenario, rng)
-        points, speeds, pauses = [outside, doorway], [_walking_speed(rng)], [0.0]
+        first, speeds, pauses = [outside, doorway], [_walking_speed(rng)], [0.0]
     else:
-        points, speeds, pauses = [_free_point(scenario, rng)], [], []
-    elapsed = 0.0
-    while elapsed < duration_s + 2.0:
-        for _ in range(PLACEMENT_TRIES):
-            roll = rng.random()
-            target = _beside_furniture(scenario, rng) if roll < 0.3 else _free_point(scenario, rng)
-            if _segment_walkable(points[-1], target, scenario):
-                break
-        else:
-            break  # boxed in: this person stands where they are
-        speed = _walking_speed(rng)
-        pause = float(rng.uniform(1.0, 6.0)) if rng.random() < 0.35 else 0.0
-        elapsed += math.dist(points[-1], target) / speed + pause
-        points.append(target)
-        speeds.append(speed)
-        pauses.append(pause)
-    return _Plan(points, speeds, pauses, float(rng.uniform(-2.0, 0.0)))
+        first, speeds, pauses = [_free_point(scenario, rng)], [], []
+    points, more_speeds, more_pauses = _fill(
+        first, scenario, duration_s, rng, pause_share=0.35, pauses_s=(1.0, 6.0), beside_share=0.3
+    )
+    return _Plan(points, speeds + more_speeds, pauses + more_pauses, float(rng.uniform(-2.0, 0.0)))
 
 
 def sample_live_people(
