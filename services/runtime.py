@@ -9,8 +9,9 @@ else) notices a dead peer without polling. Once a second it publishes its counte
 publisher and token undeclared, the session closed: a session left open with a callback subscriber
 hangs the interpreter at exit). :class:`RobotPublishers` holds one publisher per robot, declared on
 first use and forgotten with its robot, so a fleet that changes over time does not leak them; the
-encoder's also announce each robot's tensors (:func:`announce_source`), which is how the detector
-processes that share a fleet know which robots' tensors to subscribe to. A
+encoder's also announce each robot's tensors, and the simulator's each robot's scans
+(:func:`announce_source`), which is how the processes that share a fleet know which robots' keys to
+subscribe to. A
 service's ``run`` is then: build its pure core, subscribe the core's handlers, and hand
 :meth:`ServiceRuntime.serve` a housekeeping function that returns the counters to publish.
 """
@@ -29,7 +30,7 @@ from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import Any, NoReturn
 
-from common.keys import health_key, service_health_key, source_key, stats_key
+from common.keys import SCAN, health_key, service_health_key, source_key, stats_key
 from common.transport import (
     ZenohSettings,
     ZenohSetupError,
@@ -37,6 +38,7 @@ from common.transport import (
     open_session,
     payload_bytes,
 )
+from services.shards import SETTLE_S
 
 log = logging.getLogger(__name__)
 
@@ -187,13 +189,23 @@ on one network, and a sample published before it arrives is lost. A robot stream
 is announced with its first scan, a few scan periods before its first tensor, and never waits."""
 
 
+def announce_lead_s(topic: str) -> float:
+    """How long a robot's first ``topic`` sample waits after its announcement: :data:`ANNOUNCE_LEAD_S`,
+    and for a scan :data:`services.shards.SETTLE_S` more, since one process serves the scans of robots
+    with no token and the owner of an announced robot takes its scans only once every process has
+    seen its token (:mod:`services.shard_subscriptions`)."""
+    return ANNOUNCE_LEAD_S + (SETTLE_S if topic == SCAN else 0.0)
+
+
 def announce_source(session: Any, robot_id: str, topic: str) -> Any:
     """Declare that this session publishes ``topic`` for ``robot_id`` (a liveliness token on
     :func:`common.keys.source_key`); returns the token, to undeclare when the robot's samples stop.
 
-    The detector processes that share a fleet subscribe only to the tensors of announced robots they
+    The processes that share a fleet subscribe only to the tensors (or scans) of announced robots they
     serve, so whoever puts tensors (the encoder through :class:`RobotPublishers`, a test, a bench)
-    announces each robot first, then waits for a subscriber (:func:`common.transport.wait_for_subscriber`)."""
+    announces each robot first, then waits for a subscriber (:func:`common.transport.wait_for_subscriber`);
+    whoever puts scans announces them too and holds the first for :func:`announce_lead_s`, or is
+    served by the one process that serves the robots with no token."""
     return session.liveliness().declare_token(source_key(topic, robot_id, str(session.zid())))
 
 
@@ -205,7 +217,7 @@ class RobotPublishers:
     core has forgotten itself, so publishers live exactly as long as their robot. With
     ``announce_topic`` (the topic ``key_of`` builds keys of) every robot's publisher comes with its
     source token (:func:`announce_source`), declared by :meth:`announce` or the first :meth:`put` and
-    undeclared with the publisher, and a robot's first samples wait until :data:`ANNOUNCE_LEAD_S`
+    undeclared with the publisher, and a robot's first samples wait until :func:`announce_lead_s`
     after the announcement.
     """
 
@@ -233,7 +245,7 @@ class RobotPublishers:
             self._last_put[robot_id] = now  # forget_silent counts the silence from here
             if self._announce_topic is not None:
                 self._tokens[robot_id] = announce_source(self._session, robot_id, self._announce_topic)
-                self._held_until[robot_id] = now + ANNOUNCE_LEAD_S
+                self._held_until[robot_id] = now + announce_lead_s(self._announce_topic)
         return publisher
 
     def announce(self, robot_id: str) -> None:

@@ -1,5 +1,7 @@
 """Which robots' tensors a detector process subscribes to: the announced robots it owns, and how that
-set changes as members join and leave and robots' sources come and go; then the same over Zenoh."""
+set changes as members join and leave and robots' sources come and go; which member serves the scans
+of robots that announce nothing, and how a robot's announcement moves it without a scan served twice;
+then the same over Zenoh."""
 
 from __future__ import annotations
 
@@ -7,11 +9,20 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from common.keys import TENSOR, tensor_key
+import pytest
+
+from common.keys import SCAN, TENSOR, scan_key, tensor_key
 from common.transport import ZenohSettings, open_session
 from services.runtime import announce_source
-from services.shard_subscriptions import OwnedRobots, OwnedSubscriptions, robots_to_subscribe
-from services.shards import owner_of
+from services.shard_subscriptions import (
+    UNANNOUNCED,
+    OwnedRobots,
+    OwnedSubscriptions,
+    holds_wildcard,
+    robots_to_subscribe,
+    serves,
+)
+from services.shards import ShardView, owner_of
 from tests.support.waiting import wait_for
 
 ROBOTS = [f"robot{i:03d}" for i in range(60)]
@@ -95,6 +106,133 @@ def test_a_robot_announced_while_another_member_owns_it_is_not_subscribed_here()
     assert plan.wanted() == {theirs}
 
 
+SETTLE_S = 0.5
+LONG_AGO = -10.0
+
+
+def member(me: str, members: list[str], now: float = LONG_AGO) -> tuple[OwnedRobots, ShardView]:
+    """A member's plan and view, both settled on ``members`` since ``now``."""
+    plan = OwnedRobots(me, settle_s=SETTLE_S, now=now)
+    plan.set_members(members)
+    view = ShardView(me, settle_s=SETTLE_S, now=now)
+    view.set_members(members, now=now)
+    return plan, view
+
+
+def test_exactly_one_member_holds_the_wildcard_and_another_takes_it_when_it_goes() -> None:
+    members = [ME, OTHER, THIRD]
+    holders = [m for m in members if holds_wildcard(members, m)]
+    assert holders == [owner_of(UNANNOUNCED, members)]
+    survivors = [m for m in members if m != holders[0]]
+    assert [m for m in survivors if holds_wildcard(survivors, m)] == [owner_of(UNANNOUNCED, survivors)]
+    assert holds_wildcard([], ME)  # alone, a member serves every robot that announces nothing
+
+
+def test_a_robot_is_served_as_its_own_while_announced_and_as_the_unannounced_while_not() -> None:
+    plan = OwnedRobots(ME, settle_s=SETTLE_S, now=LONG_AGO)
+    assert plan.serving_ids("r1", now=0.0) == (UNANNOUNCED,)
+    plan.source_up("r1", "sim", now=0.0)
+    assert plan.announced("r1") and not plan.announced("r2")
+    assert plan.serving_ids("r1", now=0.4) == ("r1", UNANNOUNCED)  # others may not have seen the token yet
+    assert plan.serving_ids("r1", now=0.5) == ("r1",)
+    plan.source_down("r1", "sim", now=1.0)
+    assert plan.serving_ids("r1", now=1.2) == ("r1", UNANNOUNCED)
+    assert plan.serving_ids("r1", now=1.5) == (UNANNOUNCED,)
+
+
+def test_every_robot_counts_as_just_changed_until_the_member_has_watched_the_sources_for_settle_s() -> None:
+    plan = OwnedRobots(ME, settle_s=SETTLE_S, now=LONG_AGO)
+    plan.watching(now=0.0)  # the tokens already up arrive a moment later
+    assert plan.serving_ids("r1", now=0.3) == ("r1", UNANNOUNCED)
+    assert plan.serving_ids("r1", now=0.6) == (UNANNOUNCED,)
+
+
+def test_each_robot_announced_or_not_is_served_by_exactly_the_member_that_receives_it() -> None:
+    members = [ME, OTHER, THIRD]
+    everyone = {m: member(m, members) for m in members}
+    loud, quiet = ROBOTS[:40], ROBOTS[40:]
+    for plan, _ in everyone.values():
+        for robot_id in loud:
+            plan.source_up(robot_id, "sim", now=LONG_AGO)
+    for robot_id in ROBOTS:
+        servers = [m for m, (plan, view) in everyone.items() if serves(plan, view, robot_id, now=0.0)]
+        receivers = [
+            m
+            for m, (plan, _) in everyone.items()
+            if robot_id in plan.wanted() or (plan.holds_wildcard() and not plan.announced(robot_id))
+        ]
+        assert servers == receivers and len(servers) == 1, (robot_id, servers, receivers)
+    holder = owner_of(UNANNOUNCED, members)
+    assert all(serves(*everyone[holder], robot_id, now=0.0) for robot_id in quiet)
+
+
+Members = dict[str, tuple[OwnedRobots, ShardView]]
+
+
+def two_members() -> tuple[str, str, Members, str]:
+    """(the member that holds the wildcard, the other one, both settled, a robot the other one owns)."""
+    members = [ME, OTHER]
+    holder = owner_of(UNANNOUNCED, members)
+    owner = next(m for m in members if m != holder)
+    assert holder is not None
+    robot_id = next(r for r in ROBOTS if owner_of(r, members) == owner)
+    return holder, owner, {m: member(m, members) for m in members}, robot_id
+
+
+def served_by(everyone: Members, robot_id: str, now: float) -> list[str]:
+    return [m for m, (plan, view) in everyone.items() if serves(plan, view, robot_id, now=now)]
+
+
+@pytest.mark.parametrize("holder_learns_first", [True, False])
+def test_a_robot_that_becomes_announced_moves_to_its_owner_and_is_never_served_twice(
+    holder_learns_first: bool,
+) -> None:
+    holder, owner, everyone, robot_id = two_members()
+    assert served_by(everyone, robot_id, now=0.0) == [holder]
+    first, second = (holder, owner) if holder_learns_first else (owner, holder)
+    everyone[first][0].source_up(robot_id, "sim", now=1.0)
+    everyone[second][0].source_up(robot_id, "sim", now=1.05)  # the token reaches it a little later
+    for now in (1.0, 1.02, 1.05, 1.3, 1.5, 1.54):
+        assert len(served_by(everyone, robot_id, now)) <= 1, now
+    assert served_by(everyone, robot_id, now=1.56) == [owner]
+    assert robot_id in everyone[owner][0].wanted()  # on its own key, which the owner subscribes to
+
+
+@pytest.mark.parametrize("holder_learns_first", [True, False])
+def test_a_robot_whose_last_source_goes_moves_to_the_wildcard_and_is_never_served_twice(
+    holder_learns_first: bool,
+) -> None:
+    holder, owner, everyone, robot_id = two_members()
+    for plan, _ in everyone.values():
+        plan.source_up(robot_id, "sim", now=0.0)
+    assert served_by(everyone, robot_id, now=1.0) == [owner]
+    first, second = (holder, owner) if holder_learns_first else (owner, holder)
+    everyone[first][0].source_down(robot_id, "sim", now=2.0)
+    everyone[second][0].source_down(robot_id, "sim", now=2.05)
+    for now in (2.0, 2.02, 2.05, 2.3, 2.5, 2.54):
+        assert len(served_by(everyone, robot_id, now)) <= 1, now
+    assert served_by(everyone, robot_id, now=2.56) == [holder]
+    assert robot_id not in everyone[owner][0].wanted()
+
+
+def test_when_the_wildcard_s_member_dies_another_takes_the_unannounced_robots_after_settling() -> None:
+    members = [ME, OTHER, THIRD]
+    everyone = {m: member(m, members) for m in members}
+    holder = owner_of(UNANNOUNCED, members)
+    survivors = [m for m in members if m != holder]
+    heir = owner_of(UNANNOUNCED, survivors)
+    quiet = ROBOTS[:5]
+    for robot_id in quiet:
+        assert served_by(everyone, robot_id, now=0.0) == [holder]
+    del everyone[holder]
+    for plan, view in everyone.values():
+        plan.set_members(survivors)
+        view.set_members(survivors, now=1.0)
+    assert [m for m, (plan, _) in everyone.items() if plan.holds_wildcard()] == [heir]  # subscribes at once
+    assert not any(served_by(everyone, robot_id, now=1.3) for robot_id in quiet)  # serves after settling
+    assert all(served_by(everyone, robot_id, now=1.5) == [heir] for robot_id in quiet)
+
+
 def test_the_zenoh_side_subscribes_to_an_announced_robot_and_drops_it_when_its_source_goes(
     free_port: Callable[[], int],
 ) -> None:
@@ -127,5 +265,53 @@ def test_the_zenoh_side_subscribes_to_an_announced_robot_and_drops_it_when_its_s
             assert wait_for(lambda: len(subscriptions) == 0, 10)
             mine.undeclare()
             unannounced.undeclare()
+        finally:
+            subscriptions.close()
+
+
+def test_the_zenoh_side_hands_unannounced_robots_to_the_wildcard_and_announced_ones_to_their_key(
+    free_port: Callable[[], int],
+) -> None:
+    port = free_port()
+    mine: list[str] = []
+    theirs: list[str] = []
+    lock = threading.Lock()
+
+    def collect(into: list[str]) -> Callable[[Any], None]:
+        def on_sample(sample: Any) -> None:
+            with lock:
+                into.append(str(sample.key_expr))
+
+        return on_sample
+
+    with (
+        open_session(ZenohSettings.loopback(port)) as detector,
+        open_session(ZenohSettings.loopback(None, [port])) as robots,
+    ):
+        subscriptions = OwnedSubscriptions(
+            detector, str(detector.zid()), SCAN, scan_key, collect(mine), unannounced=collect(theirs)
+        )
+        subscriptions.start()  # alone: it owns every announced robot and serves the unannounced ones
+        try:
+            loud = robots.declare_publisher(scan_key("r1"))
+            token = announce_source(robots, "r1", SCAN)
+            quiet = robots.declare_publisher(scan_key("r2"))
+            assert wait_for(lambda: len(subscriptions) == 1, 10)
+            assert wait_for(lambda: subscriptions.counters(60.0)["wildcard"], 10)
+            assert wait_for(lambda: quiet.matching_status.matching, 10)
+            loud.put(b"x")
+            quiet.put(b"y")
+            assert wait_for(lambda: mine == [scan_key("r1")] and theirs == [scan_key("r2")], 10), (
+                mine,
+                theirs,
+            )
+            assert wait_for(lambda: subscriptions.counters(60.0)["skipped_announced"] == 1, 10)
+            assert subscriptions.counters(60.0)["unannounced_robots"] == 1
+            token.undeclare()
+            assert wait_for(lambda: len(subscriptions) == 0, 10)
+            loud.put(b"z")  # no longer announced: the wildcard passes it on
+            assert wait_for(lambda: theirs == [scan_key("r2"), scan_key("r1")], 10), theirs
+            for entity in (loud, quiet):
+                entity.undeclare()
         finally:
             subscriptions.close()

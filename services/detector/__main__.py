@@ -10,9 +10,9 @@ up to N waiting robots' tensors in one model call, which a CPU does for less per
 (:mod:`services.detector.batch_cap`). ``--detectors N`` (default: one per core) starts N-1 more
 processes like this one; the live detector processes, here or on other hosts of the same Zenoh
 network, share the robots among themselves (:mod:`services.shards`), and each subscribes only to the
-tensors of the announced robots it serves (:mod:`services.shard_subscriptions`). ``--from-scans``
-subscribes to every robot's scans instead: scans come from robots, bridges and users' code that
-announce nothing.
+tensors (``--from-scans``: the scans) of the announced robots it serves
+(:mod:`services.shard_subscriptions`); with ``--from-scans`` one of them also serves the scans of
+robots that announce nothing (a user's driver, a bridge).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from common.inference import OnnxDetector
-from common.keys import ALL_SCANS, TENSOR, detections_key, tensor_key
+from common.keys import SCAN, TENSOR, detections_key, scan_key, tensor_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
@@ -79,12 +79,24 @@ def run(
     The process serves the robots that rendezvous hashing gives it among the live detector processes
     (:mod:`services.shards`); ``siblings`` are the other processes of this launch, restarted if one dies.
     It serves, and declares its health token, once ``processes`` detectors are live and settled, so
-    that a launch's token means all of its processes serve their shares. Tensors are subscribed per
-    robot it serves, once the robot's source is announced; scans (``from_scans``) on a wildcard.
+    that a launch's token means all of its processes serve their shares. Samples are subscribed per
+    robot it serves, once the robot's source is announced; with ``from_scans`` the process that
+    serves the robots with no source token also subscribes to every robot's scans.
     """
     with ServiceRuntime("detector", settings, stop, duration_s=duration_s) as runtime:
         publishers = runtime.robot_publishers(detections_key)
         shards = ShardMembership(runtime.session, "detector")
+
+        def on_sample(sample: Any) -> None:
+            sample_key = str(sample.key_expr)
+            if not pipeline.not_ours(sample_key):  # another process's robot: no payload copy
+                pipeline.handle_sample(sample_key, payload_bytes(sample))
+
+        topic, key_of = (SCAN, scan_key) if from_scans else (TENSOR, tensor_key)
+        unannounced = on_sample if from_scans else None  # scans also come from code that announces none
+        subscriptions = OwnedSubscriptions(
+            runtime.session, shards.me, topic, key_of, on_sample, unannounced=unannounced
+        )
 
         def publish(detections: Detections) -> None:
             publishers.put(detections.robot_id, encode_message(detections))
@@ -95,18 +107,7 @@ def run(
             batch=batch,
             from_scans=from_scans,
             forget_after_s=forget_after_s,
-            owns=shards.owns,
-        )
-
-        def on_sample(sample: Any) -> None:
-            sample_key = str(sample.key_expr)
-            if not pipeline.not_ours(sample_key):  # another process's robot: no payload copy
-                pipeline.handle_sample(sample_key, payload_bytes(sample))
-
-        tensors = (
-            None
-            if from_scans
-            else OwnedSubscriptions(runtime.session, shards.me, TENSOR, tensor_key, on_sample)
+            owns=subscriptions.owns(shards.view) if from_scans else shards.owns,
         )
 
         def housekeeping() -> dict[str, object]:
@@ -114,34 +115,28 @@ def run(
             if siblings is not None:
                 siblings.restart_dead()
             shard = shards.log_changes(forget_after_s)
-            if tensors is not None:
-                tensors.set_members(shards.view.members)  # a missed membership change heals here
-                shard["subscribed_robots"] = len(tensors)
+            subscriptions.set_members(shards.view.members)  # a missed membership change heals here
+            shard.update(subscriptions.counters(forget_after_s))
             return {**pipeline.housekeeping(), "robots": len(publishers), "shard": shard}
 
         pipeline.start()
         try:
-            if tensors is None:
-                runtime.subscribe_samples(ALL_SCANS, on_sample)
-                shards.join()
-            else:
-                shards.join(tensors.set_members)
+            shards.join(subscriptions.set_members)
             shards.wait_settled(processes, stop)
-            if tensors is not None:  # once settled: a robot it subscribes to is one it serves
-                tensors.start()
+            subscriptions.start()  # once settled: a robot it subscribes to is one it serves
             detector = pipeline.core.detector
             log.info(
-                "detector %s ready: %s (%s padding) on %s → detections",
+                "detector %s ready: %s (%s padding) on its announced robots' %ss%s → detections",
                 shards.me[:8],
                 detector.model_id,
                 detector.padding,
-                ALL_SCANS if tensors is None else "the tensors of the announced robots it serves",
+                topic,
+                " (and the unannounced robots' if it serves them)" if from_scans else "",
             )
             runtime.serve(housekeeping)
         finally:
             pipeline.stop()  # publishes nothing more, then gives its robots up
-            if tensors is not None:
-                tensors.close()
+            subscriptions.close()
             shards.leave()
     return pipeline.core
 
