@@ -48,13 +48,13 @@ from bench.harness import (
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, summed_counters, write_report
 from common.inference import model_facts
-from common.keys import DETECTIONS, TENSOR, scan_key, service_stats_key, tensor_key, wildcard_key
+from common.keys import DETECTIONS, SCAN, TENSOR, scan_key, service_stats_key, tensor_key, wildcard_key
 from common.messages import Scan, StackedTensor, encode_message
 from common.transport import ZenohSettings, open_session, payload_bytes, wait_for_subscriber
 from services.detector.batch_cap import detector_model_and_batch
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
-from services.runtime import announce_source, wait_for_service
+from services.runtime import announce_lead_s, announce_source, wait_for_service
 from services.sim_bag import recorded_scans
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -169,14 +169,18 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
             stats_sub = session.declare_subscriber(service_stats_key("detector"), on_detector_stats)
             key = tensor_key if args.encode_on_robots else scan_key
             publishers = [session.declare_publisher(key(rid)) for rid in robot_ids]
-            if args.encode_on_robots:  # each detector process subscribes to the announced robots it serves
-                sources = [announce_source(session, rid, TENSOR) for rid in robot_ids]
+            # Each process sharing the fleet subscribes to the announced robots it serves.
+            topic = TENSOR if args.encode_on_robots else SCAN
+            sources = [announce_source(session, rid, topic) for rid in robot_ids]
+            if args.encode_on_robots:
                 for rid in robot_ids:
                     wait_for_subscriber(session, tensor_key(rid))
             else:
                 wait_for_subscriber(session, scan_key(robot_ids[0]))
             if runs_encoder(args):  # the encoder announces each robot's tensors to the detector
                 wait_for_service(session, "detector")
+            if not args.encode_on_robots:  # a robot's owner takes its scans once its token has settled
+                time.sleep(announce_lead_s(SCAN))
             published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
@@ -187,9 +191,8 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
             step.detector_mean_batch = round(int(detector.get("processed", 0)) / calls, 2) if calls else 0.0
             sub.undeclare()
             stats_sub.undeclare()
-            if args.encode_on_robots:
-                for source in sources:
-                    source.undeclare()
+            for source in sources:
+                source.undeclare()
     finally:
         stop_processes(children, grace_s=30)
     _judge_step(step, published, received, args)

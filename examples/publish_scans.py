@@ -29,6 +29,10 @@ log = logging.getLogger("publish_scans")
 
 SCHEMA_VERSION = 1
 ODOM_SCHEMA_VERSION = 2  # a scan that carries odometry (the tracker keeps still objects still with it)
+# Seconds between announcing the robot and its first scan (services.runtime.announce_lead_s("scan")): on
+# a fleet server each detector process subscribes to the announced robots it serves, and the one that
+# serves this robot takes its scans once every process has seen the announcement.
+ANNOUNCE_LEAD_S = 0.6
 
 
 # A stand-in room, ray-cast in closed form: solids as axis-aligned rectangles (x_min, y_min, x_max, y_max),
@@ -100,9 +104,13 @@ def scan_payload(robot_id: str, seq: int, stamp_ns: int, frame_id: str, t: float
 def main(config: zenoh.Config, robot_id: str, rate_hz: float, count: int, wait_s: float) -> None:
     with zenoh.open(config) as session:  # closing the session lets the interpreter exit
         publisher = session.declare_publisher(f"triscan/{robot_id}/scan")
+        # Announce the robot's scans (a liveliness token held while it publishes). A driver that does
+        # not is still served, by whichever detector process serves the robots that announce nothing.
+        source = session.liveliness().declare_token(f"triscan/@sources/scan/{robot_id}/{session.zid()}")
         deadline = time.monotonic() + wait_s
         while not publisher.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.05)  # Zenoh drops a put nobody subscribes to: wait for the detector first
+        time.sleep(ANNOUNCE_LEAD_S)
         started = time.monotonic()
         seq = 0
         while not count or seq < count:
@@ -112,6 +120,7 @@ def main(config: zenoh.Config, robot_id: str, rate_hz: float, count: int, wait_s
             seq += 1
             if seq % int(10 * rate_hz) == 0:
                 log.info("published %d scans on triscan/%s/scan", seq, robot_id)
+        source.undeclare()
         publisher.undeclare()
 
 

@@ -21,7 +21,9 @@ recordings (a file or its directory).
   the simulator): it holds the health token ``triscan/@health/replay/<pid>`` while it plays and
   publishes its counters (``published``, ``passes``, ``robots``, ``rejected``) on
   ``triscan/@stats/replay/<pid>``, so ``triscan status`` and the launcher see it like any service. It
-  exits 0 at the end of a bag played without ``--loop``: a finished replay is not a crash.
+  announces each robot's scans (:func:`services.runtime.announce_source`), so the detector processes
+  sharing a fleet each subscribe to their own robots'. It exits 0 at the end of a bag played without
+  ``--loop``: a finished replay is not a crash.
 
 rosbags is imported only when a bag is opened, so the launcher can import this module (for
 :class:`ReplayConfig`) on an install without the ``ros2`` extra.
@@ -41,7 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
-from common.keys import scan_key, validate_robot_id
+from common.keys import SCAN, scan_key, validate_robot_id
 from common.messages import Scan, encode_message
 from common.transport import ZenohSettings, add_zenoh_arguments, settings_from_args
 from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
@@ -54,6 +56,8 @@ from services.ros2_bridge.odometry import (
 )
 from services.runtime import (
     ServiceRuntime,
+    announce_lead_s,
+    announce_source,
     configure_logging,
     default_of,
     exit_code_of,
@@ -325,10 +329,13 @@ def run_replay(
     summary = ReplaySummary()
     with ServiceRuntime(SERVICE, settings, stop) as runtime:
         runtime.ready()  # it subscribes to nothing: up as soon as its session is
+        for robot_id in robots.values():  # each detector process subscribes to the robots it serves
+            runtime.keep(announce_source(runtime.session, robot_id, SCAN))
         try:
             wait_for_subscriber(runtime.session, scan_key(next(iter(robots.values()))), wait_s)
         except TimeoutError as exc:
             log.warning("%s: replaying anyway", exc)
+        stop.wait(announce_lead_s(SCAN))  # the robots' owners take their scans from here on
         publishers: dict[str, Any] = {}
 
         def publish(key: str, payload: bytes) -> None:

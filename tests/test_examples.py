@@ -5,7 +5,9 @@ The example writes the Scan wire format by hand; this test decodes every scan it
 project's own validating decoder and checks that a ``services.detector --from-scans`` process answers
 them, so the example cannot drift from the schema.
 
-The example waits for a subscriber before its first put. Connected to the test and the detector at
+The example announces its robot's scans as the project's publishers do (a source token, then a lead
+before the first scan), checked against :mod:`common.keys` and :func:`services.runtime.announce_lead_s`.
+It waits for a subscriber before its first put. Connected to the test and the detector at
 once it would start as soon as the test's subscriber matched, maybe before its link to the detector was
 up, and its first scans would reach only the test. So it runs twice: once to the test alone (every scan
 must decode), once to the detector alone (every scan from the third on must be answered).
@@ -13,6 +15,7 @@ must decode), once to the detector alone (every scan from the third on must be a
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -23,10 +26,11 @@ from typing import Any
 import pytest
 
 from bench.harness import start_loopback_service
-from common.keys import DETECTIONS, SCAN, wildcard_key
+from common.keys import DETECTIONS, SCAN, parse_source_key, topic_sources_key, wildcard_key
 from common.messages import Detections, MessageError, Scan, decode_message
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports, stop_processes
+from services.runtime import announce_lead_s
 from tests.support.health import service_pids
 from tests.support.waiting import wait_for
 
@@ -78,12 +82,22 @@ def test_publish_scans_example_writes_the_scan_wire_format() -> None:
         with lock:
             scans.append(scan)
 
+    sources: list[tuple[str, str, str]] = []
+
+    def on_source(sample: Any) -> None:
+        with lock:
+            sources.append(parse_source_key(str(sample.key_expr)))
+
     with open_session(ZenohSettings.loopback(test_port)) as session:
         sub = session.declare_subscriber(wildcard_key(SCAN), on_scan)
+        watch = session.liveliness().declare_subscriber(topic_sources_key(SCAN), on_source)
         run_example(test_port, ROBOT)
         assert wait_for(lambda: len(scans) + len(bad) >= SCANS, timeout=10), len(scans)
+        assert wait_for(lambda: len(sources) == 2, timeout=10), sources  # declared, then undeclared
+        watch.undeclare()
         sub.undeclare()
     with lock:
+        assert [(topic, robot) for topic, robot, _ in sources] == [(SCAN, ROBOT)] * 2
         assert not bad, bad[:3]
         assert [s.seq for s in scans] == list(range(SCANS)) and {s.robot_id for s in scans} == {ROBOT}
         assert scans[0].ranges.shape == (360,) and scans[0].frame_id == "laser"
@@ -122,6 +136,14 @@ def test_publish_scans_example_gets_every_scan_answered_by_a_detector() -> None:
     with lock:
         assert answered == set(range(2, SCANS))  # a tensor from the third scan on, every one answered
         assert classes == FURNITURE  # the stand-in room's furniture is found, and nothing else
+
+
+def test_publish_scans_example_waits_the_project_s_lead_after_announcing() -> None:
+    spec = importlib.util.spec_from_file_location("publish_scans", ROOT / "examples" / "publish_scans.py")
+    assert spec is not None and spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    assert pytest.approx(announce_lead_s(SCAN)) == example.ANNOUNCE_LEAD_S
 
 
 def detector_ready(session: Any) -> bool:

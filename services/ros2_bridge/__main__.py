@@ -1,8 +1,9 @@
 """``python -m services.ros2_bridge``: ROS 2 LaserScans (over Zenoh) in, triscan detections back to ROS 2.
 
 Subscribes to a robot's ``scan`` topic as a ROS 2 node on rmw_zenoh would (or behind
-zenoh-bridge-ros2dds, ``--style ros2dds``), publishes triscan ``Scan``s on ``triscan/<robot>/scan``,
-and turns the detector's ``triscan/<robot>/detections`` into ``vision_msgs/Detection3DArray`` and
+zenoh-bridge-ros2dds, ``--style ros2dds``), publishes triscan ``Scan``s on ``triscan/<robot>/scan``
+(each robot's announced, :func:`services.runtime.announce_source`), and turns the detector's
+``triscan/<robot>/detections`` into ``vision_msgs/Detection3DArray`` and
 ``visualization_msgs/MarkerArray`` on ``<namespace>/triscan/{detections,markers}``, the tracker's
 ``triscan/<robot>/tracks`` into the same two types on ``<namespace>/triscan/{tracks,track_markers}``.
 In rmw_zenoh style it declares the ROS graph tokens, so ``ros2 topic list`` shows its topics. Base
@@ -16,7 +17,7 @@ import logging
 import threading
 from typing import Any
 
-from common.keys import ALL_DETECTIONS, ALL_TRACKS
+from common.keys import ALL_DETECTIONS, ALL_TRACKS, SCAN
 from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.ros2_bridge.core import BridgeConfig, BridgeCore, Outgoing
 from services.ros2_bridge.rmw_zenoh import STYLES
@@ -24,6 +25,7 @@ from services.ros2_bridge.ros_types import DISTROS
 from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
+    announce_source,
     configure_logging,
     default_of,
     exit_code_of,
@@ -52,6 +54,7 @@ def run(
         zid = str(session.info.zid())
         publishers: dict[str, Any] = {}
         tokens: dict[str, Any] = {}
+        sources: dict[str, Any] = {}  # robot id → its scans' source token
 
         def publish(samples: list[Outgoing]) -> None:
             for sample in samples:
@@ -62,6 +65,16 @@ def run(
                             session.declare_publisher(sample.key)
                         )
                 publisher.put(sample.payload, attachment=sample.attachment)
+
+        def announce_robots() -> None:
+            """Each robot's scans are announced from the moment the bridge knows it, so the detector
+            process that serves it subscribes to them; its first scans, which follow at once, are
+            answered once every detector process has seen the token (docs/services.md)."""
+            with lock:
+                robot_ids = [robot_id for robot_id in core.robot_ids if robot_id not in sources]
+            for robot_id in robot_ids:
+                sources[robot_id] = runtime.keep(announce_source(session, robot_id, SCAN))
+            declare_graph()
 
         def declare_graph() -> None:
             if config.style != "rmw_zenoh":
@@ -78,7 +91,7 @@ def run(
                 out = core.handle_scan(str(sample.key_expr), payload_bytes(sample), _attachment_bytes(sample))
                 new_robot = len(core.robot_ids) != robots
             if new_robot:
-                declare_graph()
+                announce_robots()
             if out is not None:
                 publish([out])
 
@@ -88,7 +101,7 @@ def run(
                 core.handle_odometry(str(sample.key_expr), payload_bytes(sample), _attachment_bytes(sample))
                 new_robot = len(core.robot_ids) != robots
             if new_robot:
-                declare_graph()
+                announce_robots()
 
         def on_detections(key: str, payload: bytes) -> None:
             with lock:

@@ -2,7 +2,8 @@
 
 The simulation itself lives in :mod:`services.simulator.fleet` and knows no clock and no network;
 this module only adds the two: a tick schedule on the monotonic clock and one Zenoh publisher per robot
-and key (``triscan/<robot_id>/scan``, ``triscan/<robot_id>/truth``). ``run`` takes plain settings and
+and key (``triscan/<robot_id>/scan``, ``triscan/<robot_id>/truth``), each robot's scans announced
+(:func:`services.runtime.announce_source`). ``run`` takes plain settings and
 a stop event, so it can be called from a test or a launcher; ``main`` is the only place that parses
 flags and installs signal handlers.
 
@@ -22,13 +23,14 @@ import time
 from collections.abc import Sequence
 
 from common.encoding import PADDINGS
-from common.keys import scan_key, truth_key, validate_robot_id
+from common.keys import SCAN, scan_key, truth_key, validate_robot_id
 from common.messages import encode_message
 from common.transport import ZenohSettings, settings_from_args
 from services.runtime import (
     SUMMARY_PERIOD_S,
     ServiceRuntime,
     add_service_arguments,
+    announce_lead_s,
     configure_logging,
     exit_code_of,
     periodic_summary_level,
@@ -89,8 +91,11 @@ def run(
     """Publish ``fleet``'s scans and truth until ``stop`` is set or ``duration_s`` (> 0) has passed."""
     period_s = 1.0 / fleet.rate_hz
     with ServiceRuntime("simulator", settings, stop, duration_s=duration_s) as runtime:
-        scans = runtime.robot_publishers(scan_key)
+        # Announced: the detector processes that share a fleet each subscribe to the robots they serve.
+        scans = runtime.robot_publishers(scan_key, announce_topic=SCAN)
         truths = runtime.robot_publishers(truth_key)
+        for robot_id in fleet.robot_ids:
+            scans.announce(robot_id)
         summary = RateSummary(fleet.robot_ids)
         log.info(
             "publishing %d robot(s) at %.1f Hz: %s",
@@ -99,7 +104,7 @@ def run(
             ", ".join(scan_key(robot_id) for robot_id in fleet.robot_ids),
         )
         runtime.ready()
-        start = time.monotonic()
+        start = time.monotonic() + announce_lead_s(SCAN)  # the first scans wait for the robots' owners
         tick = 0  # index of the next tick; it is due at start + tick * period_s
         try:
             while not runtime.should_stop():
