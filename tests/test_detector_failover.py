@@ -1,12 +1,13 @@
 """Detector processes share a fleet over Zenoh liveliness: ``kill -9`` of one of three moves its robots,
-and each of two receives only the tensors of the robots it serves.
+and each of two receives only the tensors (``--from-scans``: the scans) of the robots it serves.
 
 The test publishes recorded tensors for a dozen robots at 10 Hz (the robots' stand-in of
 ``bench.fleet_capacity``), starts three ``services.detector --detectors 1`` processes on loopback,
 waits until every robot is answered, kills the process serving the most robots with SIGKILL and
 checks that its robots are answered again within 2 s, that no (robot, seq) is ever answered twice,
 and that no robot goes unanswered. The robots announce their tensors, as the encoder does, so each
-process subscribes to its own robots' only (services.shard_subscriptions).
+process subscribes to its own robots' only (services.shard_subscriptions). With ``--from-scans`` a
+robot that announces nothing is served too, by the one process that holds the scans' wildcard.
 """
 
 from __future__ import annotations
@@ -23,14 +24,15 @@ import pytest
 import zenoh
 
 from bench.fleet_capacity import RecordedFrame
-from bench.harness import start_loopback_service
-from common.keys import DETECTIONS, TENSOR, service_stats_key, tensor_key, wildcard_key
-from common.messages import Detections, decode_message
+from bench.harness import recorded_scans, start_loopback_service
+from common.keys import DETECTIONS, SCAN, TENSOR, scan_key, service_stats_key, tensor_key, wildcard_key
+from common.messages import Detections, decode_message, encode_message
 from common.model_spec import SHIPPED_MODEL
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.encoder.core import EncoderCore
 from services.launcher import free_tcp_ports, stop_processes
-from services.runtime import announce_source
+from services.runtime import announce_lead_s, announce_source
+from services.shard_subscriptions import UNANNOUNCED
 from services.shards import owner_of
 from tests.support.scan_replay import replay_scans
 from tests.support.waiting import wait_for
@@ -46,9 +48,9 @@ MOVE_WITHIN_S = 2.0
 class Answers:
     """Every detections message received: count per (robot, seq) and arrival times per robot."""
 
-    def __init__(self) -> None:
+    def __init__(self, robots: list[str] = ROBOTS) -> None:
         self.count: Counter[tuple[str, int]] = Counter()
-        self.arrivals: dict[str, list[tuple[float, int]]] = {robot: [] for robot in ROBOTS}
+        self.arrivals: dict[str, list[tuple[float, int]]] = {robot: [] for robot in robots}
         self.lock = threading.Lock()
 
     def __call__(self, sample: Any) -> None:
@@ -162,39 +164,53 @@ def test_killing_one_of_three_detectors_moves_its_robots_within_two_seconds() ->
         stop_processes({str(p): process for p, process in detectors.items()}, grace_s=20)
 
 
-def test_two_detector_processes_each_receive_only_the_tensors_of_the_robots_they_serve() -> None:
-    """``--detectors 2``: every tensor reaches its robot's owner and no other process (``not_ours`` stays
-    0), and every robot is answered by exactly one process."""
-    test_port, port = free_tcp_ports(2)
-    detector = start_loopback_service(
+class NewestStats:
+    """Each detector process's newest counters (a stats subscriber's callback)."""
+
+    def __init__(self) -> None:
+        self.by_pid: dict[int, dict[str, Any]] = {}
+        self.lock = threading.Lock()
+
+    def __call__(self, sample: Any) -> None:
+        body = json.loads(payload_bytes(sample))
+        with self.lock:
+            self.by_pid[int(body["pid"])] = body
+
+    def newest(self) -> list[dict[str, Any]]:
+        with self.lock:
+            return list(self.by_pid.values())
+
+
+def two_detectors(port: int, test_port: int, *extra: str) -> subprocess.Popen[bytes]:
+    """``services.detector --detectors 2`` (one thread each), connected to the test on ``test_port``."""
+    return start_loopback_service(
         "services.detector",
         port,
         [test_port],
+        *extra,
         "--detectors",
         "2",
         *ONE_THREAD,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    stats: dict[int, dict[str, Any]] = {}  # pid → its newest counters
-    lock = threading.Lock()
 
-    def on_stats(sample: Any) -> None:
-        body = json.loads(payload_bytes(sample))
-        with lock:
-            stats[int(body["pid"])] = body
 
-    def newest() -> list[dict[str, Any]]:
-        with lock:
-            return list(stats.values())
+def test_two_detector_processes_each_receive_only_the_tensors_of_the_robots_they_serve() -> None:
+    """``--detectors 2``: every tensor reaches its robot's owner and no other process (``not_ours`` stays
+    0), and every robot is answered by exactly one process."""
+    test_port, port = free_tcp_ports(2)
+    detector = two_detectors(port, test_port)
+    stats = NewestStats()
+    newest = stats.newest
 
     answers = Answers()
     try:
         with open_session(ZenohSettings.loopback(test_port)) as session:
             session.declare_subscriber(wildcard_key(DETECTIONS), answers)
-            session.declare_subscriber(service_stats_key("detector"), on_stats)
+            session.declare_subscriber(service_stats_key("detector"), stats)
             # Counters come once a launch's processes all serve, settled: no robot moves from here on.
-            assert wait_for(lambda: len(stats) == 2, 90), f"detectors up: {list(stats)}"
+            assert wait_for(lambda: len(newest()) == 2, 90), f"detectors up: {newest()}"
             fleet = Fleet(session)  # announces every robot
             for publisher in fleet.publishers.values():  # each robot's owner has subscribed
                 assert wait_for(lambda p=publisher: p.matching_status.matching, 30)
@@ -214,6 +230,98 @@ def test_two_detector_processes_each_receive_only_the_tensors_of_the_robots_they
                 assert body["not_ours"] == 0, body
                 assert body["shard"]["subscribed_robots"] == len(mine), body
                 assert body["robots"] == len(mine), body  # it answered its own robots, no other
+            with answers.lock:
+                twice = {key: n for key, n in answers.count.items() if n > 1}
+            assert not twice, f"answered more than once: {twice}"
+    finally:
+        stop_processes({str(port): detector}, grace_s=20)
+
+
+QUIET = "quiet00"  # a robot whose publisher announces nothing (a user's driver)
+SCAN_TICKS = 20  # scans each robot sends at least
+
+
+class ScanFleet(threading.Thread):
+    """Every robot publishes its next scan each period until stopped, the first ``first_s`` from now;
+    ``ROBOTS`` announce their scans as the project's publishers do, :data:`QUIET` does not."""
+
+    def __init__(self, session: Any) -> None:
+        super().__init__(daemon=True)
+        self.scans = recorded_scans(12)
+        block = zenoh.CongestionControl.BLOCK
+        self.publishers = {
+            robot: session.declare_publisher(scan_key(robot), congestion_control=block)
+            for robot in [*ROBOTS, QUIET]
+        }
+        self.sources = [announce_source(session, robot, SCAN) for robot in ROBOTS]
+        self.halt = threading.Event()
+        self.first_s = 0.0
+        self.ticks = 0
+
+    def run(self) -> None:
+        if self.halt.wait(self.first_s):
+            return
+        while True:
+            scan = self.scans[self.ticks % len(self.scans)]
+            for robot, publisher in self.publishers.items():
+                update = {"robot_id": robot, "seq": self.ticks, "stamp_ns": time.time_ns()}
+                publisher.put(encode_message(scan.model_copy(update=update)))
+            self.ticks += 1
+            if self.halt.wait(1.0 / RATE_HZ):
+                return
+
+
+def test_two_from_scans_processes_receive_only_their_announced_robots_scans_and_one_serves_the_rest() -> None:
+    """``--from-scans --detectors 2``: an announced robot's scans reach its owner and no other process's
+    subscriber (``not_ours`` stays 0), a robot that announces nothing is served by the process that
+    owns :data:`UNANNOUNCED`, and no scan is answered twice."""
+    test_port, port = free_tcp_ports(2)
+    detector = two_detectors(port, test_port, "--from-scans")
+    stats = NewestStats()
+    newest = stats.newest
+
+    answers = Answers([*ROBOTS, QUIET])
+    try:
+        with open_session(ZenohSettings.loopback(test_port)) as session:
+            session.declare_subscriber(wildcard_key(DETECTIONS), answers)
+            session.declare_subscriber(service_stats_key("detector"), stats)
+            assert wait_for(lambda: len(newest()) == 2, 90), f"detectors up: {newest()}"
+            fleet = ScanFleet(session)  # announces ROBOTS
+            # Each announced robot's owner has subscribed to its key, so has seen its token.
+            subscribed = lambda: sum(int(s["shard"]["subscribed_robots"]) for s in newest()) == len(ROBOTS)  # noqa: E731
+            assert wait_for(subscribed, 30), newest()
+            fleet.first_s = announce_lead_s(SCAN)  # as the project's publishers wait after announcing
+            fleet.start()
+            started = time.monotonic()
+            assert wait_for(lambda: all(answers.answered_since(r, started) for r in [*ROBOTS, QUIET]), 60)
+            assert wait_for(lambda: fleet.ticks >= SCAN_TICKS, 30)
+            fleet.halt.set()
+            fleet.join()
+            last = fleet.ticks - 1  # each robot's newest scan is always answered, by one process
+            assert wait_for(lambda: all(answers.has(robot, last) for robot in [*ROBOTS, QUIET]), 10)
+            sent, announced = fleet.ticks * len(fleet.publishers), fleet.ticks * len(ROBOTS)
+
+            def counted() -> tuple[int, int]:
+                """(scans into the processes' encoders, announced scans the wildcard dropped), all told."""
+                bodies = newest()
+                received = sum(int(body["encoder"]["received"]) for body in bodies)
+                return received, sum(int(body["shard"]["skipped_announced"]) for body in bodies)
+
+            # Each scan reaches exactly one process's encoder: the counts add up to the scans sent.
+            assert wait_for(lambda: counted() == (sent, announced), 10), f"{sent}, {announced}: {counted()}"
+            members = [s["shard"]["member"] for s in newest()]
+            holder = owner_of(UNANNOUNCED, members)
+            for body in newest():
+                shard = body["shard"]
+                mine = [robot for robot in ROBOTS if owner_of(robot, members) == shard["member"]]
+                holds = shard["member"] == holder
+                assert mine, "rendezvous gave a process no robot: a dozen robots over two should not"
+                assert body["not_ours"] == 0, body
+                assert shard["subscribed_robots"] == len(mine), body
+                assert shard["wildcard"] is holds and shard["unannounced_robots"] == int(holds), body
+                # The wildcard's process received every announced scan there too, and dropped it unread.
+                assert shard["skipped_announced"] == (fleet.ticks * len(ROBOTS) if holds else 0), body
+                assert body["robots"] == len(mine) + int(holds), body  # its own robots, no other
             with answers.lock:
                 twice = {key: n for key, n in answers.count.items() if n > 1}
             assert not twice, f"answered more than once: {twice}"
