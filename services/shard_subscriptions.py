@@ -92,6 +92,13 @@ class OwnedRobots:
         with self._lock:
             self._started = time.monotonic() if now is None else now
 
+    def watched(self, now: float | None = None) -> bool:
+        """Whether this member has watched the sources for ``settle_s``: every token up before it
+        started has arrived, and it serves the robots it owns as the other members see them."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            return now - self._started >= self.settle_s
+
     def source_up(self, robot_id: str, source: str, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
         with self._lock:
@@ -196,6 +203,7 @@ class OwnedSubscriptions:
         self._wildcard: Any = None  # likewise
         self._count = 0
         self._wake = threading.Event()
+        self._applied = threading.Event()  # the thread has declared what the plan wanted at least once
         self._closing = threading.Event()
         self._watch: Any = None
         self._thread: threading.Thread | None = None
@@ -249,6 +257,17 @@ class OwnedSubscriptions:
         self._watch = self._session.liveliness().declare_subscriber(
             topic_sources_key(self.topic), on_source, history=True
         )
+        self._wake.set()
+
+    def wait_serving(self, stop: threading.Event) -> bool:
+        """Block until the subscriptions are declared and, with ``unannounced``, the member has watched
+        the sources for ``settle_s`` (until then it serves no robot as unannounced): a service declares
+        its health token after this, so a peer that waits for the token is served from its first
+        sample. False if ``stop`` is set first."""
+        while not (self._applied.is_set() and (self._unannounced is None or self.plan.watched())):
+            if stop.wait(0.05):
+                return False
+        return True
 
     def _on_wildcard(self, sample: Any) -> None:
         """A sample on the wildcard: an announced robot's is dropped before its payload is copied."""
@@ -294,6 +313,7 @@ class OwnedSubscriptions:
             self._wildcard = self._session.declare_subscriber(wildcard_key(self.topic), self._on_wildcard)
             log.info("%s: serves the unannounced robots (%s)", self.topic, wildcard_key(self.topic))
         self._count = len(self._subscribers)
+        self._applied.set()
         if subscribe or unsubscribe:
             log.debug("%s subscriptions: +%d -%d, %d in all", self.topic, len(subscribe), len(unsubscribe),
                       self._count)  # fmt: skip

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.keys import TENSOR, shard_key, shard_members_key, topic_sources_key
+from common.keys import SCAN, TENSOR, shard_key, shard_members_key, topic_sources_key
 from common.messages import Detection, Detections, Message, Scan, StageTimings, decode_message, encode_message
 from security.zenoh_config import common_name, main, secure_config
 from services.runtime import announce_source
@@ -334,3 +334,17 @@ def test_tensor_source_tokens_flow_so_detectors_know_which_robots_to_subscribe_t
     mesh.stack.callback(token.undeclare)
     sources = _live_tokens(watcher, topic_sources_key(TENSOR))
     assert sources == [f"triscan/@sources/tensor/r1/{encoder.zid()}"]
+
+
+@pytest.mark.parametrize("publisher", ["robot-r1", "simulator"])
+def test_scan_source_tokens_flow_so_detectors_know_which_robots_scans_to_subscribe_to(
+    mesh: Mesh, publisher: str
+) -> None:
+    """A robot's (or the simulator's) announcement of its scans reaches a ``--from-scans`` detector on
+    another host through the ACL."""
+    watcher = mesh.secure("detector", listen=True)
+    robot = mesh.secure(publisher)
+    token = announce_source(robot, "r1", SCAN)
+    mesh.stack.callback(token.undeclare)
+    sources = _live_tokens(watcher, topic_sources_key(SCAN))
+    assert sources == [f"triscan/@sources/scan/r1/{robot.zid()}"]

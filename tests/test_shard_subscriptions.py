@@ -143,8 +143,8 @@ def test_a_robot_is_served_as_its_own_while_announced_and_as_the_unannounced_whi
 def test_every_robot_counts_as_just_changed_until_the_member_has_watched_the_sources_for_settle_s() -> None:
     plan = OwnedRobots(ME, settle_s=SETTLE_S, now=LONG_AGO)
     plan.watching(now=0.0)  # the tokens already up arrive a moment later
-    assert plan.serving_ids("r1", now=0.3) == ("r1", UNANNOUNCED)
-    assert plan.serving_ids("r1", now=0.6) == (UNANNOUNCED,)
+    assert plan.serving_ids("r1", now=0.3) == ("r1", UNANNOUNCED) and not plan.watched(now=0.3)
+    assert plan.serving_ids("r1", now=0.6) == (UNANNOUNCED,) and plan.watched(now=0.6)
 
 
 def test_each_robot_announced_or_not_is_served_by_exactly_the_member_that_receives_it() -> None:

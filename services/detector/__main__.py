@@ -124,6 +124,7 @@ def run(
             shards.join(subscriptions.set_members)
             shards.wait_settled(processes, stop)
             subscriptions.start()  # once settled: a robot it subscribes to is one it serves
+            subscriptions.wait_serving(stop)
             detector = pipeline.core.detector
             log.info(
                 "detector %s ready: %s (%s padding) on its announced robots' %ss%s → detections",

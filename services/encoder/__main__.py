@@ -4,7 +4,9 @@ Runs on the robot next to the detector (base dependencies only: no torch, PyBull
 stream rules (first scans, gaps, restarts, silence) live in :mod:`services.encoder.core`; the session,
 health, counters and shutdown in :class:`services.runtime.ServiceRuntime`. This module wires them.
 ``--encoders N`` starts N-1 more processes; all live encoder processes share the robots
-(:mod:`services.shards`), as the detector's do. Each announces the robots whose tensors it publishes
+(:mod:`services.shards`), as the detector's do, each subscribed to the scans of the announced robots
+it serves, one of them also to the scans of robots that announce nothing
+(:mod:`services.shard_subscriptions`). Each announces the robots whose tensors it publishes
 (:func:`services.runtime.announce_source`), from a robot's first scan on: the detector processes
 subscribe to the tensors of the announced robots they serve.
 """
@@ -15,11 +17,12 @@ import logging
 import subprocess
 import sys
 import threading
+from typing import Any
 
 from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding
-from common.keys import ALL_SCANS, TENSOR, parse_key, tensor_key
+from common.keys import SCAN, TENSOR, parse_key, scan_key, tensor_key
 from common.messages import encode_message
-from common.transport import ZenohSettings, settings_from_args
+from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 from services.launcher import child_environment
 from services.runtime import (
@@ -30,6 +33,7 @@ from services.runtime import (
     service_parser,
     stop_event_on_signals,
 )
+from services.shard_subscriptions import OwnedSubscriptions
 from services.shards import ShardMembership, Siblings, add_processes_argument, sibling_commands
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
@@ -62,20 +66,24 @@ def run(
         shards = ShardMembership(runtime.session, "encoder")
         not_ours = 0
 
-        def on_scan(key: str, payload: bytes) -> None:
+        def on_scan(sample: Any) -> None:
             nonlocal not_ours
+            key = str(sample.key_expr)
             try:
                 robot_id: str | None = parse_key(key)[0]
             except ValueError:
                 robot_id = None  # the core refuses and counts it
-            if robot_id is not None and not shards.owns(robot_id):
+            if robot_id is not None and not owns(robot_id):  # another process's robot: no payload copy
                 not_ours += 1
                 return
             if robot_id is not None:  # from its first scan: its detector subscribes before its first tensor
                 tensors.announce(robot_id)
-            tensor = core.handle_sample(key, payload)
+            tensor = core.handle_sample(key, payload_bytes(sample))
             if tensor is not None:
                 tensors.put(tensor.robot_id, encode_message(tensor))
+
+        scans = OwnedSubscriptions(runtime.session, shards.me, SCAN, scan_key, on_scan, unannounced=on_scan)
+        owns = scans.owns(shards.view)
 
         def housekeeping() -> dict[str, object]:
             tensors.forget(core.forget_silent())
@@ -83,15 +91,20 @@ def run(
             if siblings is not None:
                 siblings.restart_dead()
             shard = shards.log_changes(forget_after_s)
+            scans.set_members(shards.view.members)  # a missed membership change heals here
+            shard.update(scans.counters(forget_after_s))
             return {**core.snapshot(), "not_ours": not_ours, "shard": shard}
 
-        runtime.subscribe(ALL_SCANS, on_scan)
-        shards.join()
-        shards.wait_settled(processes, stop)
-        log.info("encoder ready (padding %s, invalid returns %s): %s → tensor", padding, invalid, ALL_SCANS)
         try:
+            shards.join(scans.set_members)
+            shards.wait_settled(processes, stop)
+            scans.start()  # once settled: a robot it subscribes to is one it serves
+            scans.wait_serving(stop)
+            log.info("encoder %s ready (padding %s, invalid returns %s): its robots' scans → tensor",
+                     shards.me[:8], padding, invalid)  # fmt: skip
             runtime.serve(housekeeping)
         finally:
+            scans.close()
             shards.leave()
     return core
 
