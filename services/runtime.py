@@ -203,9 +203,9 @@ def announce_source(session: Any, robot_id: str, topic: str) -> Any:
 
     The processes that share a fleet subscribe only to the tensors (or scans) of announced robots they
     serve, so whoever puts tensors (the encoder through :class:`RobotPublishers`, a test, a bench)
-    announces each robot first, then waits for a subscriber (:func:`common.transport.wait_for_subscriber`);
-    whoever puts scans announces them too and holds the first for :func:`announce_lead_s`, or is
-    served by the one process that serves the robots with no token."""
+    announces each robot first, then waits for a subscriber (:func:`common.transport.wait_for_subscriber`).
+    Whoever puts scans announces them too and holds the first for :func:`announce_lead_s`; scans that
+    nobody announces are all served by one process (:mod:`services.shard_subscriptions`)."""
     return session.liveliness().declare_token(source_key(topic, robot_id, str(session.zid())))
 
 

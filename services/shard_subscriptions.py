@@ -279,6 +279,7 @@ class OwnedSubscriptions:
         if robot_id is not None:
             if self.plan.announced(robot_id):
                 self.skipped_announced += 1
+                self._heard.pop(robot_id, None)
                 return
             self._heard[robot_id] = time.monotonic()
         self._unannounced(sample)
