@@ -385,7 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--from-scans",
         action="store_true",
-        help="detector --from-scans processes (each encodes its own robots' scans) instead of encoder + detector",
+        help="detector --from-scans processes (each encodes its robots' scans) instead of encoder + detector",
     )
     parser.add_argument(
         "--encode-on-robots",
