@@ -604,7 +604,9 @@ class StackedTensor(Message):
 class Detection(WireModel):
     """One detected object; pixel box plus its polar and Cartesian reading in the laser frame.
 
-    ``x_m``/``y_m`` follow ROS REP-103 (x forward, y left).
+    ``box_px`` is in the pixels of the model's raster, which a model with a raster yaw sees turned by
+    it (:mod:`common.encoding`); the bearings and ``x_m``/``y_m`` are always in the laser frame, ROS
+    REP-103 (x forward, y left).
     """
 
     class_id: ClassId
