@@ -80,3 +80,15 @@ def test_eval_refuses_a_data_set_turned_otherwise_than_the_model(
     assert code == 2 and len(errors) == 1 and errors[0].exc_info is None
     assert "turns its scans by a raster yaw of 180 deg" in errors[0].getMessage()
     assert errors[0].getMessage().endswith("by 0 deg")
+
+
+def test_the_map_picture_turns_a_turned_sets_hits_back() -> None:
+    import numpy as np
+
+    from training.map_picture import decode_hits
+
+    tensor = np.zeros((64, 384, 3), np.uint8)
+    tensor[31, 180, :] = 255  # column 180 of a raster turned by 180°: straight ahead, about 2 m
+    for points in decode_hits(tensor, (1.0, 2.0, 0.0), raster_yaw_deg=180.0):
+        (x, y), *_ = points
+        assert x == pytest.approx(1.0 + 31.5 * 4 / 63) and y == pytest.approx(2.0)  # ahead of the LiDAR
