@@ -9,6 +9,11 @@ Conventions, fixed here once for every process:
 
 * Bearings are counter-clockwise from the sensor's forward axis (ROS REP-103: x forward, y left).
 * Column ``a = floor(deg(θ) + 0.5) mod 360``: rounding half up, so 359.5° lands in column 0.
+* Raster yaw ``Y`` (degrees, a model's property like its padding; 0 for the paper's models): a model
+  with yaw ``Y`` sees every scan turned by ``Y``, column ``a = floor(deg(θ) + Y + 0.5) mod 360``. With
+  ``Y = 180`` the 0°/360° seam lies behind the robot instead of on its heading, where the people in
+  front of it walk (docs/encoding-and-simulator.md). Pixels and boxes are in the turned (raster)
+  frame; :func:`raster_to_laser_bearing_deg` turns their bearings back to the laser frame.
 * Row ``r = floor(clip(ρ · 63 / R_MAX, 0, 63))`` with ``R_MAX = 4.0`` m; row 0 is nearest.
 * Invalid returns (inf, NaN, below ``range_min``, above ``range_max``) become ``R_MAX`` (row 63):
   they are kept, not dropped, because "nothing seen along this bearing" is information too. That is
@@ -88,19 +93,36 @@ def beam_bearings_rad(angle_min: float, angle_increment: float, beams: int) -> n
     return angle_min + angle_increment * np.arange(beams, dtype=np.float64)
 
 
-def angle_columns(bearings_rad: np.ndarray) -> np.ndarray:
-    """Column of each bearing: ``round(deg(θ)) mod 360``, rounding half up."""
-    return (np.floor(np.degrees(bearings_rad) + 0.5).astype(np.int64)) % ANGLE_COLUMNS
+def check_raster_yaw(yaw_deg: float) -> float:
+    """A raster yaw in degrees, checked (finite) and taken mod 360 into ``[0, 360)``."""
+    try:
+        value = float(yaw_deg)
+    except (TypeError, ValueError):
+        raise ScanError(f"raster yaw must be a number of degrees, got {yaw_deg!r}") from None
+    if not math.isfinite(value):
+        raise ScanError(f"raster yaw must be finite, got {yaw_deg!r}")
+    turned = value % 360.0
+    return 0.0 if turned == 360.0 else turned  # a tiny negative yaw rounds up to 360.0
+
+
+def raster_to_laser_bearing_deg(bearing_deg: np.ndarray | float, yaw_deg: float) -> np.ndarray:
+    """Laser-frame bearings (degrees, not wrapped) of raster-frame ones: the raster yaw undone."""
+    return np.asarray(bearing_deg, dtype=np.float64) - yaw_deg
+
+
+def angle_columns(bearings_rad: np.ndarray, yaw_deg: float = 0.0) -> np.ndarray:
+    """Column of each bearing turned by the raster yaw: ``round(deg(θ) + Y) mod 360``, rounding half up."""
+    return (np.floor(np.degrees(bearings_rad) + yaw_deg + 0.5).astype(np.int64)) % ANGLE_COLUMNS
 
 
 @functools.lru_cache(maxsize=64)
-def beam_columns(angle_min: float, angle_increment: float, beams: int) -> np.ndarray:
-    """Column of each beam of a sensor (read-only), computed once per sensor geometry.
+def beam_columns(angle_min: float, angle_increment: float, beams: int, yaw_deg: float = 0.0) -> np.ndarray:
+    """Column of each beam of a sensor (read-only), computed once per sensor geometry and raster yaw.
 
     A sensor sends the same angles with every scan, so the encoder looks its columns up instead of
     recomputing them per scan; a fleet of mixed sensors holds one entry per geometry.
     """
-    columns = angle_columns(beam_bearings_rad(angle_min, angle_increment, beams))
+    columns = angle_columns(beam_bearings_rad(angle_min, angle_increment, beams), yaw_deg)
     columns.flags.writeable = False
     return columns
 
@@ -130,15 +152,17 @@ def scan_hits(
     range_min: float,
     range_max: float,
     invalid: InvalidRule = "sentinel",
+    raster_yaw_deg: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns (``int64[K]`` each) of the pixels one scan lights in its ``[64, 360]`` raster.
 
     A scan lights at most one pixel per beam, a few hundred of the raster's 23,040: the stacker
-    keeps these instead of whole rasters. ``invalid`` as in :func:`encode_scan`.
+    keeps these instead of whole rasters. ``invalid`` and ``raster_yaw_deg`` as in :func:`encode_scan`.
     """
     values = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
     check_invalid_rule(invalid)
-    cols = beam_columns(float(angle_min), float(angle_increment), values.size)
+    yaw = check_raster_yaw(raster_yaw_deg)
+    cols = beam_columns(float(angle_min), float(angle_increment), values.size, yaw)
     valid = valid_returns(values, range_min, range_max)
     rows = range_rows(np.where(valid, values, R_MAX_M))  # an invalid return reads R_MAX: the sentinel row
     if invalid == "empty":
@@ -153,14 +177,16 @@ def encode_scan(
     range_min: float,
     range_max: float,
     invalid: InvalidRule = "sentinel",
+    raster_yaw_deg: float = 0.0,
 ) -> np.ndarray:
     """Rasterise one scan to ``uint8[64, 360]`` (255 where hit).
 
     Any beam count and field of view works: each beam is binned by its own bearing, several beams
     may share a column (denser sensors) and columns no beam points at stay 0 (narrower sensors).
     ``invalid`` says where an invalid return goes: the sentinel row (the paper) or nowhere.
+    ``raster_yaw_deg`` turns the scan before binning (module docstring; 0: the paper's raster).
     """
-    rows, cols = scan_hits(ranges, angle_min, angle_increment, range_min, range_max, invalid)
+    rows, cols = scan_hits(ranges, angle_min, angle_increment, range_min, range_max, invalid, raster_yaw_deg)
     raster = np.zeros((RANGE_ROWS, ANGLE_COLUMNS), dtype=np.uint8)
     raster[rows, cols] = HIT
     return raster
@@ -235,11 +261,14 @@ class ScanStacker:
     :func:`stack_rasters` of the padded rasters, without copying three mostly empty planes.
     """
 
-    def __init__(self, padding: Padding = "zero", invalid: InvalidRule = "sentinel") -> None:
+    def __init__(
+        self, padding: Padding = "zero", invalid: InvalidRule = "sentinel", raster_yaw_deg: float = 0.0
+    ) -> None:
         if padding not in PADDINGS:
             raise ScanError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.padding: Padding = padding
         self.invalid: InvalidRule = check_invalid_rule(invalid)
+        self.raster_yaw_deg: float = check_raster_yaw(raster_yaw_deg)  # the model's (module docstring)
         self._frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=STACK_DEPTH)
 
     def __len__(self) -> int:
@@ -257,7 +286,9 @@ class ScanStacker:
     ) -> np.ndarray | None:
         """Encode a scan and push it; return the stacked ``uint8[64, 384, 3]`` tensor once three are
         held. A scan that cannot be encoded raises and leaves the FIFO as it was."""
-        rows, cols = scan_hits(ranges, angle_min, angle_increment, range_min, range_max, self.invalid)
+        rows, cols = scan_hits(
+            ranges, angle_min, angle_increment, range_min, range_max, self.invalid, self.raster_yaw_deg
+        )
         self._frames.append(padded_hits(rows, cols, self.padding))
         if not self.ready:
             return None

@@ -10,7 +10,7 @@ Pipeline for one stacked tensor ``uint8[64, 384, 3]``:
 2. ONNX Runtime → Ultralytics' raw detect output ``float32[1, 4 + nc, A]``.
 3. :mod:`common.postprocess`: decode, NMS, clipping, seam merging, wire ``Detection`` objects.
 
-What a model file declares (padding, invalid rule, classes, box grid) is read by
+What a model file declares (padding, invalid rule, raster yaw, classes, box grid) is read by
 :mod:`common.model_meta`; a loaded model that this pipeline would misread is refused here.
 """
 
@@ -41,6 +41,7 @@ from common.model_meta import (
     declared_classes,
     declared_invalid_rule,
     declared_padding,
+    declared_raster_yaw,
     declared_stack_period,
     is_end_to_end,
     is_free_dimension,
@@ -187,6 +188,9 @@ class OnnxDetector:
         self.invalid: InvalidRule = declared_invalid_rule(self._session, path)
         # Seconds between the scans the model stacks (None: consecutive, whatever the sensor's rate).
         self.stack_period_s: float | None = declared_stack_period(self._session, path)
+        # Degrees the model's raster is turned by (common.encoding): its tensors must be encoded with
+        # it, and its boxes' bearings are turned back by it; 0 (the paper's raster) when it does not say.
+        self.raster_yaw_deg: float = declared_raster_yaw(self._session, path)
         # The one home of this detector's thresholds, padding, class count and box grid.
         self.postprocessing = PostprocessSettings(
             conf_threshold,
@@ -197,13 +201,15 @@ class OnnxDetector:
             box_grid or declared_box_grid(self._session, path),
         )
         log.info(
-            "loaded %s (%d classes, %d anchors, %s) on %s, padding=%s box grid=%s conf=%.3g iou=%.3g",
+            "loaded %s (%d classes, %d anchors, %s) on %s, padding=%s raster yaw=%g box grid=%s conf=%.3g "
+            "iou=%.3g",
             self.model_id,
             self.num_classes,
             self.num_anchors,
             "free batch axis" if self.batched else "batch 1",
             ",".join(self.providers),
             self.padding,
+            self.raster_yaw_deg,
             self.box_grid,
             conf_threshold,
             iou_threshold,
@@ -351,7 +357,7 @@ class OnnxDetector:
         results = []
         for boxes, scores, class_ids, timings in self._boxes_many(tensors):
             started = time.perf_counter_ns()
-            detections = detections_from_boxes(boxes, scores, class_ids)
+            detections = detections_from_boxes(boxes, scores, class_ids, self.raster_yaw_deg)
             convert_ms = (time.perf_counter_ns() - started) / _NS_PER_MS
             results.append((detections, timings._replace(nms_ms=timings.nms_ms + convert_ms).to_message()))
         return results

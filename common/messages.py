@@ -64,8 +64,9 @@ SCHEMA_VERSION: Final[int] = 3
 
 Version 2 added fields without changing any: ``odom`` (the robot's pose) on scans, tensors and
 detections, and the ``tracks`` message. Version 3 adds the lit-pixel form of a tensor's raster
-(:data:`LIT_PIXELS_VERSION`). A message built without an explicit version gets, and travels as, the
-*lowest* version that holds it, so a version-1 reader keeps reading every message without odometry,
+(:data:`LIT_PIXELS_VERSION`) and a tensor's ``raster_yaw_deg``. A message built without an explicit
+version gets, and travels as, the *lowest* version that holds it, so a version-1 reader keeps reading
+every message without odometry,
 and the first one with odometry reaches it as "schema_version 2 is not supported (this build speaks
 1)" rather than as an unknown field.
 """
@@ -545,7 +546,7 @@ class StackedTensor(Message):
     """
 
     KIND: ClassVar[str] = "tensor"
-    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2}
+    FIELD_VERSIONS: ClassVar[dict[str, int]] = {"odom": 2, "raster_yaw_deg": 3}
 
     tensor: TensorArray
     padding: Literal["zero", "wrap"]
@@ -554,6 +555,14 @@ class StackedTensor(Message):
     scan_stamps_ns: tuple[NonNegInt, NonNegInt, NonNegInt]
     encode_ms: NonNegFloat = 0.0  # the encoder's time for the newest scan (raster + stack), for Detections
     odom: Odometry | None = None  # of the newest scan (scan t), copied from it
+    # Degrees the scans were turned by before binning (common.encoding, "raster yaw"); None is 0, the
+    # paper's raster, which is how every encoder without a yaw writes it.
+    raster_yaw_deg: Annotated[float, Field(ge=0.0, lt=360.0)] | None = None
+
+    @property
+    def yaw_deg(self) -> float:
+        """The raster yaw the tensor was encoded with, 0 when the field is absent."""
+        return self.raster_yaw_deg or 0.0
 
     @classmethod
     def _versions_used(cls, data: dict[str, Any]) -> list[int]:
@@ -595,7 +604,9 @@ class StackedTensor(Message):
 class Detection(WireModel):
     """One detected object; pixel box plus its polar and Cartesian reading in the laser frame.
 
-    ``x_m``/``y_m`` follow ROS REP-103 (x forward, y left).
+    ``box_px`` is in the pixels of the model's raster, which a model with a raster yaw sees turned by
+    it (:mod:`common.encoding`); the bearings and ``x_m``/``y_m`` are always in the laser frame, ROS
+    REP-103 (x forward, y left).
     """
 
     class_id: ClassId

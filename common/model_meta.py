@@ -1,7 +1,7 @@
 """What a triscan ONNX file declares about itself: the ``triscan.*`` metadata, written and read here.
 
-``triscan export`` records how the model reads scans (padding, invalid-return rule), the classes it
-was trained for and whether its boxes snap to the pixel grid, so that a detector or a launcher can
+``triscan export`` records how the model reads scans (padding, invalid-return rule, raster yaw), the
+classes it was trained for and whether its boxes snap to the pixel grid, so that a detector or a launcher can
 match the encoder to the model, or refuse a model it would misread, before any frame is lost. The
 keys are named in :mod:`common.model_spec`; this module is the one place that turns them into values
 (:func:`metadata_entries` for the writer, the ``declared_*`` readers for everyone else). Opening a
@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 
 import onnxruntime as ort
 
-from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding
+from common.encoding import INVALID_RULES, PADDINGS, InvalidRule, Padding, check_raster_yaw
 from common.model_spec import (
     BOX_GRIDS,
     CLASS_NAMES,
@@ -28,15 +28,23 @@ from common.model_spec import (
     META_CLASSES,
     META_INVALID,
     META_PADDING,
+    META_RASTER_YAW,
     META_STACK_PERIOD,
     BoxGrid,
 )
 
 
 def metadata_entries(
-    *, padding: str, invalid: str, box_grid: str, classes: Sequence[str], stack_period_s: float | None = None
+    *,
+    padding: str,
+    invalid: str,
+    box_grid: str,
+    classes: Sequence[str],
+    stack_period_s: float | None = None,
+    raster_yaw_deg: float = 0.0,
 ) -> dict[str, str]:
-    """The ``triscan.*`` entries an exported model carries, as the readers below expect them."""
+    """The ``triscan.*`` entries an exported model carries, as the readers below expect them. A raster
+    yaw of 0 (the paper's raster) is written as no entry, as models without the key read."""
     entries = {
         META_PADDING: padding,
         META_INVALID: invalid,
@@ -45,7 +53,21 @@ def metadata_entries(
     }
     if stack_period_s is not None:
         entries[META_STACK_PERIOD] = repr(float(stack_period_s))
+    if (yaw := check_raster_yaw(raster_yaw_deg)) != 0.0:
+        entries[META_RASTER_YAW] = repr(yaw)
     return entries
+
+
+def declared_raster_yaw(session: ort.InferenceSession, path: Path | str) -> float:
+    """Degrees the model's raster is turned by (``triscan.raster_yaw_deg``, :mod:`common.encoding`),
+    in ``[0, 360)``; 0, the paper's raster, for a model that does not say."""
+    value = session.get_modelmeta().custom_metadata_map.get(META_RASTER_YAW)
+    if value is None:
+        return 0.0
+    try:
+        return check_raster_yaw(float(value))
+    except ValueError:  # a ScanError too
+        raise ValueError(f"{path} declares an invalid {META_RASTER_YAW} {value!r}") from None
 
 
 def declared_stack_period(session: ort.InferenceSession, path: Path | str) -> float | None:
@@ -135,6 +157,7 @@ class ModelFacts(NamedTuple):
     invalid: InvalidRule  # ``sentinel`` for a model that does not say
     takes_batches: bool  # a free batch axis (a ``-batch`` file)
     stack_period_s: float | None = None  # seconds between stacked scans; None: as they come
+    raster_yaw_deg: float = 0.0  # degrees the raster is turned by (common.encoding); 0: the paper's
 
     @classmethod
     def of_session(cls, session: ort.InferenceSession, path: Path | str) -> ModelFacts:
@@ -144,4 +167,5 @@ class ModelFacts(NamedTuple):
             invalid=declared_invalid_rule(session, path),
             takes_batches=bool(shape) and is_free_dimension(shape[0]),
             stack_period_s=declared_stack_period(session, path),
+            raster_yaw_deg=declared_raster_yaw(session, path),
         )

@@ -48,6 +48,8 @@ META_INVALID: Final[str] = f"{META_PREFIX}invalid"
 META_CLASSES: Final[str] = f"{META_PREFIX}classes"
 META_BOX_GRID: Final[str] = f"{META_PREFIX}box_grid"
 META_STACK_PERIOD: Final[str] = f"{META_PREFIX}stack_period_s"
+# Degrees the model's raster is turned by (common.encoding, "Raster yaw"); absent: 0, the paper's.
+META_RASTER_YAW: Final[str] = f"{META_PREFIX}raster_yaw_deg"
 
 # Labels are whole pixels (a range row, a beam column): "pixel" rounds a model's box edges to them
 # after NMS, which tightens small boxes at high IoU; "none" keeps the regressed edges, as every model

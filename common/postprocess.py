@@ -37,6 +37,7 @@ from common.encoding import (
     pixel_x_to_bearing_deg,
     pixel_y_to_range_m,
     polar_to_xy,
+    raster_to_laser_bearing_deg,
     wrap_bearing_deg,
 )
 from common.messages import Detection
@@ -294,18 +295,24 @@ def unwrap_seam_duplicates(
 # --------------------------------------------------------------------------------------------------
 
 
-def detections_from_boxes(boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray) -> list[Detection]:
+def detections_from_boxes(
+    boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray, raster_yaw_deg: float = 0.0
+) -> list[Detection]:
     """Wire ``Detection`` objects for xyxy pixel boxes, all geometry computed in one vectorised pass.
 
-    * ``box_px`` is the box as given.
-    * Bearings come from the x extent (pixel ``u`` is bearing ``u − 0.5``°): ``bearing_min_deg`` from
-      x1, ``bearing_max_deg`` from x2, ``bearing_deg`` their midpoint, each wrapped to (−180, 180].
+    * ``box_px`` is the box as given: raster pixels, in the frame of the model's raster yaw.
+    * Bearings come from the x extent (pixel ``u`` is bearing ``u − 0.5``° in the raster, ``u − 0.5 −
+      raster_yaw_deg``° in the laser frame: :mod:`common.encoding`): ``bearing_min_deg`` from x1,
+      ``bearing_max_deg`` from x2, ``bearing_deg`` their midpoint, each in the laser frame and wrapped
+      to (−180, 180].
       A box can straddle ±180° (or, from the padding columns, 0°), so after wrapping ``bearing_min_deg``
       may be greater than ``bearing_max_deg``: consumers must read ``[min, max]`` as the
       counter-clockwise arc from min to max, never as a numeric interval.
     * ``range_min_m``/``range_max_m`` from y1/y2 (pixel ``v`` is ``v · 4/63`` m), clipped at 0.
-    * ``x_m``/``y_m``: the point at the centre bearing and the middle range, sensor frame (REP-103:
+    * ``x_m``/``y_m``: the point at the centre bearing and the middle range, laser frame (REP-103:
       x forward, y left) — where a robot would steer to or around.
+
+    So only ``box_px`` depends on the raster yaw: trackers, the ROS bridge and maps read the rest.
     """
     b = np.asarray(boxes, dtype=np.float64)
     scores = np.asarray(scores)
@@ -316,8 +323,8 @@ def detections_from_boxes(boxes: np.ndarray, scores: np.ndarray, class_ids: np.n
     if class_ids.min() < 0 or class_ids.max() >= NUM_CLASSES:
         bad = sorted(set(class_ids.tolist()))
         raise ValueError(f"class ids must lie in [0, {NUM_CLASSES - 1}], got {bad}")
-    bearing_lo = pixel_x_to_bearing_deg(b[:, 0])
-    bearing_hi = pixel_x_to_bearing_deg(b[:, 2])
+    bearing_lo = raster_to_laser_bearing_deg(pixel_x_to_bearing_deg(b[:, 0]), raster_yaw_deg)
+    bearing_hi = raster_to_laser_bearing_deg(pixel_x_to_bearing_deg(b[:, 2]), raster_yaw_deg)
     bearing_mid = (bearing_lo + bearing_hi) / 2.0
     range_lo = np.maximum(pixel_y_to_range_m(b[:, 1]), 0.0)
     range_hi = np.maximum(pixel_y_to_range_m(b[:, 3]), 0.0)

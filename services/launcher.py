@@ -196,10 +196,12 @@ def service_commands(
             *("--sensor", config.sensor, "--people", str(config.people)),
             *(("--rate", str(config.rate_hz)) if config.rate_hz is not None else ()),
             *("--padding", padding),
+            *(("--raster-yaw", repr(facts.raster_yaw_deg)) if facts.raster_yaw_deg else ()),
         ],
         "encoder": [
             *("--padding", padding, "--invalid", facts.invalid),
             *(("--stack-period-s", repr(facts.stack_period_s)) if facts.stack_period_s else ()),
+            *(("--raster-yaw", repr(facts.raster_yaw_deg)) if facts.raster_yaw_deg else ()),
         ],
         "detector": [
             *(("--model", str(config.model)) if config.model else ()),

@@ -159,10 +159,13 @@ def test_bad_tensors_are_rejected_with_a_reason(
     assert core.decode(encode_message(wrapped), "tb3") is None
     emptied = tensor.model_copy(update={"invalid": "empty"})  # the shipped model was trained on sentinel
     assert core.decode(encode_message(emptied), "tb3") is None
+    turned = StackedTensor(**{**tensor.model_dump(), "raster_yaw_deg": 180.0})  # the shipped model: 0
+    assert core.decode(encode_message(turned), "tb3") is None
     assert core.counters.rejected["robot_id_mismatch"] == 1
     assert core.counters.rejected["padding_mismatch"] == 1
     assert core.counters.rejected["invalid_rule_mismatch"] == 1
-    assert sum(core.counters.rejected.values()) == 4 and core.counters.received == 5
+    assert core.counters.rejected["raster_yaw_mismatch"] == 1
+    assert sum(core.counters.rejected.values()) == 5 and core.counters.received == 6
 
 
 def test_a_batch_gives_each_robot_what_it_would_get_alone(
@@ -294,3 +297,25 @@ def test_pipeline_answers_only_the_robots_it_owns_when_it_receives_and_when_it_p
     assert [m.robot_id for m in published] == ["mine"]
     counters = pipeline.core.counters
     assert (counters.received, counters.not_ours) == (2, 2)
+
+
+def test_a_model_with_a_raster_yaw_gets_tensors_turned_by_it_and_refuses_others(
+    tmp_path: Path, replayed_tensors: list[tuple[StackedTensor, list]]
+) -> None:
+    from common.model_spec import META_RASTER_YAW
+    from tests.test_inference import constant_model, raw_output
+
+    model = constant_model(
+        tmp_path / "turned.onnx",
+        raw_output([(0, 0, 0, 0, [0.0] * 4)], total=504),
+        metadata={META_RASTER_YAW: "180.0"},
+    )
+    turned = OnnxDetector(model, providers=["CPUExecutionProvider"])
+    assert turned.raster_yaw_deg == 180.0
+    pipeline = InferencePipeline([turned], lambda _: None, from_scans=True)
+    assert pipeline.encoder is not None and pipeline.encoder.raster_yaw_deg == 180.0
+    plain = replayed_tensors[0][0]
+    assert pipeline.core.accept(plain) is None  # made for the paper's raster
+    assert pipeline.core.counters.rejected == {"raster_yaw_mismatch": 1}
+    ours = StackedTensor(**{**plain.model_dump(), "raster_yaw_deg": 180.0})
+    assert pipeline.core.accept(ours) is ours

@@ -275,3 +275,18 @@ def test_tensors_travel_as_their_lit_pixels_and_decode_to_the_dense_raster() -> 
         )
         decoded = decode_message(payload, StackedTensor)
         assert decoded == tensor and decoded.tensor.tobytes() == tensor.tensor.tobytes()
+
+
+def test_tensors_are_encoded_with_the_models_raster_yaw_and_say_so() -> None:
+    scans = [scan("r1", i) for i in range(3)]
+    plain = EncoderCore("zero").push  # the paper's raster: the field stays absent on the wire
+    *_, paper = [plain(s) for s in scans]
+    assert paper is not None and paper.raster_yaw_deg is None
+    core = EncoderCore("zero", raster_yaw_deg=-180.0)
+    assert core.raster_yaw_deg == 180.0
+    *_, turned = [core.push(s) for s in scans]
+    assert turned is not None and turned.raster_yaw_deg == 180.0
+    assert np.array_equal(turned.tensor[:, :360], np.roll(paper.tensor[:, :360], 180, axis=1))
+    assert decode_message(encode_message(turned), StackedTensor) == turned
+    with pytest.raises(ScanError, match="raster yaw"):
+        EncoderCore("zero", raster_yaw_deg=math.nan)

@@ -15,6 +15,7 @@ from common.encoding import (
     ScanStacker,
     angle_columns,
     bearing_to_pixel_x,
+    check_raster_yaw,
     encode_scan,
     pad_raster,
     pixel_x_to_bearing_deg,
@@ -22,6 +23,7 @@ from common.encoding import (
     polar_to_xy,
     range_rows,
     range_to_pixel_y,
+    raster_to_laser_bearing_deg,
     scan_points_xy,
     stack_rasters,
     to_model_input,
@@ -267,3 +269,53 @@ def test_invalid_rule_empty_leaves_invalid_beams_dark() -> None:
     for _ in range(3):
         tensor = stacker.push_scan(ranges, 0.0, math.radians(1.0), 0.12, 3.5)
     assert tensor is not None and tensor[SENTINEL_ROW].sum() == 0
+
+
+# --- raster yaw ----------------------------------------------------------------------------------------
+
+
+def test_a_raster_yaw_turns_every_beam_by_whole_columns_and_zero_is_the_papers_raster() -> None:
+    rng = np.random.default_rng(3)
+    ranges = rng.uniform(0.2, 3.4, 271)
+    geometry = (math.radians(-135.0), DEG, 0.12, 3.5)  # a 270° sensor, one beam per degree
+    plain = encode_scan(ranges, *geometry)
+    assert np.array_equal(encode_scan(ranges, *geometry, raster_yaw_deg=0.0), plain)
+    turned = encode_scan(ranges, *geometry, raster_yaw_deg=180.0)
+    assert np.array_equal(turned, np.roll(plain, 180, axis=1))
+    # The 90 columns a 270° sensor never sees lie around column 0 after the turn: behind the robot.
+    dark = np.flatnonzero(~turned.any(axis=0))
+    assert set(dark) == set(range(316, 360)) | set(range(0, 45))
+    # Taken mod 360: −180 and 540 are the same turn; a non-integer yaw rounds in the turned frame.
+    assert np.array_equal(encode_scan(ranges, *geometry, raster_yaw_deg=-180.0), turned)
+    assert np.array_equal(encode_scan(ranges, *geometry, raster_yaw_deg=540.0), turned)
+    assert lit_pixels(encode_scan(np.array([1.0]), 10.3 * DEG, DEG, 0.12, 3.5, raster_yaw_deg=0.4)) == [
+        (15, 11)
+    ]
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, "ahead"])
+def test_a_raster_yaw_must_be_a_finite_number(bad: object) -> None:
+    with pytest.raises(ScanError, match="raster yaw"):
+        check_raster_yaw(bad)  # type: ignore[arg-type]
+    with pytest.raises(ScanError, match="raster yaw"):
+        ScanStacker(raster_yaw_deg=bad)  # type: ignore[arg-type]
+
+
+def test_raster_yaw_is_taken_mod_360_and_bearings_turn_back() -> None:
+    assert [check_raster_yaw(v) for v in (0, 180, -90, 720.5, -1e-20)] == [0.0, 180.0, 270.0, 0.5, 0.0]
+    assert ScanStacker(raster_yaw_deg=-180).raster_yaw_deg == 180.0
+    # Column 180 of a raster turned by 180° is bearing 0 of the laser, forward.
+    raster_bearing = pixel_x_to_bearing_deg(180.5)
+    assert float(wrap_bearing_deg(raster_to_laser_bearing_deg(raster_bearing, 180.0))) == 0.0
+    assert float(raster_to_laser_bearing_deg(raster_bearing, 0.0)) == raster_bearing
+
+
+def test_the_stacker_turns_every_scan_by_its_yaw() -> None:
+    ranges = np.linspace(0.3, 3.0, 360)
+    plain, turned = ScanStacker(), ScanStacker(raster_yaw_deg=180.0)
+    for k in range(3):
+        a = plain.push_scan(np.roll(ranges, k), 0.0, DEG, 0.12, 3.5)
+        b = turned.push_scan(np.roll(ranges, k), 0.0, DEG, 0.12, 3.5)
+    assert a is not None and b is not None
+    expected = np.roll(a[:, :360], 180, axis=1)
+    assert np.array_equal(b[:, :360], expected) and not b[:, 360:].any()

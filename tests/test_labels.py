@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from services.simulator.labels import (
+    ObjectLabel,
     arc_crosses_seam,
     beams_through_segment,
     footprint_polar,
@@ -192,3 +193,51 @@ def test_occluded_object_gets_no_label_in_the_simulated_world() -> None:
     in_view = labels_with_box_at((0.8, -1.2))
     assert in_view[CHAIR].visible and in_view[CHAIR].beams_on_object >= 2
     assert len(in_view[CHAIR].boxes_px) == 1
+
+
+def test_with_a_raster_yaw_of_180_ahead_is_the_middle_and_behind_is_the_seam() -> None:
+    """Labels of a model with raster yaw 180 (common.encoding): made in the turned frame, where its
+    tensors put the lit pixels, with the seam rule applied there."""
+    from common.encoding import ANGLE_COLUMNS, encode_scan
+    from services.simulator.lidar import Lidar, LidarSpec
+    from services.simulator.world import World
+
+    spec = LidarSpec(noise_sigma_m=0.0)
+    ahead = Furniture(BOX, Rect((1.2, 0.0), (0.4, 0.4), 0.0), 0.4)  # straight ahead of the sensor
+    behind = Furniture(CHAIR, Rect((-1.4, 0.0), (0.4, 0.4), 0.0), 0.4, 0.03)  # straight behind it
+    desk = Furniture(DESK, Rect((0.0, 1.4), (0.8, 1.6), 0.0), 0.74, 0.05)
+    scenario = Scenario(0, 0, Doorway(2, 0.8), (behind, ahead, desk))
+    with World(scenario) as world:
+        reading = Lidar(world, spec, rng=np.random.default_rng(0)).scan((0.03, 0.0, 0.0))  # LiDAR at origin
+
+    def labelled(yaw: float) -> dict[int, ObjectLabel]:
+        labels = label_scan(
+            scenario, reading.lidar_pose, spec.bearings_rad, reading.true_ranges, reading.hit_object,
+            spec.range_max, "zero", raster_yaw_deg=yaw,
+        )  # fmt: skip
+        return {label.class_id: label for label in labels}
+
+    plain, turned = labelled(0.0), labelled(180.0)
+    (box,) = turned[BOX].boxes_px
+    assert box[0] < 180.0 < box[2] and abs((box[0] + box[2]) / 2 - 180.5) <= 1.0
+    assert turned[BOX].bearing_center_deg == pytest.approx(180.0, abs=1e-6)
+    # Every pixel the box lights in the turned raster lies in its box.
+    raster = encode_scan(
+        reading.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max,
+        raster_yaw_deg=180.0,
+    )  # fmt: skip
+    beams = np.flatnonzero(reading.hit_object == 1)
+    cols = np.floor(np.degrees(spec.bearings_rad[beams]) + 180.0 + 0.5).astype(int) % ANGLE_COLUMNS
+    rows = np.floor(reading.ranges[beams] * 63 / 4.0).astype(int)
+    assert len(beams) >= 2 and (raster[rows, cols] == 255).all()
+    assert ((cols >= box[0]) & (cols < box[2]) & (rows >= box[1]) & (rows < box[3])).all()
+
+    # The object behind the robot is split by the turned raster's seam, as the one ahead is by the paper's.
+    def crosses(label: ObjectLabel) -> bool:
+        return arc_crosses_seam(label.bearing_center_deg, label.bearing_min_deg, label.bearing_max_deg)
+
+    assert crosses(turned[CHAIR]) and not crosses(turned[BOX])
+    assert crosses(plain[BOX]) and not crosses(plain[CHAIR])
+    (chair,) = turned[CHAIR].boxes_px
+    assert chair[0] == 0.0 or chair[2] == ANGLE_COLUMNS  # clipped at the seam, as SPEC's rule says
+    assert (box[1], box[3]) == plain[BOX].boxes_px[0][1::2]  # ranges do not turn

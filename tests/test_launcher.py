@@ -42,23 +42,31 @@ def test_viewer_choices() -> None:
     assert "visualizer" not in service_commands(UpConfig(viewer="none"), ports, None)
 
 
-def test_encoder_padding_and_invalid_rule_follow_the_model(tmp_path: Path) -> None:
+def test_encoder_padding_invalid_rule_and_raster_yaw_follow_the_model(tmp_path: Path) -> None:
     onnx = pytest.importorskip("onnx")
     model = onnx.load(str(SHIPPED_MODEL))
     for prop in model.metadata_props:
         if prop.key == "triscan.padding":
             prop.value = "wrap"
     model.metadata_props.add(key="triscan.invalid", value="empty")
+    model.metadata_props.add(key="triscan.raster_yaw_deg", value="-180")
     wrap_model = tmp_path / "wrap.onnx"
     onnx.save(model, str(wrap_model))
     ports = dict(zip(SERVICES, (1, 2, 3, 4, 5), strict=True))
     commands = service_commands(UpConfig(model=wrap_model, viewer="none"), ports, None)
     assert flag_values(commands["encoder"], "--padding") == ["wrap"]
     assert flag_values(commands["encoder"], "--invalid") == ["empty"]
+    assert flag_values(commands["encoder"], "--raster-yaw") == ["180.0"]  # mod 360
+    assert flag_values(commands["simulator"], "--raster-yaw") == ["180.0"]  # its truth boxes too
     assert flag_values(commands["detector"], "--model") == [str(wrap_model)]
     default = service_commands(UpConfig(viewer="none"), ports, None)
     assert flag_values(default["encoder"], "--padding") == ["zero"]
     assert flag_values(default["encoder"], "--invalid") == ["sentinel"]  # a model that does not say
+    assert (
+        flag_values(default["encoder"], "--raster-yaw")
+        == flag_values(default["simulator"], "--raster-yaw")
+        == []
+    )
 
 
 def test_batch_reaches_the_detector_and_a_fixed_model_is_refused_before_anything_starts() -> None:

@@ -949,3 +949,18 @@ def test_detections_carry_the_stamp_of_the_scan_their_boxes_belong_to() -> None:
     assert msgpack.unpackb(encode_message(message))["schema_version"] == 2
     with pytest.raises(ValidationError, match="cannot be newer than scan_stamp_ns"):
         make_detections(scan_stamp_ns=90, pose_stamp_ns=91)
+
+
+def test_a_tensors_raster_yaw_is_optional_and_needs_version_3() -> None:
+    plain = make_tensor()
+    assert plain.raster_yaw_deg is None and plain.yaw_deg == 0.0
+    assert plain.schema_version == 1  # the lowest version that holds it, as before the field existed
+    assert "raster_yaw_deg" not in msgpack.unpackb(encode_message(plain))
+    turned = make_tensor(raster_yaw_deg=180.0)
+    assert turned.schema_version == 3 and turned.yaw_deg == 180.0
+    assert decode_message(encode_message(turned), StackedTensor) == turned
+    with pytest.raises(ValidationError, match="raster_yaw_deg needs schema_version >= 3"):
+        make_tensor(raster_yaw_deg=180.0, schema_version=2)
+    for bad in (360.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValidationError):
+            make_tensor(raster_yaw_deg=bad)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -204,13 +205,17 @@ def test_positions_of_pose_arrays_and_people_lists() -> None:
 # --------------------------------------------------------------------------------------------------
 
 
-def person_model(path: Path) -> Path:
-    """A 5-class constant model: one person box at bearing 0.5°, 1.9–2.1 m, score 0.9, every frame."""
+def person_model(path: Path, raster_yaw_deg: float = 0.0) -> Path:
+    """A 5-class constant model: one person box at bearing 0.5°, 1.9–2.1 m, score 0.9, every frame; with
+    a raster yaw, the box sits where that yaw puts bearing 0.5° (column 180 for 180°)."""
+    from common.model_spec import META_RASTER_YAW
     from tests.test_inference import constant_model, raw_output
 
     rows = (2.0 * 63 / 4) - 1.5, (2.0 * 63 / 4) + 1.5  # a box 3 rows tall centred on 2 m
-    anchor = (1.0, sum(rows) / 2, 2.0, rows[1] - rows[0], [0.0, 0.0, 0.0, 0.0, 0.9])
+    anchor = (1.0 + raster_yaw_deg, sum(rows) / 2, 2.0, rows[1] - rows[0], [0.0, 0.0, 0.0, 0.0, 0.9])
     metadata = {META_CLASSES: json.dumps(list(CLASS_NAMES))}
+    if raster_yaw_deg:
+        metadata[META_RASTER_YAW] = repr(raster_yaw_deg)
     return constant_model(path, raw_output([anchor], total=504), metadata=metadata)
 
 
@@ -288,6 +293,28 @@ def test_a_bag_is_scored_on_each_tensors_middle_scan(tmp_path: Path) -> None:
         ),
     )
     assert behind.detections["person"] == 0 and behind.false_people_per_minute == 0.0
+
+
+def test_a_model_with_a_raster_yaw_scores_the_same_people_in_the_laser_frame(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    people = [[(2.0, 0.0)], [(2.0, 0.0)], [], [(5.0, 5.0)], [(2.0, 0.0)]]
+    config = BagEvalConfig(write_bag(tmp_path / "walk.bag", people), people_topic="/people")
+    plain = evaluate_bag(detector_for(person_model(tmp_path / "plain.onnx")), config)
+    turned_detector = detector_for(person_model(tmp_path / "turned.onnx", raster_yaw_deg=180.0))
+    assert turned_detector.raster_yaw_deg == 180.0
+    turned = evaluate_bag(turned_detector, config)
+    assert turned.people == plain.people and turned.detections == plain.detections
+    assert turned.people is not None and turned.people["r0.3"]["ap"] == pytest.approx(1 / 6)
+    # Its box is at column 180 of its raster, its detection ahead of the robot, as the plain model's.
+    from training.real_eval import _load, middle_scan_detections
+
+    scans = _load(config).stream
+    _, found = next(middle_scan_detections(turned_detector, scans, 0.25, Counter()))
+    _, expected = next(middle_scan_detections(detector_for(tmp_path / "plain.onnx"), scans, 0.25, Counter()))
+    assert found[0].box_px[0] == pytest.approx(180.0) and expected[0].box_px[0] == pytest.approx(0.0)
+    for field in ("bearing_deg", "bearing_min_deg", "bearing_max_deg", "x_m", "y_m"):
+        assert getattr(found[0], field) == pytest.approx(getattr(expected[0], field), abs=1e-9)
+    assert found[0].x_m == pytest.approx(2.0, abs=0.01) and abs(found[0].y_m) < 0.05
 
 
 def test_another_beam_geometry_works(tmp_path: Path) -> None:

@@ -29,7 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from common.encoding import INVALID_RULES, PADDINGS, R_MAX_M, InvalidRule, Padding, ScanStacker
+from common.encoding import (
+    INVALID_RULES,
+    PADDINGS,
+    R_MAX_M,
+    InvalidRule,
+    Padding,
+    ScanStacker,
+    check_raster_yaw,
+)
 from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
 from services.simulator.clutter import Clutter, sample_clutter
 from services.simulator.defaults import SCAN_PERIOD_S
@@ -81,6 +89,8 @@ class DatasetConfig:
     clutter: int = 0  # at most this many unlabelled clutter items per motion
     people: int = 0  # at most this many people per motion (0: the paper's four classes only)
     sensor: str = DEFAULT_PROFILE  # a profile of services.simulator.sensors, or "random" per scenario
+    # Degrees every scan is turned by before binning, labels too (common.encoding); 0: the paper's raster.
+    raster_yaw_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
@@ -98,6 +108,7 @@ class DatasetConfig:
         if self.people < 0:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
+        object.__setattr__(self, "raster_yaw_deg", check_raster_yaw(self.raster_yaw_deg))  # a ValueError
 
     @property
     def classes(self) -> tuple[str, ...]:
@@ -114,6 +125,8 @@ class DatasetConfig:
             fields.pop("people")
         if self.sensor == DEFAULT_PROFILE:
             fields.pop("sensor")
+        if self.raster_yaw_deg == 0.0:
+            fields.pop("raster_yaw_deg")
         return fields
 
 
@@ -280,12 +293,15 @@ def simulate_samples(
     clutter: int = 0,
     invalid: InvalidRule = "sentinel",
     people: int = 0,
+    raster_yaw_deg: float = 0.0,
 ) -> Iterator[Sample]:
     """Simulate one scenario and yield its samples, tensors made exactly as on the robot.
 
     Scans go through :class:`ScanStacker`, the FIFO the encoder service runs, so training, evaluation
     and deployment share one code path from ranges to tensor. ``spec`` is the scenario's sensor
     (noise, dropouts, spurious returns); ``clutter`` the most unlabelled clutter items per motion.
+    ``raster_yaw_deg`` turns tensors and labels alike (:mod:`common.encoding`); the samples' poses and
+    people stay in the world frame.
     """
     world.load(scenario)
     lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 2])))
@@ -299,7 +315,7 @@ def simulate_samples(
             lidar, motion, scenario, clutter, clutter_rng, people, people_rng, _window_ticks(frame_stride)
         )
         readings = dict(kept)
-        stacker = ScanStacker(padding, invalid)
+        stacker = ScanStacker(padding, invalid, raster_yaw_deg)
         for t, reading in kept:
             tensor = stacker.push_scan(
                 reading.ranges, spec.angle_min, spec.angle_increment, spec.range_min, spec.range_max
@@ -316,6 +332,7 @@ def simulate_samples(
                 label_range,
                 padding,
                 middle.people_legs,
+                stacker.raster_yaw_deg,
             )
             name = f"s{scenario.index:04d}_p{p_index:03d}_f{t:03d}"
             yield Sample(name, p_index, t, tensor, labels, middle.lidar_pose, middle.people_legs)
@@ -360,6 +377,7 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
         clutter=config.clutter,
         invalid=config.invalid,
         people=config.people,
+        raster_yaw_deg=config.raster_yaw_deg,
     )
     for sample in samples:
         write_rgb_png(image_dir / f"{sample.name}.png", sample.tensor)
@@ -412,10 +430,11 @@ def _prepare_out_dir(out: Path, overwrite: bool) -> None:
 
 def _data_yaml(config: DatasetConfig) -> str:
     names = "\n".join(f"  {i}: {name}" for i, name in enumerate(config.classes))
+    yaw = f", raster yaw {config.raster_yaw_deg!r}" if config.raster_yaw_deg else ""  # the paper's: none
     # No "path:" key: Ultralytics then resolves the splits next to this file, so the set can be moved.
     return (
         f"# triscan data set: seed {config.seed}, {config.scenarios} scenarios, padding {config.padding}, "
-        f"invalid {config.invalid}\n"
+        f"invalid {config.invalid}{yaw}\n"
         "train: images/train\nval: images/val\ntest: images/test\n"
         f"nc: {len(config.classes)}\nnames:\n{names}\n"
     )

@@ -19,6 +19,7 @@ from PIL import Image
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, PAD_COLUMNS, RANGE_ROWS
 from common.model_spec import CLASS_NAMES
 from services.simulator.scenario import Scenario
+from training.onnx_export import dataset_raster_yaw
 
 Pose = tuple[float, float, float]
 
@@ -49,6 +50,7 @@ class Sample:
     frame: int
     padding: str
     people_legs: tuple[tuple[tuple[float, float, float], ...], ...] = ()  # world frame, at scan t-1
+    raster_yaw_deg: float = 0.0  # degrees the set turned its scans by (common.encoding)
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -191,6 +193,7 @@ def load_sample(dataset_dir: Path, *, sample: str | None = None, index: int = 0)
         frame=int(record.get("frame", -1)),
         padding=_padding_of(dataset_dir, tensor),
         people_legs=_people_legs(record, samples_path),
+        raster_yaw_deg=dataset_raster_yaw(dataset_dir),
     )
 
 

@@ -97,12 +97,20 @@ def yolo_labels_to_boxes(text: str) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([xc - w / 2, yc - h / 2, xc + w / 2, yc + h / 2], axis=1), rows[:, 0].astype(np.int64)
 
 
-def _seam_flags_of_dataset(dataset_dir: Path) -> dict[str, dict[int, bool]] | None:
+def _seam_flags_of_dataset(
+    dataset_dir: Path, raster_yaw_deg: float = 0.0
+) -> dict[str, dict[int, bool]] | None:
     """Image stem → class → whether that object crosses the seam, from scenarios.jsonl + samples.jsonl.
 
+    The seam is the raster's: objects are seen turned by the set's ``raster_yaw_deg``, as its labels.
     ``None`` for a data set without them (e.g. recorded on a real robot in the YOLO layout).
     """
-    from services.simulator.labels import arc_crosses_seam, footprint_polar, person_footprint_polar
+    from services.simulator.labels import (
+        arc_crosses_seam,
+        footprint_polar,
+        person_footprint_polar,
+        turned_arc,
+    )
     from services.simulator.scenario import Scenario
 
     scenarios_file, samples_file = dataset_dir / "scenarios.jsonl", dataset_dir / "samples.jsonl"
@@ -122,12 +130,14 @@ def _seam_flags_of_dataset(dataset_dir: Path) -> dict[str, dict[int, bool]] | No
         x, y, yaw = (float(v) for v in sample["lidar_pose"])
         pose = (x, y, yaw)
         flags[Path(sample["image"]).stem] = {
-            class_id: arc_crosses_seam(*footprint_polar(scenario.footprint_of(class_id), pose)[:3])
+            class_id: arc_crosses_seam(
+                *turned_arc(*footprint_polar(scenario.footprint_of(class_id), pose)[:3], raster_yaw_deg)
+            )
             for class_id in range(len(FURNITURE_CLASSES))
         }
         # People are not part of the scenario: whether any of this sample's people crosses the seam.
         flags[Path(sample["image"]).stem][PERSON_ID] = any(
-            arc_crosses_seam(*person_footprint_polar(legs, pose)[:3])
+            arc_crosses_seam(*turned_arc(*person_footprint_polar(legs, pose)[:3], raster_yaw_deg))
             for legs in sample.get("people_legs", ())
         )
     return flags
@@ -144,11 +154,13 @@ def _crosses(class_id: int, box: np.ndarray, of_class: dict[int, bool]) -> bool:
 
 def dataset_samples(dataset_dir: Path, split: str = "test") -> Iterator[EvalSample]:
     """Samples of one split of a data set written by ``triscan dataset``."""
+    from training.onnx_export import dataset_raster_yaw
+
     image_dir = dataset_dir / "images" / split
     images = sorted(image_dir.glob("*.png"))
     if not images:
         raise FileNotFoundError(f"no images in {image_dir}: is {dataset_dir} a triscan data set?")
-    seam_flags = _seam_flags_of_dataset(dataset_dir)
+    seam_flags = _seam_flags_of_dataset(dataset_dir, dataset_raster_yaw(dataset_dir))
     for image in images:
         label = dataset_dir / "labels" / split / f"{image.stem}.txt"
         boxes, classes = yolo_labels_to_boxes(label.read_text() if label.exists() else "")
@@ -171,12 +183,14 @@ def fresh_samples(
     invalid: InvalidRule = "sentinel",
     clutter: int = 0,
     people: int = 0,
+    raster_yaw_deg: float = 0.0,
 ) -> Iterator[EvalSample]:
     """Newly simulated scenarios, straight through ScanStacker: data no model has seen.
 
     ``spec`` is the sensor (default: the clean LDS-01); the same seed gives the same worlds, motions and
     Gaussian noise draws under every imperfection setting, with labels of the true geometry. ``padding``
-    and ``invalid`` must be the model's own (:attr:`OnnxDetector.padding`, ``.invalid``). ``clutter``
+    ``invalid`` and ``raster_yaw_deg`` must be the model's own (:attr:`OnnxDetector.padding`,
+    ``.invalid``, ``.raster_yaw_deg``): tensors and labels are made in its raster's frame. ``clutter``
     puts up to that many unlabelled poles, wall stubs and walking leg pairs into each motion, drawn
     from their own stream: the same worlds and motions with things in them that must not be detected
     (a pole is not a chair leg), and which occlude what must. ``people`` puts up to that many labelled
@@ -203,6 +217,7 @@ def fresh_samples(
                 clutter=clutter,
                 invalid=invalid,
                 people=people,
+                raster_yaw_deg=raster_yaw_deg,
             )
             for sample in samples:
                 boxes = [box for label in sample.labels for box in label.boxes_px]
@@ -543,9 +558,9 @@ def condition_matrix(
 ) -> dict[str, dict[str, EvalReport]]:
     """Every detector on the same fresh worlds under every LiDAR condition: reports[condition][model].
 
-    The worlds of a condition are simulated once per encoding (padding and invalid-return rule) and fed
-    to each detector that reads that encoding: fp32 and INT8 of one network see identical tensors, which
-    makes the pair's difference a measure of quantisation alone, and models of another rule see the
+    The worlds of a condition are simulated once per encoding (padding, invalid-return rule, raster yaw)
+    and fed to each detector that reads that encoding: fp32 and INT8 of one network see identical tensors,
+    which makes the pair's difference a measure of quantisation alone, and models of another rule see the
     same scans encoded their way. Each cell lands in ``out_dir/<condition>/<model stem>/metrics.json``;
     ``summary.json`` holds the grid.
     """
@@ -553,19 +568,20 @@ def condition_matrix(
     stems = [d.model_path.stem for d in detectors]
     if len(set(stems)) != len(stems):
         raise ValueError(f"two models share a file stem: {stems}")
-    encodings = list(dict.fromkeys((d.padding, d.invalid) for d in detectors))
+    encodings = list(dict.fromkeys((d.padding, d.invalid, d.raster_yaw_deg) for d in detectors))
     reports: dict[str, dict[str, EvalReport]] = {}
     for condition, spec in specs.items():
         reports[condition] = {}
-        for padding, invalid in encodings:
+        for padding, invalid, yaw in encodings:
             samples = list(
                 fresh_samples(
                     worlds.seed, worlds.scenarios, worlds.positions, padding, worlds.frame_stride,
                     spec=spec, invalid=invalid, clutter=worlds.clutter, people=worlds.people,
+                    raster_yaw_deg=yaw,
                 )
             )  # fmt: skip
             for stem, detector in zip(stems, detectors, strict=True):
-                if (detector.padding, detector.invalid) == (padding, invalid):
+                if (detector.padding, detector.invalid, detector.raster_yaw_deg) == (padding, invalid, yaw):
                     cell = out_dir / condition / stem
                     reports[condition][stem] = evaluate(
                         detector, iter(samples), cell, source=worlds.source(condition), plots=plots

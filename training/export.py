@@ -20,7 +20,7 @@ from common.model_spec import DEFAULT_BOX_GRID, batch_variant_path, file_sha256,
 from training.architectures import network_of_checkpoint
 from training.batch_variant import add_batch_axis
 from training.export_checks import compare_outputs, median_latency_ms
-from training.onnx_export import dataset_invalid_rule, export_onnx, resolve_padding
+from training.onnx_export import dataset_invalid_rule, dataset_raster_yaw, export_onnx, resolve_padding
 from training.onnx_model import declared_class_names
 from training.quantization import (
     DEFAULT_ACTIVATION_TYPE,
@@ -65,7 +65,8 @@ def export_models(
     written under YOLOv8n's name, nor an ``--invalid empty`` model under the sentinel one's.
 
     ``dataset_dir`` (or its ``data.yaml``) is the set the weights were trained on: it supplies the
-    calibration images (its ``val`` split) and the padding; ``padding``, when given, must match it.
+    calibration images (its ``val`` split), the padding and the raster yaw; ``padding``, when given,
+    must match it.
     The returned dict holds each file's path, size and sha256, plus the raw-output differences INT8
     vs fp32 on ``compare_count`` val images the calibrator did not see (a sanity check; the accuracy
     verdict belongs to the evaluation on the test split) and, unless ``timing_runs`` is 0, the median
@@ -79,6 +80,7 @@ def export_models(
         raise FileNotFoundError(f"weights {weights} not found")
     recorded_padding = resolve_padding(padding, dataset_dir)
     recorded_invalid = dataset_invalid_rule(dataset_dir)
+    recorded_yaw = dataset_raster_yaw(dataset_dir)
     if name is None:
         name = model_stem(network_of_checkpoint(weights), recorded_padding, recorded_invalid)
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
@@ -89,6 +91,7 @@ def export_models(
         models_dir / f"{name}.onnx",
         padding=recorded_padding,
         invalid=recorded_invalid,
+        raster_yaw_deg=recorded_yaw,
         box_grid=box_grid,
     )
     int8 = quantize_int8(
@@ -112,6 +115,7 @@ def export_models(
         "fp32_batch": _describe(fp32_batch),
         "int8_batch": _describe(int8_batch),
         "padding": recorded_padding,
+        "raster_yaw_deg": recorded_yaw,
         "box_grid": box_grid,
         "classes": list(declared_class_names(_onnx_load(fp32))),
         "calibration_images": len(calibration),

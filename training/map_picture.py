@@ -22,6 +22,7 @@ from common.encoding import (
     pixel_x_to_bearing_deg,
     pixel_y_to_range_m,
     polar_to_xy,
+    raster_to_laser_bearing_deg,
 )
 from common.model_spec import CLASS_COLOURS, CLASS_NAMES
 from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario, enclosure_rects, room_wall_rects
@@ -63,10 +64,11 @@ LIDAR_BEHIND_CENTRE_M = 0.03
 # --------------------------------------------------------------------------------------------------
 
 
-def decode_hits(tensor: np.ndarray, lidar_pose: Pose) -> list[np.ndarray]:
+def decode_hits(tensor: np.ndarray, lidar_pose: Pose, raster_yaw_deg: float = 0.0) -> list[np.ndarray]:
     """World points float64[K, 2] of the lit pixels of each channel (t-2, t-1, t), via ``lidar_pose``.
 
-    Each pixel is taken at its centre (bearing = column, range = (row + 0.5) · 4/63 m). The sentinel
+    Each pixel is taken at its centre (bearing = column turned back by the set's ``raster_yaw_deg``,
+    range = (row + 0.5) · 4/63 m). The sentinel
     row means "no return", not an object at 4 m, so it is skipped; padding columns repeat or blank
     real columns, so they are skipped too. All channels use the *one* stored pose (that of t-1): the
     scans t-2 and t were taken from slightly different poses, so their points land slightly off —
@@ -78,7 +80,7 @@ def decode_hits(tensor: np.ndarray, lidar_pose: Pose) -> list[np.ndarray]:
     points = []
     for channel in range(STACK_DEPTH):
         rows, cols = np.nonzero(tensor[:SENTINEL_ROW, :ANGLE_COLUMNS, channel])
-        bearings = pixel_x_to_bearing_deg(cols + 0.5)
+        bearings = raster_to_laser_bearing_deg(pixel_x_to_bearing_deg(cols + 0.5), raster_yaw_deg)
         ranges = pixel_y_to_range_m(rows + 0.5)
         points.append(polar_to_xy(bearings, ranges) @ rotation.T + np.array([x, y]))
     return points
@@ -191,7 +193,7 @@ def _stamp_hits(image: Image.Image, sample: Sample) -> Image.Image:
     canvas_h, canvas_w = canvas.shape[:2]
     offsets = _disk_offsets(HIT_RADIUS_PX)
     planes = np.zeros((canvas_h, canvas_w, STACK_DEPTH), dtype=np.uint8)
-    for channel, points in enumerate(decode_hits(sample.tensor, sample.lidar_pose)):
+    for channel, points in enumerate(decode_hits(sample.tensor, sample.lidar_pose, sample.raster_yaw_deg)):
         centres = np.rint(world_to_map_px(points)).astype(np.int64)
         stamped = (centres[:, None, :] + offsets[None, :, :]).reshape(-1, 2)
         inside = (

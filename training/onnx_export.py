@@ -4,7 +4,7 @@ The robot runs ONNX Runtime, never torch, so the checkpoint is exported once her
 will always see: ``float32[1, 3, 64, 384]`` (batch 1, no dynamic axes: a fixed graph lets ONNX Runtime
 plan memory once and keeps the INT8 calibration valid for every input). Besides Ultralytics' own
 metadata (names, imgsz, stride) each file carries ``triscan.*`` metadata — padding mode, invalid-return
-rule, class list, source weights — so a detector can refuse a model trained on the other padding
+rule, raster yaw, class list, source weights — so a detector can refuse a model trained on the other padding
 instead of silently mixing ``zero`` and ``wrap`` (README, "The encoding"). Which padding to record is
 decided here too
 (:func:`resolve_padding`): the data set's word wins, and a caller who says otherwise gets an error.
@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS
+from common.encoding import IMAGE_WIDTH, INVALID_RULES, PADDINGS, RANGE_ROWS, check_raster_yaw
 from common.model_meta import metadata_entries
 from common.model_spec import BOX_GRIDS, CLASS_NAMES, DEFAULT_BOX_GRID, META_PREFIX
 from services.simulator.defaults import SCAN_PERIOD_S
@@ -77,6 +77,37 @@ def resolve_invalid_rule(requested: str | None, dataset_dir: Path | None) -> str
     return derived
 
 
+def dataset_raster_yaw(dataset_dir: Path | None) -> float:
+    """Degrees the data set turned its scans and labels by (``triscan dataset --raster-yaw``): its
+    ``summary.json`` says, else the comment line of its ``data.yaml``; a set that says nothing (the
+    paper's, and every set made before the option) used 0."""
+    if dataset_dir is None:
+        return 0.0
+    summary, data_yaml = dataset_dir / "summary.json", dataset_dir / "data.yaml"
+    value: object = 0.0
+    if summary.is_file():
+        value = json.loads(summary.read_text()).get("config", {}).get("raster_yaw_deg", 0.0)
+    elif data_yaml.is_file() and (match := re.search(r"raster yaw (\S+?)\s*$", data_yaml.read_text(), re.M)):
+        value = match.group(1)
+    try:
+        return check_raster_yaw(float(value))  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ExportError(f"{dataset_dir} records an invalid raster yaw {value!r}") from None
+
+
+def resolve_raster_yaw(requested: float | None, dataset_dir: Path | None) -> float:
+    """Raster yaw to record in the model: the data set's when its ``summary.json`` or ``data.yaml`` is
+    on disk, checked against the caller's (a model run on tensors turned otherwise than its training
+    set's misplaces every object); otherwise the caller's, else 0."""
+    wanted = None if requested is None else check_raster_yaw(requested)
+    if dataset_dir is None or not any((dataset_dir / n).is_file() for n in ("summary.json", "data.yaml")):
+        return wanted or 0.0
+    derived = dataset_raster_yaw(dataset_dir)
+    if wanted is not None and wanted != derived:
+        raise ExportError(f"raster yaw {wanted:g} requested but the data set {dataset_dir} uses {derived:g}")
+    return derived
+
+
 def resolve_padding(requested: str | None, dataset_dir: Path | None) -> str:
     """Padding to record in the model: the data set's when known, checked against the caller's.
 
@@ -103,6 +134,7 @@ def export_onnx(
     opset: int | None = None,
     padding: str | None = None,
     invalid: str | None = None,
+    raster_yaw_deg: float | None = None,
     rewrite_dfl: bool = True,
     box_grid: str = DEFAULT_BOX_GRID,
 ) -> Path:
@@ -111,7 +143,8 @@ def export_onnx(
     ``padding`` is read from the data set the checkpoint was trained on (its ``train_args.data``)
     when that set is still on disk; ``padding`` must then agree with it. If neither says, ``zero``
     (the paper's default) is recorded with a warning. ``invalid``, the invalid-return rule, likewise
-    (:func:`resolve_invalid_rule`; the sentinel row when neither says).
+    (:func:`resolve_invalid_rule`; the sentinel row when neither says), and ``raster_yaw_deg``
+    (:func:`resolve_raster_yaw`; 0 when neither says).
 
     ``box_grid`` (``none``, ``pixel``) is recorded for the detector: whether it rounds the boxes to
     whole pixels after NMS (:func:`common.postprocess.snap_boxes_to_pixels`).
@@ -150,6 +183,7 @@ def export_onnx(
             dataset_dir = None
         recorded_padding = resolve_padding(padding, dataset_dir)
         recorded_invalid = resolve_invalid_rule(invalid, dataset_dir)
+        recorded_yaw = resolve_raster_yaw(raster_yaw_deg, dataset_dir)
         exported = yolo.export(
             format="onnx",
             imgsz=(RANGE_ROWS, IMAGE_WIDTH),
@@ -174,6 +208,7 @@ def export_onnx(
                 classes=names,
                 # Every triscan data set stacks scans one simulator period apart (training.dataset).
                 stack_period_s=SCAN_PERIOD_S,
+                raster_yaw_deg=recorded_yaw,
             ),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",

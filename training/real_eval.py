@@ -1,11 +1,11 @@
 """``triscan eval --bag``: a model scored on a recorded ROS bag, scan by scan as the robot would run it.
 
-The bag's LaserScans go through :class:`common.encoding.ScanStacker` with the model's own padding and
-invalid-return rule (its metadata), and each stacked tensor through :class:`common.inference.OnnxDetector`
-and :func:`common.postprocess.detections_from_boxes`, so a detection's ``x_m``/``y_m`` is the very
-position the robot would publish. A tensor stacks scans t−2, t−1 and t and is labelled for its middle
-scan (the simulator labels scan t−1), so the detections of the tensor that ends with scan j are scored
-against the people of scan j−1.
+The bag's LaserScans go through :class:`common.encoding.ScanStacker` with the model's own padding,
+invalid-return rule and raster yaw (its metadata), and each stacked tensor through
+:class:`common.inference.OnnxDetector` and :func:`common.postprocess.detections_from_boxes`, so a
+detection's ``x_m``/``y_m`` is the very position the robot would publish, in the laser frame. A tensor
+stacks scans t−2, t−1 and t and is labelled for its middle scan (the simulator labels scan t−1), so the
+detections of the tensor that ends with scan j are scored against the people of scan j−1.
 
 What is scored, inside a :class:`Scope` (a bearing window and the model's 4 m full scale; a detection
 or a person outside it is not counted at all):
@@ -359,7 +359,7 @@ def middle_scan_detections(
 ) -> Iterator[tuple[int, list[Detection]]]:
     """``(stamp of the middle scan, detections)`` per tensor of the scan stream: every detection above
     ``conf``, and person detections down to the detector's own threshold (for the curve)."""
-    stacker = ScanStacker(detector.padding, detector.invalid)
+    stacker = ScanStacker(detector.padding, detector.invalid, detector.raster_yaw_deg)
     stamps: deque[int] = deque(maxlen=3)
     for scan in scans:
         try:
@@ -374,7 +374,10 @@ def middle_scan_detections(
             continue
         boxes, scores, class_ids, _ = detector.detect_boxes(tensor)
         keep = (class_ids == PERSON_ID) | (scores > np.float32(conf))
-        yield stamps[1], detections_from_boxes(boxes[keep], scores[keep], class_ids[keep])
+        yield (
+            stamps[1],
+            detections_from_boxes(boxes[keep], scores[keep], class_ids[keep], detector.raster_yaw_deg),
+        )  # laser-frame bearings and positions, whatever the raster's yaw
 
 
 def _xy(detections: Sequence[Detection]) -> np.ndarray:

@@ -97,7 +97,7 @@ def fresh_motions(
             frames: dict[int, list[MotionFrame]] = {}
             for sample in simulate_samples(
                 world, scenario, motions, seed, detector.padding, 1, spec=spec, clutter=clutter,
-                invalid=detector.invalid, people=people,
+                invalid=detector.invalid, people=people, raster_yaw_deg=detector.raster_yaw_deg,
             ):  # fmt: skip
                 pose = sample.lidar_pose
                 targets: dict[str, Points] = {group: {} for group in GROUPS}

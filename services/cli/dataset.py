@@ -38,6 +38,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="sentinel",
         help="invalid returns: sentinel row 63 (paper) or empty (no pixel)",
     )
+    p.add_argument(
+        "--raster-yaw",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="turn every scan and label by DEG before binning (180: the 0°/360° seam behind the robot); "
+        "default 0, the paper's raster",
+    )
     dr = p.add_argument_group("domain randomisation (defaults: the paper's clean LDS-01)")
     for flag, default, what in (
         ("--noise-sigma", None, "range noise σ in metres (default 0.015 0.015)"),
@@ -92,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         clutter=args.clutter,
         people=args.people,
         sensor=args.sensor,
+        raster_yaw_deg=args.raster_yaw,
         **({"noise_sigma_m": tuple(args.noise_sigma)} if args.noise_sigma else {}),
     )
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)

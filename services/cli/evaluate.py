@@ -242,11 +242,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"written to {args.out}/tracks.json")
         return 0
     if args.data is not None:
-        from training.onnx_export import dataset_invalid_rule
+        from training.onnx_export import dataset_invalid_rule, dataset_raster_yaw
 
         if (rule := dataset_invalid_rule(args.data)) != detector.invalid:
             raise ValueError(
                 f"{args.data} puts invalid returns {rule!r}, {args.model[0]} reads them {detector.invalid!r}"
+            )
+        if (yaw := dataset_raster_yaw(args.data)) != detector.raster_yaw_deg:
+            raise ValueError(
+                f"{args.data} turns its scans by a raster yaw of {yaw:g} deg, {args.model[0]} by "
+                f"{detector.raster_yaw_deg:g} deg"
             )
         samples, source = dataset_samples(args.data, args.split), f"{args.data}:{args.split}"
     else:
@@ -255,6 +260,7 @@ def run(args: argparse.Namespace) -> int:
         samples = fresh_samples(
             args.seed, args.fresh, args.positions, detector.padding, args.frame_stride, spec=spec,
             invalid=detector.invalid, clutter=args.clutter, people=args.people,
+            raster_yaw_deg=detector.raster_yaw_deg,
         )  # fmt: skip
         source = worlds.source(noise)
     report = evaluate(detector, samples, args.out, source=source)

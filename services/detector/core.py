@@ -215,6 +215,13 @@ class DetectorCore:
                     f"{self.detector.model_id} expects {trained_on!r}",
                 )
                 return None
+        if tensor.yaw_deg != self.detector.raster_yaw_deg:
+            self.reject(
+                "raster_yaw_mismatch",
+                f"{tensor.robot_id}: tensor made with raster yaw {tensor.yaw_deg:g} deg, model "
+                f"{self.detector.model_id} expects {self.detector.raster_yaw_deg:g} deg",
+            )
+            return None
         return tensor
 
     def note_dropped(self) -> None:
@@ -379,6 +386,7 @@ class InferencePipeline:
                 invalid=self.core.detector.invalid,
                 forget_after_s=forget_after_s,
                 stack_period_s=self.core.detector.stack_period_s,
+                raster_yaw_deg=self.core.detector.raster_yaw_deg,
             )
             if from_scans
             else None

@@ -14,6 +14,7 @@ subscribe to the tensors of the announced robots they serve.
 from __future__ import annotations
 
 import logging
+import math
 import subprocess
 import sys
 import threading
@@ -50,6 +51,7 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     stack_period_s: float | None = None,
+    raster_yaw_deg: float = 0.0,
     siblings: Siblings | None = None,
     processes: int = 1,
 ) -> EncoderCore:
@@ -60,7 +62,13 @@ def run(
     FIFO, so its first tensor comes three scans later and none is sent twice. As the detector's, it
     serves once ``processes`` encoders are live and settled.
     """
-    core = EncoderCore(padding, invalid=invalid, forget_after_s=forget_after_s, stack_period_s=stack_period_s)
+    core = EncoderCore(
+        padding,
+        invalid=invalid,
+        forget_after_s=forget_after_s,
+        stack_period_s=stack_period_s,
+        raster_yaw_deg=raster_yaw_deg,
+    )
     with ServiceRuntime("encoder", settings, stop, duration_s=duration_s) as runtime:
         tensors = runtime.robot_publishers(tensor_key, announce_topic=TENSOR)
         shards = ShardMembership(runtime.session, "encoder")
@@ -100,8 +108,8 @@ def run(
             shards.wait_settled(processes, stop)
             scans.start()  # once settled: a robot it subscribes to is one it serves
             scans.wait_serving(stop)
-            log.info("encoder %s ready (padding %s, invalid returns %s): its robots' scans → tensor",
-                     shards.me[:8], padding, invalid)  # fmt: skip
+            log.info("encoder %s ready (padding %s, invalid returns %s, raster yaw %g): its robots' scans → "
+                     "tensor", shards.me[:8], padding, invalid, core.raster_yaw_deg)  # fmt: skip
             runtime.serve(housekeeping)
         finally:
             scans.close()
@@ -126,12 +134,22 @@ def main(argv: list[str] | None = None) -> int:
         help="stack scans this far apart, as the detector's model was trained (its triscan.stack_period_s); "
         "default: consecutive scans",
     )
+    parser.add_argument(
+        "--raster-yaw",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="turn scans by DEG before binning, as the detector's model was trained (its "
+        "triscan.raster_yaw_deg); default 0, the paper's raster",
+    )
     add_processes_argument(parser, PROCESSES_FLAG, "1; more, here or on other hosts, share the robots")
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     if args.stack_period_s is not None and not args.stack_period_s > 0:
         parser.error(f"--stack-period-s must be positive, got {args.stack_period_s}")
+    if not math.isfinite(args.raster_yaw):
+        parser.error(f"--raster-yaw must be finite, got {args.raster_yaw}")
     configure_logging(args.verbose)
     if args.encoders is not None and args.encoders < 1:
         parser.error(f"{PROCESSES_FLAG} must be >= 1, got {args.encoders}")
@@ -150,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
             forget_after_s=args.forget_after,
             duration_s=args.duration,
             stack_period_s=args.stack_period_s,
+            raster_yaw_deg=args.raster_yaw,
             siblings=siblings,
             processes=processes,
         )

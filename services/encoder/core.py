@@ -23,6 +23,9 @@ happened. So, per robot (robots never share a FIFO):
   sensor only every k-th scan is stacked, k = round(period / the sensor's measured scan interval)
   (every 4th of a 40 Hz sensor for a 0.1 s model, which also cuts its cost by 4), and "consecutive"
   above means consecutive among those; a slower sensor is stacked as it comes, and that is logged once.
+* **Raster yaw**: a model may see its scans turned (``raster_yaw_deg``, from its metadata;
+  :mod:`common.encoding`); every tensor is encoded with it and says so, so a detector whose model has
+  another yaw refuses it.
 """
 
 from __future__ import annotations
@@ -118,8 +121,10 @@ class EncoderCore:
         max_robots: int = DEFAULT_MAX_ROBOTS,
         clock: Callable[[], float] = time.monotonic,
         stack_period_s: float | None = None,
+        raster_yaw_deg: float = 0.0,
     ) -> None:
-        ScanStacker(padding, invalid)  # validates both names early, with the encoder's own message
+        # Validates the names and the yaw early, with the encoder's own message.
+        self.raster_yaw_deg = ScanStacker(padding, invalid, raster_yaw_deg).raster_yaw_deg
         if stack_period_s is not None and not stack_period_s > 0.0:
             raise ValueError(f"stack_period_s must be positive or None, got {stack_period_s}")
         self.padding: Padding = padding
@@ -215,7 +220,9 @@ class EncoderCore:
             if len(self._streams) >= self.max_robots:
                 self._reject("too_many_robots", f"{robot_id}: already tracking {self.max_robots} robots")
                 return None
-            stream = self._streams[robot_id] = _Stream(ScanStacker(self.padding, self.invalid))
+            stream = self._streams[robot_id] = _Stream(
+                ScanStacker(self.padding, self.invalid, self.raster_yaw_deg)
+            )
         return stream
 
     def _push(self, scan: Scan) -> StackedTensor | None:
@@ -289,6 +296,7 @@ class EncoderCore:
             tensor=tensor,
             padding=self.padding,
             invalid=self.invalid,
+            raster_yaw_deg=self.raster_yaw_deg or None,  # absent for the paper's raster, as it always was
             scan_seqs=(stream.seqs[0], stream.seqs[1], stream.seqs[2]),
             scan_stamps_ns=(stream.stamps_ns[0], stream.stamps_ns[1], stream.stamps_ns[2]),
             encode_ms=(time.perf_counter_ns() - started) / 1e6,

@@ -175,6 +175,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--padding", choices=PADDINGS, default="zero", help="padding the ground-truth boxes are given for"
     )
+    parser.add_argument(
+        "--raster-yaw", type=float, default=0.0, metavar="DEG",
+        help="raster yaw the ground-truth boxes are given for (the model's triscan.raster_yaw_deg)",
+    )  # fmt: skip
     parser.add_argument("--robot-prefix", default=ROBOT_ID_PREFIX, help="robot ids are PREFIX0, PREFIX1, ...")
     add_service_arguments(parser)
     return parser
@@ -208,6 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             padding=args.padding,
             spec=spec,
             people=args.people,
+            raster_yaw_deg=args.raster_yaw,
         )
     except (ValueError, FileNotFoundError) as exc:
         log.error("%s", exc)

@@ -23,7 +23,7 @@ from types import TracebackType
 
 import numpy as np
 
-from common.encoding import PADDINGS, R_MAX_M, Padding
+from common.encoding import PADDINGS, R_MAX_M, Padding, check_raster_yaw
 from common.keys import validate_robot_id
 from common.messages import GroundTruth, Odometry, Scan, TruthObject
 from common.model_spec import CLASS_NAMES
@@ -174,8 +174,11 @@ class SimulatedRobot:
         padding: Padding = "zero",
         spec: LidarSpec = DEFAULT_SPEC,
         people: int = 0,
+        raster_yaw_deg: float = 0.0,
     ) -> None:
         self.robot_id = validate_robot_id(robot_id)
+        # Truth boxes are given in the raster of the model the loop runs: turned by its yaw.
+        self.raster_yaw_deg = check_raster_yaw(raster_yaw_deg)
         if people < 0:
             raise ValueError(f"people must be >= 0, got {people}")
         self.people_count = people
@@ -326,6 +329,7 @@ class SimulatedRobot:
             min(self.spec.range_max, R_MAX_M),
             self.padding,
             reading.people_legs,
+            self.raster_yaw_deg,
         )
         people = iter(range(len(self.people)))
         scan = Scan(
@@ -405,6 +409,7 @@ class SimulatedFleet:
         padding: Padding = "zero",
         spec: LidarSpec = DEFAULT_SPEC,
         people: int = 0,
+        raster_yaw_deg: float = 0.0,
     ) -> None:
         if robots < 1:
             raise ValueError(f"robots must be >= 1, got {robots}")
@@ -418,7 +423,9 @@ class SimulatedFleet:
             for index in range(robots):
                 robot_id = validate_robot_id(f"{robot_id_prefix}{index}")
                 self.robots.append(
-                    SimulatedRobot(robot_id, index, seed, rate_hz, ticks, padding, spec, people)
+                    SimulatedRobot(
+                        robot_id, index, seed, rate_hz, ticks, padding, spec, people, raster_yaw_deg
+                    )
                 )
         except Exception:
             self.close()

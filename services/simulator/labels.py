@@ -6,6 +6,8 @@ and the range interval from its nearest boundary point to its farthest corner, s
 whole raster pixels — exactly the pixels a return from that object can light. An object is a target
 only if the sensor saw it: at least two beams of scan t−1 hit it (for the doorway: pass through it).
 A person's footprint is a disc about the midpoint of their legs (:data:`PERSON_FOOTPRINT_RADIUS_M`).
+A model with a raster yaw sees its scans turned (:mod:`common.encoding`): its labels are made in that
+turned frame, where its seam lies, with the same rules.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ class ObjectLabel:
     class_id: int
     beams_on_object: int
     visible: bool
+    # Bearings in the raster's frame: the laser frame turned by the raster yaw (0: the laser frame).
     bearing_center_deg: float  # in [0, 360)
     bearing_min_deg: float  # arc ends, unwrapped around the centre: min may be < 0, max may be > 360
     bearing_max_deg: float
@@ -106,6 +109,15 @@ def _pixel_boxes(
         if b > a:
             boxes.append((float(a), y1, float(b), y2))
     return tuple(boxes)
+
+
+def turned_arc(center: float, lo: float, hi: float, yaw_deg: float) -> tuple[float, float, float]:
+    """An arc (centre in [0, 360), ends unwrapped around it) turned by a raster yaw: the centre taken
+    mod 360 again and the ends kept around it. A yaw of 0 returns the arc as it is, bit for bit."""
+    if yaw_deg == 0.0:
+        return center, lo, hi
+    turned = float(np.mod(center + yaw_deg, 360.0))
+    return turned, lo + (turned - center), hi + (turned - center)
 
 
 def beams_through_segment(
@@ -189,6 +201,7 @@ def label_scan(
     range_max: float,
     padding: Padding = "zero",
     people_legs: Sequence[Sequence[tuple[float, float, float]]] = (),
+    raster_yaw_deg: float = 0.0,
 ) -> list[ObjectLabel]:
     """Labels of every object of ``scenario`` (chair, box, desk, doorframe) and every person for one scan.
 
@@ -198,6 +211,8 @@ def label_scan(
     circles (x, y, r) at this scan: a person's box spans their footprint (:func:`person_footprint_polar`), and
     the person is a target when at least two beams hit their legs. ``range_max`` is the labelling range: the
     sensor's reach within the raster's full scale. Boxes keep to the sensor's field of view.
+    ``raster_yaw_deg`` is the model's raster yaw (a checked value in [0, 360)): bearings, the field of
+    view and the boxes are turned by it, and the seam rule applies in the turned frame.
     """
     labels: list[ObjectLabel] = []
     hits = np.asarray(hit_object)
@@ -213,8 +228,10 @@ def label_scan(
     for person, legs in enumerate(people_legs):
         beams = int(np.count_nonzero(np.isin(hits, [leg_object(person, leg) for leg in range(len(legs))])))
         polar.append((PERSON, person_footprint_polar(legs, lidar_pose), beams))
-    for class_id, (center, lo, hi, rmin, rmax), beams in polar:
-        arc = clip_to_field_of_view(center, lo, hi, bearings_rad)
+    seen_bearings = np.asarray(bearings_rad, dtype=np.float64) + math.radians(raster_yaw_deg)
+    for class_id, (laser_center, laser_lo, laser_hi, rmin, rmax), beams in polar:
+        center, lo, hi = turned_arc(laser_center, laser_lo, laser_hi, raster_yaw_deg)
+        arc = clip_to_field_of_view(center, lo, hi, seen_bearings)
         visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max and arc is not None
         boxes = _pixel_boxes(center, *arc, rmin, rmax, padding) if visible and arc is not None else ()
         labels.append(
