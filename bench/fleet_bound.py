@@ -180,7 +180,7 @@ def python_per_scan(model: Path, batches: int) -> dict[str, float]:
     from common.messages import encode_message
     from services.detector.core import DetectorCore, InferencePipeline
 
-    encoder = EncoderCore(model_facts(model).padding)
+    encoder = EncoderCore.for_model(model_facts(model))
     tensors = [t for scan in recorded_scans(PROFILE_BATCH * 4 + 2, seed=11) if (t := encoder.push(scan))]
     payloads = [encode_message(t) for t in tensors]
     core = DetectorCore(OnnxDetector(model, intra_op_threads=1))

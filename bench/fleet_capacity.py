@@ -131,11 +131,10 @@ class RecordedFrame:
 
 def frames_to_send(scans: list[Scan], args: argparse.Namespace) -> list[RecordedFrame]:
     """What the robots publish: the recorded ``scans``, or with ``--encode-on-robots`` the tensors the
-    encoder makes of them for the detector's model (its padding and invalid-return rule)."""
+    encoder makes of them for the detector's model (as it reads scans: :meth:`EncoderCore.for_model`)."""
     if not args.encode_on_robots:
         return [RecordedFrame(scan) for scan in scans]
-    facts = model_facts(detector_model(args))
-    encoder = EncoderCore(facts.padding, invalid=facts.invalid)
+    encoder = EncoderCore.for_model(model_facts(detector_model(args)))
     return [RecordedFrame(tensor) for scan in scans if (tensor := encoder.push(scan)) is not None]
 
 

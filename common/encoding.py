@@ -31,7 +31,7 @@ from __future__ import annotations
 import functools
 import math
 from collections import deque
-from typing import Literal, get_args
+from typing import Literal, Protocol, get_args
 
 import numpy as np
 
@@ -253,6 +253,20 @@ def padded_hits(
     return np.concatenate([rows, rows[seam]]), np.concatenate([cols, cols[seam] + ANGLE_COLUMNS])
 
 
+class ReadsScans(Protocol):
+    """How a model reads scans, as its metadata declares it (:class:`common.inference.OnnxDetector`,
+    :class:`common.model_meta.ModelFacts`): whatever encodes for the model takes all three from here."""
+
+    @property
+    def padding(self) -> Padding: ...
+
+    @property
+    def invalid(self) -> InvalidRule: ...
+
+    @property
+    def raster_yaw_deg(self) -> float: ...
+
+
 class ScanStacker:
     """The FIFO of Algorithm 1: the last three padded rasters of ONE sensor.
 
@@ -270,6 +284,11 @@ class ScanStacker:
         self.invalid: InvalidRule = check_invalid_rule(invalid)
         self.raster_yaw_deg: float = check_raster_yaw(raster_yaw_deg)  # the model's (module docstring)
         self._frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=STACK_DEPTH)
+
+    @classmethod
+    def for_model(cls, model: ReadsScans) -> ScanStacker:
+        """A stacker that encodes as ``model`` reads scans: its padding, invalid rule and raster yaw."""
+        return cls(model.padding, model.invalid, model.raster_yaw_deg)
 
     def __len__(self) -> int:
         return len(self._frames)

@@ -12,7 +12,7 @@ from common.inference import OnnxDetector
 from common.model_spec import default_model_path
 
 detector = OnnxDetector(default_model_path())  # the shipped model, or $TRISCAN_MODEL
-stacker = ScanStacker(detector.padding, detector.invalid, detector.raster_yaw_deg)  # as the model reads scans
+stacker = ScanStacker.for_model(detector)  # as the model reads scans: padding, invalid rule, raster yaw
 for seq in range(30):  # 3 s of scans at 10 Hz
     angle_min, angle_increment, range_min, range_max, ranges = read_scan(seq / 10)
     tensor = stacker.push_scan(ranges, angle_min, angle_increment, range_min, range_max)

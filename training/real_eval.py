@@ -359,7 +359,7 @@ def middle_scan_detections(
 ) -> Iterator[tuple[int, list[Detection]]]:
     """``(stamp of the middle scan, detections)`` per tensor of the scan stream: every detection above
     ``conf``, and person detections down to the detector's own threshold (for the curve)."""
-    stacker = ScanStacker(detector.padding, detector.invalid, detector.raster_yaw_deg)
+    stacker = ScanStacker.for_model(detector)
     stamps: deque[int] = deque(maxlen=3)
     for scan in scans:
         try:

@@ -381,15 +381,7 @@ class InferencePipeline:
         self.detectors = list(detectors)
         self.core = DetectorCore(self.detectors[0])
         self.encoder = (
-            EncoderCore(
-                self.core.detector.padding,
-                invalid=self.core.detector.invalid,
-                forget_after_s=forget_after_s,
-                stack_period_s=self.core.detector.stack_period_s,
-                raster_yaw_deg=self.core.detector.raster_yaw_deg,
-            )
-            if from_scans
-            else None
+            EncoderCore.for_model(self.core.detector, forget_after_s=forget_after_s) if from_scans else None
         )
         self.batch = batch
         self._owns = owns or (lambda _robot_id: True)

@@ -37,8 +37,9 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
-from common.encoding import InvalidRule, Padding, ScanError, ScanStacker
+from common.encoding import InvalidRule, Padding, ReadsScans, ScanError, ScanStacker
 from common.keys import parse_key
 from common.messages import LIT_PIXELS_VERSION, MessageError, Scan, StackedTensor, decode_message
 
@@ -74,6 +75,14 @@ class EncoderCounters:
             "odom_not_finite": self.odom_not_finite,
             "rejected": dict(self.rejected),
         }
+
+
+class StacksScans(ReadsScans, Protocol):
+    """A model's reading of scans and the period it stacks them at (:class:`common.inference.OnnxDetector`,
+    :class:`common.model_meta.ModelFacts`)."""
+
+    @property
+    def stack_period_s(self) -> float | None: ...
 
 
 INTERVALS_KEPT = 9  # scan intervals the sensor's period is measured over (their median)
@@ -136,6 +145,18 @@ class EncoderCore:
         self.counters = EncoderCounters()
         self._streams: dict[str, _Stream] = {}
         self._lock = threading.RLock()
+
+    @classmethod
+    def for_model(cls, model: StacksScans, **settings: Any) -> EncoderCore:
+        """An encoder whose tensors ``model`` reads as it was trained: its padding, invalid rule, raster
+        yaw and stacking period; ``settings`` are the other keyword arguments."""
+        return cls(
+            model.padding,
+            invalid=model.invalid,
+            stack_period_s=model.stack_period_s,
+            raster_yaw_deg=model.raster_yaw_deg,
+            **settings,
+        )
 
     @property
     def robot_ids(self) -> list[str]:
