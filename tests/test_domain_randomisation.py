@@ -195,6 +195,30 @@ def test_randomised_set_records_its_settings_and_keeps_true_geometry_labels(
     assert differing > 0 and sentinel_gain > 0
 
 
+def test_open_space_rooms_move_only_the_walls_and_rebuild_from_their_record() -> None:
+    from services.simulator.scenario import (
+        OPEN_SPACE_HALF_M,
+        ROOM_HALF_M,
+        Scenario,
+        room_half_of,
+        sample_scenario,
+    )
+
+    assert {room_half_of(7, i, 0.0) for i in range(50)} == {ROOM_HALF_M}
+    assert all(OPEN_SPACE_HALF_M[0] <= room_half_of(7, i, 1.0) <= OPEN_SPACE_HALF_M[1] for i in range(50))
+    halves = [room_half_of(7, i, 0.5) for i in range(200)]
+    assert 0.3 < np.mean([h == ROOM_HALF_M for h in halves]) < 0.7
+    with pytest.raises(ValueError, match="open-space share"):
+        room_half_of(7, 0, 1.5)
+    paper, open_room = sample_scenario(3, 7), sample_scenario(3, 7, 5.0)
+    assert open_room.objects == paper.objects and open_room.door.width_m == paper.door.width_m
+    assert open_room.room_half_m == 5.0 and open_room.door.frame.center != paper.door.frame.center
+    assert "room_half_m" not in paper.to_json()["door"]  # the paper's records stay as they were
+    assert Scenario.from_json(open_room.to_json()) == open_room
+    with pytest.raises(ValueError, match="half-width"):
+        sample_scenario(3, 7, 1.5)
+
+
 def test_named_and_written_imperfections_make_the_same_sensor() -> None:
     from services.simulator.lidar import NAMED_IMPERFECTIONS, with_imperfections
 

@@ -15,7 +15,7 @@ from services.simulator.labels import PERSON_FOOTPRINT_RADIUS_M, clip_to_field_o
 from services.simulator.people import (
     CADENCE_BASE,
     CADENCE_GAIN,
-    INSIDE_HALF_M,
+    INSIDE_MARGIN_M,
     PEOPLE_CLEARANCE_M,
     ROBOT_CLEARANCE_M,
     STANCE_SHARE,
@@ -75,21 +75,25 @@ def test_a_standing_person_keeps_both_legs_still_side_by_side() -> None:
     assert person.centre(2.0) == pytest.approx((0.5, 0.5))
 
 
-def test_people_stay_walkable_and_clear_of_furniture_the_robot_and_each_other() -> None:
+@pytest.mark.parametrize("room_half_m", [2.0, 5.0])
+def test_people_stay_walkable_and_clear_of_furniture_the_robot_and_each_other(room_half_m: float) -> None:
     rng = np.random.default_rng(3)
     robot = np.array([[-1.2, -1.2, 0.0]] * 50)
+    inside_half = room_half_m - INSIDE_MARGIN_M
     seen = 0
+    farthest = 0.0
     for index in range(6):
-        scenario = sample_scenario(index, seed=21)
+        scenario = sample_scenario(index, seed=21, room_half_m=room_half_m)
         for _ in range(8):
             people = sample_people(scenario, robot, 0.1, 5.0, 4, rng)
             assert len(people) <= 4
             seen += len(people)
             for k, person in enumerate(people):
                 c = person.centres
-                outside = np.any(np.abs(c) > INSIDE_HALF_M + 1e-9, axis=1)
+                farthest = max(farthest, float(np.abs(c).max()))
+                outside = np.any(np.abs(c) > inside_half + 1e-9, axis=1)
                 normal = np.array([math.cos(scenario.door.yaw), math.sin(scenario.door.yaw)])
-                assert np.all(c[outside] @ normal > INSIDE_HALF_M - 0.02), "only the doorway leads out"
+                assert np.all(c[outside] @ normal > inside_half - 0.02), "only the doorway leads out"
                 for obj in scenario.objects:
                     assert np.all(obj.footprint.distance(c) >= 0.3 - 1e-9)
                 assert np.hypot(*(c - robot[0, :2]).T).min() >= ROBOT_CLEARANCE_M
@@ -97,6 +101,7 @@ def test_people_stay_walkable_and_clear_of_furniture_the_robot_and_each_other() 
                     gap = np.hypot(*(c - other.centres).T).min()
                     assert gap >= min(PEOPLE_CLEARANCE_M, 0.5) - 1e-9  # a companion walks 0.5-0.7 m aside
     assert seen > 20
+    assert farthest > room_half_m - 1.0, "people use the whole room, an open-space one too"
     assert sample_people(sample_scenario(0, seed=21), robot, 0.1, 5.0, 0, rng) == []
 
 
@@ -209,8 +214,9 @@ def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
     from training.dataset import DatasetConfig, generate_dataset
 
     config = DatasetConfig(
-        out=tmp_path / "a", scenarios=6, positions=4, seed=5, frame_stride=5, people=4, sensor="random"
-    )
+        out=tmp_path / "a", scenarios=6, positions=4, seed=5, frame_stride=5, people=4, sensor="random",
+        open_space=0.5,
+    )  # fmt: skip
     summary = generate_dataset(config, progress=False)
     assert (
         "nc: 5" in (tmp_path / "a" / "data.yaml").read_text()
@@ -222,6 +228,10 @@ def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
     assert len(set(sensors)) >= 3 and set(sensors) <= set(PROFILES)
     config_json = json.loads((tmp_path / "a" / "summary.json").read_text())["config"]
     assert config_json["people"] == 4 and config_json["sensor"] == "random"
+    assert config_json["open_space"] == 0.5
+    records = [json.loads(line) for line in (tmp_path / "a" / "scenarios.jsonl").open()]
+    rooms = [record["door"].get("room_half_m", 2.0) for record in records]
+    assert min(rooms) == 2.0 < max(rooms), "a share of the rooms are open spaces"
     again = replace(config, out=tmp_path / "b", workers=2)
     generate_dataset(again, progress=False)
     assert _digest(tmp_path / "a") == _digest(tmp_path / "b"), "the same whatever the worker count"

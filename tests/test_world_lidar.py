@@ -73,7 +73,8 @@ def ray_rect(origin: tuple[float, float], angles: np.ndarray, rect: Rect, grow: 
 def wall_rects(door: Doorway | None) -> list[Rect]:
     """Room and enclosure walls as floor rectangles; the door gap is taken from ``Doorway.opening``."""
     rects = []
-    for half, is_room in ((ROOM_HALF_M, True), (OUTER_HALF_M, False)):
+    room = door.room_half_m if door is not None else ROOM_HALF_M
+    for half, is_room in ((room, True), (room + OUTER_HALF_M - ROOM_HALF_M, False)):
         outer = half + WALL_THICKNESS_M
         for k in range(4):
             yaw = k * math.pi / 2
@@ -203,6 +204,20 @@ def test_doorway_on_wall_k_matches_doorway_opening(door_k: int) -> None:
     frame_bearing = math.degrees(math.atan2(scene.door.frame.center[1], scene.door.frame.center[0])) % 360
     assert round(frame_bearing) == door_beam
     assert_matches_reference(reading, EXACT, scene)
+
+
+def test_open_space_room_moves_the_walls_and_the_enclosure_out() -> None:
+    room = 4.6
+    scene = Scenario(0, 0, Doorway(1, 0.8, room), (chair((0.8, 0.5)), box((-1.0, -0.6))))
+    far = LidarSpec(noise_sigma_m=0.0, range_max=12.0)
+    with World(scene) as world:
+        reading = scan_exact(world, (OFFSET, 0.0, 0.0), far)
+        short = scan_exact(world, (OFFSET, 0.0, 0.0))  # the LDS-01 reaches 3.5 m: no wall returns
+    assert reading.true_ranges[90] == pytest.approx(room + OUTER_HALF_M - ROOM_HALF_M, abs=1e-9)  # the door
+    assert reading.true_ranges[270] == pytest.approx(room, abs=1e-9)
+    assert_matches_reference(reading, far, scene)
+    assert not np.any(short.hit_object == WALL_OBJECT)
+    assert_matches_reference(short, EXACT, scene)
 
 
 def test_chair_shows_only_its_legs() -> None:

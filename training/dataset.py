@@ -47,6 +47,7 @@ from services.simulator.people import Person, sample_people
 from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
     Scenario,
+    room_half_of,
     sample_robot_positions,
     sample_scenario,
     sample_waypoints,
@@ -91,6 +92,8 @@ class DatasetConfig:
     sensor: str = DEFAULT_PROFILE  # a profile of services.simulator.sensors, or "random" per scenario
     # Degrees every scan is turned by before binning, labels too (common.encoding); 0: the paper's raster.
     raster_yaw_deg: float = 0.0
+    # Share of scenarios whose walls move out to an open-space room (services.simulator.scenario).
+    open_space: float = 0.0
 
     def __post_init__(self) -> None:
         if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
@@ -108,6 +111,7 @@ class DatasetConfig:
         if self.people < 0:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
+        room_half_of(self.seed, 0, self.open_space)  # a ValueError for a share outside [0, 1]
         object.__setattr__(self, "raster_yaw_deg", check_raster_yaw(self.raster_yaw_deg))  # a ValueError
 
     @property
@@ -127,6 +131,8 @@ class DatasetConfig:
             fields.pop("sensor")
         if self.raster_yaw_deg == 0.0:
             fields.pop("raster_yaw_deg")
+        if self.open_space == 0.0:
+            fields.pop("open_space")
         return fields
 
 
@@ -351,7 +357,7 @@ def _world() -> World:
 
 def generate_scenario(index: int, split: str, config: DatasetConfig) -> ScenarioResult:
     """Simulate scenario ``index`` and write its samples; safe to run in any process, in any order."""
-    scenario = sample_scenario(index, config.seed)
+    scenario = sample_scenario(index, config.seed, room_half_of(config.seed, index, config.open_space))
     result = ScenarioResult(index=index, split=split, scenario_json=scenario.to_json())
     image_dir = config.out / "images" / split
     label_dir = config.out / "labels" / split

@@ -184,6 +184,7 @@ def fresh_samples(
     clutter: int = 0,
     people: int = 0,
     raster_yaw_deg: float = 0.0,
+    open_space: float = 0.0,
 ) -> Iterator[EvalSample]:
     """Newly simulated scenarios, straight through ScanStacker: data no model has seen.
 
@@ -194,17 +195,18 @@ def fresh_samples(
     puts up to that many unlabelled poles, wall stubs and walking leg pairs into each motion, drawn
     from their own stream: the same worlds and motions with things in them that must not be detected
     (a pole is not a chair leg), and which occlude what must. ``people`` puts up to that many labelled
-    people into each motion.
+    people into each motion; ``open_space`` moves the walls of that share of the worlds out
+    (:func:`services.simulator.scenario.room_half_of`, as ``triscan dataset --open-space`` does).
     """
     from services.simulator.labels import arc_crosses_seam
     from services.simulator.lidar import DEFAULT_SPEC
-    from services.simulator.scenario import sample_scenario
+    from services.simulator.scenario import room_half_of, sample_scenario
     from services.simulator.world import World
     from training.dataset import plan_motions, simulate_samples
 
     with World() as world:
         for index in range(scenarios):
-            scenario = sample_scenario(index, seed)
+            scenario = sample_scenario(index, seed, room_half_of(seed, index, open_space))
             motions = plan_motions(scenario, seed, positions)
             samples = simulate_samples(
                 world,
@@ -519,6 +521,7 @@ class FreshWorlds:
     frame_stride: int
     clutter: int = 0  # the most unlabelled clutter items per motion (fresh_samples)
     people: int = 0  # the most people per motion (fresh_samples)
+    open_space: float = 0.0  # share of worlds with open-space rooms (fresh_samples)
 
     def __post_init__(self) -> None:
         if self.clutter < 0:
@@ -530,9 +533,10 @@ class FreshWorlds:
         """What metrics.json names as the source of these worlds under ``condition``."""
         clutter = f",clutter={self.clutter}" if self.clutter else ""
         people = f",people={self.people}" if self.people else ""
+        open_space = f",open_space={self.open_space:g}" if self.open_space else ""
         return (
-            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions}{clutter}{people},"
-            f"noise={condition}"
+            f"fresh:seed={self.seed},scenarios={self.scenarios},positions={self.positions}{clutter}{people}"
+            f"{open_space},noise={condition}"
         )
 
 
@@ -577,6 +581,7 @@ def condition_matrix(
                 fresh_samples(
                     worlds.seed, worlds.scenarios, worlds.positions, padding, worlds.frame_stride,
                     spec=spec, invalid=invalid, clutter=worlds.clutter, people=worlds.people,
+                    open_space=worlds.open_space,
                     raster_yaw_deg=yaw,
                 )
             )  # fmt: skip

@@ -25,7 +25,16 @@ from common.encoding import (
     raster_to_laser_bearing_deg,
 )
 from common.model_spec import CLASS_COLOURS, CLASS_NAMES
-from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario, enclosure_rects, room_wall_rects
+from services.simulator.scenario import (
+    DOORFRAME,
+    OUTER_HALF_M,
+    PERSON,
+    ROOM_HALF_M,
+    Rect,
+    Scenario,
+    enclosure_rects,
+    room_wall_rects,
+)
 from training.dataset_sample import Pose, Sample
 from training.picture_style import (
     AXIS,
@@ -147,7 +156,7 @@ def _draw_metre_grid(draw: ImageDraw.ImageDraw, small: Font) -> None:
 
 def _draw_scene(draw: ImageDraw.ImageDraw, sample: Sample) -> None:
     """Walls, the doorframe and the objects; a labelled class gets a thick outline."""
-    for rect in enclosure_rects() + room_wall_rects(sample.scenario.door):
+    for rect in enclosure_rects(sample.scenario.room_half_m) + room_wall_rects(sample.scenario.door):
         _polygon(draw, rect, fill=WALL)
     labelled = {b.class_id for b in sample.boxes}
     door = sample.scenario.door
@@ -320,7 +329,9 @@ def _map_legend(
         state = "labelled" if class_id in labelled else "not labelled (< 2 beams)"
         swatch_row(CLASS_COLOURS[class_id], f"{name}: {state}")
     paragraph("Thick outline: labelled in this sample. Filled: legs, or the solid box.")
-    swatch_row(WALL, "walls: 4 x 4 m room, enclosure at 3.1 m")
+    room = sample.scenario.room_half_m
+    enclosure = room + OUTER_HALF_M - ROOM_HALF_M
+    swatch_row(WALL, f"walls: {2 * room:g} x {2 * room:g} m room, enclosure at {enclosure:g} m")
     y += 10
     draw.text((x, y), "Robot", font=heading, fill=TEXT)
     y += line + 4

@@ -80,10 +80,11 @@ def fresh_motions(
     spec: LidarSpec | None = None,
     clutter: int = 0,
     people: int = 0,
+    open_space: float = 0.0,
 ) -> Iterator[tuple[str, list[MotionFrame]]]:
     """Every motion of the fresh worlds, each as its consecutive scans (``training.evaluate``'s worlds)."""
     from services.simulator.lidar import DEFAULT_SPEC
-    from services.simulator.scenario import sample_scenario
+    from services.simulator.scenario import room_half_of, sample_scenario
     from services.simulator.world import World
     from training.dataset import plan_motions, simulate_samples, stacked_period_s
 
@@ -91,7 +92,7 @@ def fresh_motions(
     period_ns = round(stacked_period_s(spec) * 1e9)
     with World() as world:
         for index in range(scenarios):
-            scenario = sample_scenario(index, seed)
+            scenario = sample_scenario(index, seed, room_half_of(seed, index, open_space))
             centres = [o.footprint.center for o in scenario.objects] + [scenario.door.frame.center]
             motions = plan_motions(scenario, seed, positions)
             frames: dict[int, list[MotionFrame]] = {}

@@ -71,6 +71,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(0: the paper's four classes only)",
     )
     dr.add_argument(
+        "--open-space",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of scenarios whose walls stand 2.5-6 m from the room's centre instead of 2 m: scans "
+        "reach beyond the 4 m full scale and people walk farther off, as in halls (default 0)",
+    )
+    dr.add_argument(
         "--sensor",
         type=_sensor,
         default=DEFAULT_PROFILE,
@@ -101,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         people=args.people,
         sensor=args.sensor,
         raster_yaw_deg=args.raster_yaw,
+        open_space=args.open_space,
         **({"noise_sigma_m": tuple(args.noise_sigma)} if args.noise_sigma else {}),
     )
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.simulator.scenario import ROOM_HALF_M, Rect, Scenario
+from services.simulator.scenario import Rect, Scenario
 
 CLUTTER_OBJECT = -3  # object index of a beam that hit clutter (-1 wall, -2 nothing: world.py)
 FURNITURE_CLEARANCE_M = 0.08  # clutter never touches furniture (a pole against a leg would change its shape)
@@ -131,8 +131,8 @@ def clutter_distances(
     )
 
 
-def _draw_item(kind: str, rng: np.random.Generator, duration_s: float) -> Clutter:
-    lim = ROOM_HALF_M - ROOM_MARGIN_M
+def _draw_item(kind: str, rng: np.random.Generator, room_half_m: float) -> Clutter:
+    lim = room_half_m - ROOM_MARGIN_M
     centre = (float(rng.uniform(-lim, lim)), float(rng.uniform(-lim, lim)))
     if kind == "pole":
         return Pole(centre, float(rng.uniform(0.01, 0.03)))
@@ -143,7 +143,7 @@ def _draw_item(kind: str, rng: np.random.Generator, duration_s: float) -> Clutte
 def _fits(item: Clutter, scenario: Scenario, robot_path: np.ndarray, duration_s: float) -> bool:
     path = item.path(duration_s)
     extent = item.extent_m
-    if np.any(np.abs(path) > ROOM_HALF_M - ROOM_MARGIN_M - extent):
+    if np.any(np.abs(path) > scenario.room_half_m - ROOM_MARGIN_M - extent):
         return False
     for obj in scenario.objects:
         if np.any(obj.footprint.distance(path) < FURNITURE_CLEARANCE_M + extent):
@@ -170,7 +170,7 @@ def sample_clutter(
     for _ in range(int(rng.integers(0, max_items + 1))):
         kind = KINDS[int(rng.integers(0, len(KINDS)))]
         for _ in range(PLACEMENT_TRIES):
-            item = _draw_item(kind, rng, duration_s)
+            item = _draw_item(kind, rng, scenario.room_half_m)
             if _fits(item, scenario, robot_path, duration_s):
                 placed.append(item)
                 break

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.simulator.clutter import ray_circle_distances
-from services.simulator.scenario import ROOM_HALF_M, Scenario
+from services.simulator.scenario import Scenario
 
 PERSON_OBJECT_BASE = 100  # hit_object of leg j of person k: BASE + 2k + j (furniture 0.., wall -1, ...)
 CADENCE_BASE = 1.0  # steps/s as v → 0
@@ -39,7 +39,7 @@ SMOOTHING_S = 0.5  # window of the moving average that rounds corners and ramps 
 FURNITURE_CLEARANCE_M = 0.3  # a person's centre keeps this far from every footprint
 ROBOT_CLEARANCE_M = 0.5  # and from the robot at the same instant
 PEOPLE_CLEARANCE_M = 0.45  # and from everyone else not in their group
-INSIDE_HALF_M = ROOM_HALF_M - 0.25  # centres inside the room stay this far inside the walls
+INSIDE_MARGIN_M = 0.25  # centres inside the room stay this far inside the walls
 OUTSIDE_DEPTH_M = 0.8  # how far beyond the door a path may start or end
 PLACEMENT_TRIES = 30
 BEHAVIOURS = ("cross", "door", "visit", "stand", "group")
@@ -194,13 +194,15 @@ def _door_frame(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
 
 def _allowed(points: np.ndarray, scenario: Scenario) -> np.ndarray:
     """Which centres are walkable: inside the room, or in the doorway's corridor and just outside it."""
-    inside = np.all(np.abs(points) <= INSIDE_HALF_M, axis=1)
+    room = scenario.room_half_m
+    inside_half = room - INSIDE_MARGIN_M
+    inside = np.all(np.abs(points) <= inside_half, axis=1)
     normal, along = _door_frame(scenario)
     out = points @ normal
     side = np.abs(points @ along)
-    corridor = (out >= INSIDE_HALF_M - 0.01) & (out <= ROOM_HALF_M + OUTSIDE_DEPTH_M)
+    corridor = (out >= inside_half - 0.01) & (out <= room + OUTSIDE_DEPTH_M)
     in_door = corridor & (side <= scenario.door.width_m / 2.0 - 0.17)
-    beyond = (out >= ROOM_HALF_M + 0.25) & (out <= ROOM_HALF_M + OUTSIDE_DEPTH_M) & (side <= 0.8)
+    beyond = (out >= room + 0.25) & (out <= room + OUTSIDE_DEPTH_M) & (side <= 0.8)
     clear = np.ones(len(points), dtype=bool)
     for obj in scenario.objects:
         clear &= obj.footprint.distance(points) >= FURNITURE_CLEARANCE_M
@@ -208,7 +210,7 @@ def _allowed(points: np.ndarray, scenario: Scenario) -> np.ndarray:
 
 
 def _free_point(scenario: Scenario, rng: np.random.Generator) -> tuple[float, float]:
-    lim = INSIDE_HALF_M
+    lim = scenario.room_half_m - INSIDE_MARGIN_M
     return float(rng.uniform(-lim, lim)), float(rng.uniform(-lim, lim))
 
 
@@ -218,8 +220,9 @@ def _door_points(
     """A point just outside the door and one in the doorway, both on one line across it."""
     normal, along = _door_frame(scenario)
     offset = float(rng.uniform(-1.0, 1.0)) * max(scenario.door.width_m / 2.0 - 0.2, 0.0)
-    outside = normal * (ROOM_HALF_M + float(rng.uniform(0.4, OUTSIDE_DEPTH_M - 0.05))) + along * offset
-    doorway = normal * ROOM_HALF_M + along * offset
+    room = scenario.room_half_m
+    outside = normal * (room + float(rng.uniform(0.4, OUTSIDE_DEPTH_M - 0.05))) + along * offset
+    doorway = normal * room + along * offset
     return (float(outside[0]), float(outside[1])), (float(doorway[0]), float(doorway[1]))
 
 

@@ -22,6 +22,11 @@ ROOM_HALF_M = 2.0  # inner faces of the room walls
 WALL_THICKNESS_M = 0.1
 WALL_HEIGHT_M = 0.5
 OUTER_HALF_M = 3.1  # inner faces of the outer enclosure
+# An open-space room (``triscan dataset --open-space``) keeps the furniture and the robot where the
+# paper's room has them but moves its walls out to a half-width drawn from this range: walls 2.3–7.8 m
+# away leave much of a scan beyond the raster's 4 m full scale, or beyond a short-range sensor's
+# reach, as halls and open-plan floors do, and people walk up to about 5 m from the robot.
+OPEN_SPACE_HALF_M = (2.5, 6.0)
 PLACEMENT_HALF_M = 1.8  # object centres and inflated footprints stay inside [-1.8, 1.8]^2
 # The world inflates each footprint by 0.7 m before the containment and overlap tests. We read that as
 # 0.7 m added to each dimension (0.35 m per side): two inflated footprints that do not overlap leave a
@@ -105,10 +110,14 @@ class Furniture:
 
 @dataclass(frozen=True)
 class Doorway:
-    """The opening in one room wall. ``wall_k`` rotates the +x wall by k·90° (k = 0: door faces +x)."""
+    """The opening in one room wall. ``wall_k`` rotates the +x wall by k·90° (k = 0: door faces +x).
+
+    ``room_half_m`` is where that wall's inner face lies: the room is square about the origin.
+    """
 
     wall_k: int
     width_m: float
+    room_half_m: float = ROOM_HALF_M
 
     @property
     def yaw(self) -> float:
@@ -117,7 +126,7 @@ class Doorway:
     @property
     def frame(self) -> Rect:
         """The doorframe label proxy: centred in the doorway, wall-thick across, door-wide along."""
-        r = ROOM_HALF_M + WALL_THICKNESS_M / 2.0
+        r = self.room_half_m + WALL_THICKNESS_M / 2.0
         return Rect(
             (r * math.cos(self.yaw), r * math.sin(self.yaw)), (WALL_THICKNESS_M, self.width_m), self.yaw
         )
@@ -127,7 +136,7 @@ class Doorway:
         """The opening on the inner wall face, float64[2, 2] endpoints: a beam crossing it leaves the room."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         half = self.width_m / 2.0
-        local = np.array([[ROOM_HALF_M, -half], [ROOM_HALF_M, half]])
+        local = np.array([[self.room_half_m, -half], [self.room_half_m, half]])
         return local @ np.array([[c, -s], [s, c]]).T
 
 
@@ -141,6 +150,11 @@ class Scenario:
     objects: tuple[Furniture, ...]
     axis_aligned: bool = field(default=False)
 
+    @property
+    def room_half_m(self) -> float:
+        """Where the room walls' inner faces lie (the paper's room: 2 m)."""
+        return self.door.room_half_m
+
     def footprint_of(self, class_id: int) -> Rect:
         if class_id == DOORFRAME:
             return self.door.frame
@@ -148,11 +162,14 @@ class Scenario:
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready description, enough to rebuild the scenario with :meth:`from_json`."""
+        door: dict[str, Any] = {"wall_k": self.door.wall_k, "width_m": self.door.width_m}
+        if self.door.room_half_m != ROOM_HALF_M:  # the paper's rooms keep their records unchanged
+            door["room_half_m"] = self.door.room_half_m
         return {
             "index": self.index,
             "seed": self.seed,
             "axis_aligned": self.axis_aligned,
-            "door": {"wall_k": self.door.wall_k, "width_m": self.door.width_m},
+            "door": door,
             "objects": [
                 {
                     "class_id": o.class_id,
@@ -177,7 +194,11 @@ class Scenario:
             )
             for o in data["objects"]
         )
-        door = Doorway(int(data["door"]["wall_k"]), float(data["door"]["width_m"]))
+        door = Doorway(
+            int(data["door"]["wall_k"]),
+            float(data["door"]["width_m"]),
+            float(data["door"].get("room_half_m", ROOM_HALF_M)),
+        )
         return cls(
             int(data["index"]), int(data["seed"]), door, objects, bool(data.get("axis_aligned", False))
         )
@@ -218,22 +239,24 @@ def room_wall_rects(door: Doorway) -> list[Rect]:
     The door is cut, centred, from the +x wall and that wall is turned by ``door.wall_k`` quarter turns,
     which is exactly how :attr:`Doorway.opening` and :attr:`Doorway.frame` place the opening.
     """
-    outer = ROOM_HALF_M + WALL_THICKNESS_M
+    half = door.room_half_m
+    outer = half + WALL_THICKNESS_M
     half_door = door.width_m / 2.0
-    if not 0.0 < half_door < ROOM_HALF_M:
-        raise ValueError(f"door width {door.width_m} m does not fit in a {2 * ROOM_HALF_M} m wall")
+    if not 0.0 < half_door < half:
+        raise ValueError(f"door width {door.width_m} m does not fit in a {2 * half} m wall")
     k = door.wall_k % 4
     walls = [
-        _axis_rect(ROOM_HALF_M, outer, -outer, -half_door, k),
-        _axis_rect(ROOM_HALF_M, outer, half_door, outer, k),
+        _axis_rect(half, outer, -outer, -half_door, k),
+        _axis_rect(half, outer, half_door, outer, k),
     ]
-    walls += [_axis_rect(ROOM_HALF_M, outer, -outer, outer, k + j) for j in (1, 2, 3)]
+    walls += [_axis_rect(half, outer, -outer, outer, k + j) for j in (1, 2, 3)]
     return walls
 
 
-def enclosure_rects() -> list[Rect]:
-    """Floor rectangles of the closed outer enclosure, seen through the doorway."""
-    return ring_of_walls(OUTER_HALF_M)
+def enclosure_rects(room_half_m: float = ROOM_HALF_M) -> list[Rect]:
+    """Floor rectangles of the closed outer enclosure, seen through the doorway: as far outside the
+    room's walls as the paper's enclosure is outside its room."""
+    return ring_of_walls(room_half_m + OUTER_HALF_M - ROOM_HALF_M)
 
 
 def _rects_overlap(a: Rect, b: Rect) -> bool:
@@ -292,14 +315,17 @@ def _try_arrangement(rng: np.random.Generator, axis_aligned: bool) -> list[Furni
     return placed
 
 
-def sample_scenario(index: int, seed: int) -> Scenario:
+def sample_scenario(index: int, seed: int, room_half_m: float = ROOM_HALF_M) -> Scenario:
     """Draw scenario ``index`` of the data set seeded ``seed``; the same pair always gives the same world.
 
     Each scenario owns its random stream (``SeedSequence([seed, index])``), so scenarios can be made
-    in any order, by any number of workers, and still come out identical.
+    in any order, by any number of workers, and still come out identical. ``room_half_m`` moves the
+    walls out (an open-space room) and changes nothing else the stream draws.
     """
+    if room_half_m < ROOM_HALF_M:
+        raise ValueError(f"a room's half-width must be at least {ROOM_HALF_M} m, got {room_half_m}")
     rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
-    door = Doorway(wall_k=int(rng.integers(0, 4)), width_m=float(rng.uniform(0.5, 1.0)))
+    door = Doorway(int(rng.integers(0, 4)), float(rng.uniform(0.5, 1.0)), room_half_m)
     axis_aligned = bool(rng.random() < 0.25)
     # Rejection sampling of the whole arrangement: a desk placed in the middle can leave no room for
     # the others, so a stuck arrangement is dropped and drawn again rather than retried object by object.
@@ -332,6 +358,20 @@ def free_grid_cells(scenario: Scenario) -> np.ndarray:
         else:
             free &= obj.footprint.distance(cells) >= BOX_CLEARANCE_M
     return cells[free]
+
+
+def room_half_of(seed: int, index: int, open_space: float) -> float:
+    """Scenario ``index``'s room half-width: an open-space one (:data:`OPEN_SPACE_HALF_M`) for a share
+    ``open_space`` of scenarios, else the paper's, drawn from the scenario's own stream
+    (``[seed, index, 6]``) so that the rest of its world, motions and noise stay as they were."""
+    if not 0.0 <= open_space <= 1.0:
+        raise ValueError(f"the open-space share must lie in [0, 1], got {open_space}")
+    if open_space == 0.0:
+        return ROOM_HALF_M
+    rng = np.random.default_rng(np.random.SeedSequence([seed, index, 6]))
+    if rng.random() >= open_space:
+        return ROOM_HALF_M
+    return float(rng.uniform(*OPEN_SPACE_HALF_M))
 
 
 def sample_robot_positions(scenario: Scenario, count: int, rng: np.random.Generator) -> np.ndarray:

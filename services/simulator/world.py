@@ -142,8 +142,10 @@ class World:
         """
         self.require_open()
         p.resetSimulation(physicsClientId=self.client_id)
-        wall_rects = enclosure_rects() + (
-            room_wall_rects(scenario.door) if scenario else ring_of_walls(ROOM_HALF_M)
+        wall_rects = (
+            enclosure_rects(scenario.room_half_m) + room_wall_rects(scenario.door)
+            if scenario
+            else enclosure_rects() + ring_of_walls(ROOM_HALF_M)
         )
         walls = self._add_static_mesh(_wall_cuboids(wall_rects))
         objects = scenario.objects if scenario else ()
