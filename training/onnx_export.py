@@ -30,15 +30,25 @@ from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_ax
 log = logging.getLogger(__name__)
 
 
+def _summary_config(dataset_dir: Path | None) -> dict[str, object] | None:
+    """The ``config`` a data set's ``summary.json`` records (``triscan dataset``), or None without one:
+    the one reader of the settings every encoding choice below is derived from."""
+    summary = dataset_dir / "summary.json" if dataset_dir is not None else None
+    if summary is None or not summary.is_file():
+        return None
+    config = json.loads(summary.read_text()).get("config", {})
+    return config if isinstance(config, dict) else {}
+
+
 def dataset_padding(dataset_dir: Path) -> str | None:
     """The padding a data set was generated with, or None if the directory does not say.
 
     ``summary.json`` (written by ``triscan dataset``) is authoritative; the comment line of
     ``data.yaml`` is the fallback for a set whose summary was not copied along.
     """
-    summary = dataset_dir / "summary.json"
-    if summary.is_file():
-        padding = json.loads(summary.read_text()).get("config", {}).get("padding")
+    config = _summary_config(dataset_dir)
+    if config is not None:
+        padding = config.get("padding")
         if padding in PADDINGS:
             return str(padding)
     data_yaml = dataset_dir / "data.yaml"
@@ -52,13 +62,13 @@ def dataset_padding(dataset_dir: Path) -> str | None:
 def dataset_invalid_rule(dataset_dir: Path | None) -> str:
     """Where the data set put invalid returns: its ``summary.json`` says; sets made before the option
     existed (no key) and sets whose summary is gone used the paper's sentinel row."""
-    summary = dataset_dir / "summary.json" if dataset_dir is not None else None
-    if summary is not None and summary.is_file():
-        rule = json.loads(summary.read_text()).get("config", {}).get("invalid", "sentinel")
-        if rule not in INVALID_RULES:
-            raise ExportError(f"{summary} names an unknown invalid-return rule {rule!r}")
-        return str(rule)
-    return "sentinel"
+    config = _summary_config(dataset_dir)
+    if config is None:
+        return "sentinel"
+    rule = config.get("invalid", "sentinel")
+    if rule not in INVALID_RULES:
+        raise ExportError(f"{dataset_dir}/summary.json names an unknown invalid-return rule {rule!r}")
+    return str(rule)
 
 
 def resolve_invalid_rule(requested: str | None, dataset_dir: Path | None) -> str:
@@ -67,7 +77,7 @@ def resolve_invalid_rule(requested: str | None, dataset_dir: Path | None) -> str
     otherwise the caller's, else the paper's sentinel row."""
     if requested is not None and requested not in INVALID_RULES:
         raise ExportError(f"invalid must be one of {INVALID_RULES}, got {requested!r}")
-    if dataset_dir is None or not (dataset_dir / "summary.json").is_file():
+    if _summary_config(dataset_dir) is None:
         return requested or "sentinel"
     derived = dataset_invalid_rule(dataset_dir)
     if requested is not None and requested != derived:
@@ -83,10 +93,10 @@ def dataset_raster_yaw(dataset_dir: Path | None) -> float:
     paper's, and every set made before the option) used 0."""
     if dataset_dir is None:
         return 0.0
-    summary, data_yaml = dataset_dir / "summary.json", dataset_dir / "data.yaml"
+    data_yaml = dataset_dir / "data.yaml"
     value: object = 0.0
-    if summary.is_file():
-        value = json.loads(summary.read_text()).get("config", {}).get("raster_yaw_deg", 0.0)
+    if (config := _summary_config(dataset_dir)) is not None:
+        value = config.get("raster_yaw_deg", 0.0)
     elif data_yaml.is_file() and (match := re.search(r"raster yaw (\S+?)\s*$", data_yaml.read_text(), re.M)):
         value = match.group(1)
     try:
