@@ -55,7 +55,7 @@ from common.model_spec import (
     BoxGrid,
     file_model_id,
 )
-from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, PostprocessSettings, detections_from_boxes
+from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, PostprocessSettings, detections_many
 
 log = logging.getLogger(__name__)
 
@@ -306,6 +306,8 @@ class OnnxDetector:
         frames in one ``session.run``, whose whole time each of them reports as ``inference_ms``; their
         frames are converted straight into one batch array, not concatenated afterwards.
         """
+        if not tensors:
+            return []
         batch = np.empty((len(tensors), *INPUT_SHAPE[1:]), np.float32) if self.batched else None
         inputs, encode_ms = [], []
         for index, tensor in enumerate(tensors):
@@ -318,17 +320,21 @@ class OnnxDetector:
                 raise ValueError(f"tensor {index} of {len(tensors)}: {exc}") from exc
             encode_ms.append((time.perf_counter_ns() - started) / _NS_PER_MS)
         if batch is not None and len(inputs) > 1:
-            batch_output, inference_ms = self._run(batch)
-            outputs = [(batch_output[i : i + 1], inference_ms) for i in range(len(inputs))]
+            outputs, inference_ms = self._run(batch)
+            inference = [inference_ms] * len(inputs)
         else:
-            outputs = [self._run(model_input) for model_input in inputs]
-        results = []
-        for frame_encode_ms, (output, inference_ms) in zip(encode_ms, outputs, strict=True):
-            started = time.perf_counter_ns()
-            boxes, scores, class_ids = self.postprocessing.postprocess(output)
-            nms_ms = (time.perf_counter_ns() - started) / _NS_PER_MS
-            results.append((boxes, scores, class_ids, FrameTimings(frame_encode_ms, inference_ms, nms_ms)))
-        return results
+            runs = [self._run(model_input) for model_input in inputs]
+            outputs = np.concatenate([output for output, _ in runs]) if len(runs) > 1 else runs[0][0]
+            inference = [ms for _, ms in runs]
+        started = time.perf_counter_ns()
+        finals = self.postprocessing.postprocess_many(outputs)
+        nms_ms = (time.perf_counter_ns() - started) / _NS_PER_MS / len(inputs)  # each frame's share
+        return [
+            (boxes, scores, class_ids, FrameTimings(frame_encode_ms, frame_inference_ms, nms_ms))
+            for (boxes, scores, class_ids), frame_encode_ms, frame_inference_ms in zip(
+                finals, encode_ms, inference, strict=True
+            )
+        ]
 
     def detect_boxes(self, tensor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, FrameTimings]:
         """Final boxes (xyxy pixels), scores and class ids, highest score first, and stage timings.
@@ -349,18 +355,23 @@ class OnnxDetector:
         costs less per frame than one call each on a CPU; with a fixed
         batch-1 model they run one by one. Each frame's detections equal what :meth:`detect` gives it
         alone. Timings per frame: ``encode_ms`` its own conversion, ``inference_ms`` the whole shared
-        call (every frame in the batch waited for all of it), ``nms_ms`` its own post-processing.
+        call (every frame in the batch waited for all of it), ``nms_ms`` its share of the batch's
+        post-processing, which runs for every frame at once.
 
         Every tensor is checked before anything runs, so one bad tensor raises a ``ValueError`` that
         names its index instead of failing the batch half-way.
         """
-        results = []
-        for boxes, scores, class_ids, timings in self._boxes_many(tensors):
-            started = time.perf_counter_ns()
-            detections = detections_from_boxes(boxes, scores, class_ids, self.raster_yaw_deg)
-            convert_ms = (time.perf_counter_ns() - started) / _NS_PER_MS
-            results.append((detections, timings._replace(nms_ms=timings.nms_ms + convert_ms).to_message()))
-        return results
+        frames = self._boxes_many(tensors)
+        if not frames:
+            return []
+        started = time.perf_counter_ns()
+        finals = [(boxes, scores, class_ids) for boxes, scores, class_ids, _ in frames]
+        detections = detections_many(finals, self.raster_yaw_deg)
+        convert_ms = (time.perf_counter_ns() - started) / _NS_PER_MS / len(frames)  # each frame's share
+        return [
+            (frame_detections, timings._replace(nms_ms=timings.nms_ms + convert_ms).to_message())
+            for frame_detections, (_, _, _, timings) in zip(detections, frames, strict=True)
+        ]
 
     def call_ms_by_batch(self, sizes: Sequence[int], repeats: int = 2) -> dict[int, float]:
         """The fastest of ``repeats`` ``session.run`` calls on blank frames at each batch size, in ms,

@@ -29,8 +29,10 @@ from common.postprocess import (
     DEFAULT_IOU,
     decode_yolov8,
     detections_from_boxes,
+    detections_many,
     nms,
     postprocess,
+    postprocess_many,
     snap_boxes_to_pixels,
     unwrap_seam_duplicates,
 )
@@ -704,3 +706,29 @@ def test_exported_model_detect_gives_valid_detections(exported: tuple[Path, Any]
         assert math.hypot(det.x_m, det.y_m) == pytest.approx((det.range_min_m + det.range_max_m) / 2)
     assert isinstance(timings, StageTimings)
     assert timings.encode_ms >= 0 and timings.inference_ms > 0 and timings.nms_ms >= 0
+
+
+@pytest.mark.parametrize("padding", ["zero", "wrap"])
+def test_a_batch_is_post_processed_as_each_of_its_frames_alone(padding: str) -> None:
+    """Decoding, clipping and snapping run over the whole batch at once; nothing may leak between
+    frames (no box of one frame suppresses or merges with another's), and an empty frame stays empty."""
+    rng = np.random.default_rng(4)
+    frames, nc, anchors = 6, 5, 504
+    outputs = np.zeros((frames, 4 + nc, anchors), np.float32)
+    outputs[:, 0] = rng.uniform(-5.0, 390.0, (frames, anchors))  # near and across both image edges
+    outputs[:, 1] = rng.uniform(0.0, 70.0, (frames, anchors))
+    outputs[:, 2:4] = rng.uniform(1.0, 30.0, (frames, 2, anchors))
+    outputs[:, 4:] = rng.random((frames, nc, anchors)) ** 8  # a few dozen candidates a frame
+    outputs[1] = outputs[0]  # the same boxes in two frames: each frame keeps its own
+    outputs[2, 4:] = 0.0  # a frame with no candidate
+    outputs[3, 0, 7], outputs[3, 4, 7] = np.nan, 0.99  # a broken box is dropped, in its frame only
+    settings = {"padding": padding, "box_grid": "pixel", "num_classes": nc, "max_detections": 12}
+    many = postprocess_many(outputs, **settings)
+    assert len(many) == frames and len(many[2][0]) == 0 and len(many[0][0]) > 3
+    for frame, got in enumerate(many):
+        alone = postprocess(outputs[frame : frame + 1], **settings)
+        for a, b in zip(got, alone, strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+    detections = detections_many(many, raster_yaw_deg=180.0)
+    assert [len(d) for d in detections] == [len(scores) for _, scores, _ in many]
+    assert detections[1] == detections_from_boxes(*many[1], raster_yaw_deg=180.0)
