@@ -331,7 +331,7 @@ def _map_legend(
     paragraph("Thick outline: labelled in this sample. Filled: legs, or the solid box.")
     room = sample.scenario.room_half_m
     enclosure = room + OUTER_HALF_M - ROOM_HALF_M
-    swatch_row(WALL, f"walls: {2 * room:g} x {2 * room:g} m room, enclosure at {enclosure:g} m")
+    swatch_row(WALL, f"walls: {2 * room:.3g} x {2 * room:.3g} m room, enclosure at {enclosure:.3g} m")
     y += 10
     draw.text((x, y), "Robot", font=heading, fill=TEXT)
     y += line + 4
