@@ -248,6 +248,21 @@ def test_fresh_worlds_under_a_condition_keep_their_labels_and_change_their_scans
     )
 
 
+def test_fresh_open_space_worlds_keep_their_furniture_and_reach_past_the_full_scale() -> None:
+    from services.simulator.sensors import profile
+    from training.evaluate import FreshWorlds, fresh_samples
+
+    long_range = profile("ust-10lx")  # 30 m: the open room's walls show, on the sentinel row past 4 m
+    room = list(fresh_samples(2024, 1, 3, "zero", 6, spec=long_range))
+    hall = list(fresh_samples(2024, 1, 3, "zero", 6, spec=long_range, open_space=1.0))
+    assert [s.name for s in room] == [s.name for s in hall] and len(room) > 2
+    sentinel = [int((s.tensor[63] > 0).sum()) for s in (*room, *hall)]
+    assert sum(sentinel[len(room) :]) > 5 * sum(sentinel[: len(room)])
+    for a, b in zip(room, hall, strict=True):  # the same furniture, labelled alike; the doorway moved
+        np.testing.assert_array_equal(a.boxes[a.classes < 3], b.boxes[b.classes < 3])
+    assert FreshWorlds(7, 2, 3, 15, open_space=0.5).source("clean").endswith(",open_space=0.5,noise=clean")
+
+
 def test_fresh_worlds_with_clutter_are_the_same_worlds_with_unlabelled_things_in_them() -> None:
     from training.evaluate import FreshWorlds, fresh_samples
 
