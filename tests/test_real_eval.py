@@ -284,6 +284,8 @@ def test_a_bag_is_scored_on_each_tensors_middle_scan(tmp_path: Path) -> None:
     # Equal scores, later frames first: two false alarms (recall 0), then the hit (recall 1, precision 1/3).
     assert report.people["r0.3"] == {"ap": pytest.approx(1 / 6), "peak_f1": pytest.approx(0.5)}
     assert report.detections["person"] == 3
+    assert report.person_by_range_m is not None and sum(report.person_by_range_m.values()) == 3
+    assert report.person_by_range_m["0-1"] == report.person_by_range_m["3-4"] == 0  # the one at 2 m
     assert report.per_minute["person"] == pytest.approx(3 / (3 * PERIOD_NS / 60e9))
     assert report.skipped == {"people_scans_without_tensor": 2}
     behind = evaluate_bag(

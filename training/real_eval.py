@@ -52,6 +52,7 @@ CENTRE_RADII_M: Final[tuple[float, ...]] = (0.3, 0.5)  # DR-SPAAM's association 
 # A leg cluster is the mean point of one leg's near surface, a person's centre lies between the two
 # legs: 0.4 m covers a stride's half-spread plus the leg's radius.
 LEG_RADIUS_M: Final[float] = 0.4
+PERSON_RANGE_BANDS: Final[tuple[str, ...]] = ("0-1", "1-2", "2-3", "3-4")  # metres, up to the full scale
 _NS_PER_MIN: Final[float] = 60e9
 
 
@@ -421,6 +422,9 @@ class BagReport:
     legs: dict[str, Any] | None = None
     false_people_per_minute: float | None = None
     skipped: dict[str, int] = field(default_factory=dict)
+    # Confident person detections in the scope by the band their middle range falls in: where a model
+    # reports people no label explains (near walkers, or far walls) shows without a labelled bag.
+    person_by_range_m: dict[str, int] | None = None
 
 
 @dataclass
@@ -472,6 +476,7 @@ def evaluate_bag(detector: OnnxDetector, config: BagEvalConfig) -> BagReport:
     classes = list(detector.class_names)
     has_person = PERSON in classes
     counts = dict.fromkeys(classes, 0)
+    person_bands = dict.fromkeys(PERSON_RANGE_BANDS, 0)
     centre_frames: list[FrameDetections] = []
     legs_scope = config.legs_scope()
     legs = Counter[str]()
@@ -486,6 +491,9 @@ def evaluate_bag(detector: OnnxDetector, config: BagEvalConfig) -> BagReport:
         confident = [d for d in in_scope if d.score > config.conf]
         for d in confident:
             counts[d.class_name] += 1
+            if d.class_id == PERSON_ID:
+                band = min(int((d.range_min_m + d.range_max_m) / 2.0), len(PERSON_RANGE_BANDS) - 1)
+                person_bands[PERSON_RANGE_BANDS[band]] += 1
         people = None if bag.people is None else bag.people.get(stamp)
         if people is not None:
             labelled.add(stamp)
@@ -529,6 +537,7 @@ def evaluate_bag(detector: OnnxDetector, config: BagEvalConfig) -> BagReport:
         detections=counts,
         per_minute={name: n / minutes for name, n in counts.items()} if minutes else {},
         skipped=skipped,
+        person_by_range_m=person_bands if has_person else None,
     )
     if bag.people is not None:
         report.people = {"frames": len(centre_frames), "people": sum(len(f.people) for f in centre_frames)}
@@ -581,6 +590,9 @@ def report_rows(report: BagReport) -> list[tuple[str, str]]:
         n = report.detections.get(name)
         value = "not a class of this model" if n is None else f"{n} ({report.per_minute.get(name, 0.0):.1f})"
         rows.append((f"{name} detections (/min)", value))
+    if report.person_by_range_m is not None:
+        bands = ", ".join(f"{band} m {n}" for band, n in report.person_by_range_m.items())
+        rows.append(("person detections by range", bands))
     if report.false_people_per_minute is not None:
         rows.append(("false people per minute", f"{report.false_people_per_minute:.2f}"))
     if report.people is not None:
