@@ -17,17 +17,18 @@ input (8×48 + 4×24 + 2×12 over strides 8, 16, 32).
 5. :func:`detections_from_boxes`: wire ``Detection`` objects with bearings, ranges and position.
 
 Everything is vectorised numpy; the only Python loops run over *kept* detections (at most
-``max_detections``), never over anchors. :func:`postprocess_many` and :func:`detections_many` do the
-same for a batch's frames, decoding and placing every frame's boxes in one pass (NMS and the seam
-merge stay per frame), so a detector serving many robots pays numpy's per-call cost per batch.
+``max_detections``), never over anchors. :meth:`PostprocessSettings.postprocess_many` and
+:func:`detections_many` do the same for a batch's frames, decoding and placing every frame's boxes in
+one pass (NMS and the seam merge stay per frame), so a detector serving many robots pays numpy's
+per-call cost per batch.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
-from typing import Any, Final
+from dataclasses import dataclass
+from typing import Final
 
 import numpy as np
 
@@ -77,12 +78,17 @@ def decode_yolov8(
     Returns ``boxes_xyxy float32[K, 4]`` in input pixels, ``scores float32[K]``, ``class_ids int64[K]``,
     in anchor order. ``num_classes``, when given, is checked against the output's channel count.
     """
+    return decode_yolov8_many(_single_frame(output), conf_threshold, num_classes=num_classes)[0]
+
+
+def _single_frame(output: np.ndarray) -> np.ndarray:
+    """``output`` as an array, refused unless it is one frame's raw output ``[1, 4 + nc, A]``."""
     out = np.asarray(output)
     if out.ndim != 3 or out.shape[0] != 1 or out.shape[1] < 5:
         raise ValueError(
             f"YOLOv8 output must have shape [1, 4 + nc, anchors] with nc >= 1, got {list(out.shape)}"
         )
-    return decode_yolov8_many(out, conf_threshold, num_classes=num_classes)[0]
+    return out
 
 
 def decode_yolov8_many(
@@ -413,51 +419,10 @@ def postprocess(
     Public so ``triscan eval`` can post-process outputs it obtained another way (a batch, a cache)
     exactly as the detector does. Boxes come back highest score first.
     """
-    out = np.asarray(output)
-    if out.ndim != 3 or out.shape[0] != 1:
-        raise ValueError(
-            f"YOLOv8 output must have shape [1, 4 + nc, anchors] with nc >= 1, got {list(out.shape)}"
-        )
-    return postprocess_many(
-        out,
-        conf_threshold=conf_threshold,
-        iou_threshold=iou_threshold,
-        max_detections=max_detections,
-        padding=padding,
-        num_classes=num_classes,
-        box_grid=box_grid,
-    )[0]
-
-
-def postprocess_many(
-    outputs: np.ndarray,
-    *,
-    conf_threshold: float = DEFAULT_CONF,
-    iou_threshold: float = DEFAULT_IOU,
-    max_detections: int = MAX_DETECTIONS,
-    padding: Padding = "zero",
-    num_classes: int | None = None,
-    box_grid: BoxGrid = DEFAULT_BOX_GRID,
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """:func:`postprocess` for each frame of a batch's output ``[B, 4 + nc, A]``: per frame the very
-    boxes, scores and classes it gives that frame alone.
-
-    Decoding, clipping and snapping work on every frame's boxes at once, NMS and the seam merge frame
-    by frame: a batch costs a few numpy calls more than one frame, not a few per frame.
-    """
-    kept = []
-    for boxes, scores, class_ids in decode_yolov8_many(outputs, conf_threshold, num_classes=num_classes):
-        keep = nms(boxes, scores, class_ids, iou_threshold, max_detections)
-        kept.append((boxes[keep], scores[keep], class_ids[keep]))
-    placed = _clip_and_snap(np.concatenate([boxes for boxes, _, _ in kept]), box_grid)
-    ends = np.cumsum([len(scores) for _, scores, _ in kept]).tolist()
-    results = []
-    for (_, scores, class_ids), boxes in zip(kept, np.split(placed, ends[:-1]), strict=True):
-        if padding != "zero":
-            keep = unwrap_seam_duplicates(boxes, scores, class_ids, padding)
-            boxes, scores, class_ids = boxes[keep], scores[keep], class_ids[keep]
-        results.append((boxes, scores, class_ids))
-    return results
+    settings = PostprocessSettings(
+        conf_threshold, iou_threshold, max_detections, padding, num_classes, box_grid
+    )
+    return settings.postprocess(output)
 
 
 @dataclass(frozen=True)
@@ -475,14 +440,30 @@ class PostprocessSettings:
 
     def postprocess(self, output: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`postprocess` with these settings."""
-        return postprocess(output, **self._settings())
+        return self.postprocess_many(_single_frame(output))[0]
 
     def postprocess_many(self, outputs: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """:func:`postprocess_many` with these settings."""
-        return postprocess_many(outputs, **self._settings())
+        """:func:`postprocess` for each frame of a batch's output ``[B, 4 + nc, A]``: per frame the very
+        boxes, scores and classes it gives that frame alone.
 
-    def _settings(self) -> dict[str, Any]:
-        return asdict(self)  # the keyword arguments of postprocess, by the same names
+        Decoding, clipping and snapping work on every frame's boxes at once, NMS and the seam merge
+        frame by frame: a batch costs a few numpy calls more than one frame, not a few per frame.
+        """
+        kept = []
+        for boxes, scores, class_ids in decode_yolov8_many(
+            outputs, self.conf_threshold, num_classes=self.num_classes
+        ):
+            keep = nms(boxes, scores, class_ids, self.iou_threshold, self.max_detections)
+            kept.append((boxes[keep], scores[keep], class_ids[keep]))
+        placed = _clip_and_snap(np.concatenate([boxes for boxes, _, _ in kept]), self.box_grid)
+        ends = np.cumsum([len(scores) for _, scores, _ in kept]).tolist()
+        results = []
+        for (_, scores, class_ids), boxes in zip(kept, np.split(placed, ends[:-1]), strict=True):
+            if self.padding != "zero":
+                keep = unwrap_seam_duplicates(boxes, scores, class_ids, self.padding)
+                boxes, scores, class_ids = boxes[keep], scores[keep], class_ids[keep]
+            results.append((boxes, scores, class_ids))
+        return results
 
 
 def _clip_and_snap(boxes: np.ndarray, box_grid: BoxGrid) -> np.ndarray:

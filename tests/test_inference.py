@@ -27,12 +27,12 @@ from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES, MAX_DETECTIONS
 from common.postprocess import (
     DEFAULT_CONF,
     DEFAULT_IOU,
+    PostprocessSettings,
     decode_yolov8,
     detections_from_boxes,
     detections_many,
     nms,
     postprocess,
-    postprocess_many,
     snap_boxes_to_pixels,
     unwrap_seam_duplicates,
 )
@@ -723,7 +723,7 @@ def test_a_batch_is_post_processed_as_each_of_its_frames_alone(padding: str) -> 
     outputs[2, 4:] = 0.0  # a frame with no candidate
     outputs[3, 0, 7], outputs[3, 4, 7] = np.nan, 0.99  # a broken box is dropped, in its frame only
     settings = {"padding": padding, "box_grid": "pixel", "num_classes": nc, "max_detections": 12}
-    many = postprocess_many(outputs, **settings)
+    many = PostprocessSettings(DEFAULT_CONF, DEFAULT_IOU, **settings).postprocess_many(outputs)
     assert len(many) == frames and len(many[2][0]) == 0 and len(many[0][0]) > 3
     for frame, got in enumerate(many):
         alone = postprocess(outputs[frame : frame + 1], **settings)
