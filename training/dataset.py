@@ -47,6 +47,7 @@ from services.simulator.people import Person, sample_people
 from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
     Scenario,
+    check_open_space,
     room_half_of,
     sample_robot_positions,
     sample_scenario,
@@ -111,7 +112,7 @@ class DatasetConfig:
         if self.people < 0:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
-        room_half_of(self.seed, 0, self.open_space)  # a ValueError for a share outside [0, 1]
+        check_open_space(self.open_space)
         object.__setattr__(self, "raster_yaw_deg", check_raster_yaw(self.raster_yaw_deg))  # a ValueError
 
     @property

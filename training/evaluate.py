@@ -528,6 +528,9 @@ class FreshWorlds:
             raise ValueError(f"clutter must be >= 0 items per motion, got {self.clutter}")
         if self.people < 0:
             raise ValueError(f"people must be >= 0 per motion, got {self.people}")
+        from services.simulator.scenario import check_open_space  # lazily, as every simulator import here
+
+        check_open_space(self.open_space)
 
     def source(self, condition: str) -> str:
         """What metrics.json names as the source of these worlds under ``condition``."""

@@ -360,13 +360,18 @@ def free_grid_cells(scenario: Scenario) -> np.ndarray:
     return cells[free]
 
 
+def check_open_space(share: float) -> float:
+    """``share`` back when it is a share of scenarios, in [0, 1]; else a one-line ``ValueError``."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"the open-space share must lie in [0, 1], got {share}")
+    return share
+
+
 def room_half_of(seed: int, index: int, open_space: float) -> float:
     """Scenario ``index``'s room half-width: an open-space one (:data:`OPEN_SPACE_HALF_M`) for a share
     ``open_space`` of scenarios, else the paper's, drawn from the scenario's own stream
     (``[seed, index, 6]``) so that the rest of its world, motions and noise stay as they were."""
-    if not 0.0 <= open_space <= 1.0:
-        raise ValueError(f"the open-space share must lie in [0, 1], got {open_space}")
-    if open_space == 0.0:
+    if check_open_space(open_space) == 0.0:
         return ROOM_HALF_M
     rng = np.random.default_rng(np.random.SeedSequence([seed, index, 6]))
     if rng.random() >= open_space:
