@@ -123,6 +123,51 @@ def test_most_sampled_people_walk_for_the_whole_motion() -> None:
     assert np.mean(moving_at_start) > 0.5, np.mean(moving_at_start)
 
 
+def test_passers_by_walk_outside_the_door_wall_and_are_seen_only_through_the_doorway() -> None:
+    """Some people walk past in the passage outside the door wall; a robot in the room sees their legs
+    through the doorway and never through the wall, and sees them at all only some of the time."""
+    from services.simulator.lidar import Lidar
+    from services.simulator.scenario import OUTER_HALF_M, ROOM_HALF_M, WALL_THICKNESS_M
+    from services.simulator.world import World
+
+    scenario = sample_scenario(0, seed=0)
+    room, half_door = scenario.room_half_m, scenario.door.width_m / 2.0
+    normal = np.array([math.cos(scenario.door.yaw), math.sin(scenario.door.yaw)])
+    along = np.array([-normal[1], normal[0]])
+    robot = np.array([[0.0, 0.0, 0.0]] * 60)
+    rng = np.random.default_rng(7)
+    passers = [
+        person
+        for _ in range(60)
+        for person in sample_people(scenario, robot, 0.1, 6.0, 4, rng)
+        if (person.centres @ normal).min() > room + WALL_THICKNESS_M and np.ptp(person.centres @ along) > 1.0
+    ]
+    assert len(passers) >= 10, "some walk past along the wall, not just out of the door"
+    for person in passers:
+        assert (person.centres @ normal).max() <= room + OUTER_HALF_M - ROOM_HALF_M - 0.3 + 1e-9
+    crossing = [p for p in passers if np.abs(p.centres @ along).min() < half_door]
+    assert len(crossing) >= len(passers) // 2, "most pass the doorway while the robot looks"
+    seen_at, hidden_at = 0, 0
+    with World(scenario) as world:
+        lidar = Lidar(world, rng=np.random.default_rng(0))
+        for person in crossing[:4]:
+            for t in np.arange(0.0, 6.0, 0.1):
+                reading = lidar.scan((0.0, 0.0, scenario.door.yaw), people=(person,), t_s=float(t))
+                on_legs = reading.hit_object >= leg_object(0, 0)
+                if on_legs.sum() >= 2:
+                    seen_at += 1
+                    bearings = DEFAULT_SPEC.bearings_rad[on_legs]
+                    ends = np.outer(reading.true_ranges[on_legs], [1.0, 1.0]) * np.column_stack(
+                        [np.cos(bearings + scenario.door.yaw), np.sin(bearings + scenario.door.yaw)]
+                    ) + np.asarray(reading.lidar_pose[:2])
+                    # where each beam crosses the door wall's line it is inside the opening
+                    cross = ends * ((room + WALL_THICKNESS_M / 2) / (ends @ normal))[:, None]
+                    assert np.all(np.abs(cross @ along) < half_door + 0.02)
+                else:
+                    hidden_at += 1
+    assert seen_at > 3 and hidden_at > 3
+
+
 def test_each_beam_names_the_leg_it_hit() -> None:
     person = _build([(2.0, 0.0)], [], [], 0.0, 1.0, 0.05, 0.2, 0.0)  # facing +x: legs at y = ±0.1
     rays = np.array([[math.cos(a), math.sin(a)] for a in np.radians([0.0, 2.9, -2.9, 45.0])])

@@ -13,7 +13,9 @@ the sizes and the gait used here):
   person's legs are still, side by side.
 
 People follow polylines at their own speed, with smoothed turns and speed changes, may stop and stand
-(beside the desk or the chair, say) and come in pairs and small groups. Like clutter they are
+(beside the desk or the chair, say) and come in pairs and small groups. Some walk past outside the
+room, in the passage between its door wall and the enclosure, where the robot sees them only through
+the doorway: a person beyond a gap in a near wall is still a person. Like clutter they are
 ray-cast in closed form rather than added to the PyBullet world: they move with every scan, and
 PyBullet leaks memory on every body removed. Unlike clutter they are labelled (class ``person``).
 """
@@ -27,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.simulator.clutter import ray_circle_distances
-from services.simulator.scenario import Scenario
+from services.simulator.scenario import OUTER_HALF_M, ROOM_HALF_M, WALL_THICKNESS_M, Scenario
 
 PERSON_OBJECT_BASE = 100  # hit_object of leg j of person k: BASE + 2k + j (furniture 0.., wall -1, ...)
 CADENCE_BASE = 1.0  # steps/s as v → 0
@@ -41,9 +43,11 @@ ROBOT_CLEARANCE_M = 0.5  # and from the robot at the same instant
 PEOPLE_CLEARANCE_M = 0.45  # and from everyone else not in their group
 INSIDE_MARGIN_M = 0.25  # centres inside the room stay this far inside the walls
 OUTSIDE_DEPTH_M = 0.8  # how far beyond the door a path may start or end
+# Centres in the passage outside the door wall keep this far from the wall and from the enclosure.
+PASSAGE_CLEARANCE_M = 0.3
 PLACEMENT_TRIES = 30
-BEHAVIOURS = ("cross", "door", "visit", "stand", "group")
-BEHAVIOUR_SHARES = (0.3, 0.2, 0.2, 0.1, 0.2)  # most people a robot meets are passing by
+BEHAVIOURS = ("cross", "door", "visit", "stand", "group", "pass")
+BEHAVIOUR_SHARES = (0.25, 0.2, 0.15, 0.1, 0.15, 0.15)  # most people a robot meets are passing by
 
 
 def leg_object(person: int, leg: int) -> int:
@@ -192,8 +196,17 @@ def _door_frame(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
     return np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
 
 
+def _passage(room_half_m: float) -> tuple[float, float, float]:
+    """The centres' band in the passage outside the door wall: nearest and farthest distance from the
+    room's centre across the wall, and the reach along it either side of the door."""
+    near = room_half_m + WALL_THICKNESS_M + PASSAGE_CLEARANCE_M
+    far = room_half_m + OUTER_HALF_M - ROOM_HALF_M - PASSAGE_CLEARANCE_M
+    return near, far, room_half_m + WALL_THICKNESS_M
+
+
 def _allowed(points: np.ndarray, scenario: Scenario) -> np.ndarray:
-    """Which centres are walkable: inside the room, or in the doorway's corridor and just outside it."""
+    """Which centres are walkable: inside the room, in the doorway's corridor, or in the passage
+    outside the door wall."""
     room = scenario.room_half_m
     inside_half = room - INSIDE_MARGIN_M
     inside = np.all(np.abs(points) <= inside_half, axis=1)
@@ -203,10 +216,12 @@ def _allowed(points: np.ndarray, scenario: Scenario) -> np.ndarray:
     corridor = (out >= inside_half - 0.01) & (out <= room + OUTSIDE_DEPTH_M)
     in_door = corridor & (side <= scenario.door.width_m / 2.0 - 0.17)
     beyond = (out >= room + 0.25) & (out <= room + OUTSIDE_DEPTH_M) & (side <= 0.8)
+    near, far, reach = _passage(room)
+    passage = (out >= near - 1e-9) & (out <= far + 1e-9) & (side <= reach)
     clear = np.ones(len(points), dtype=bool)
     for obj in scenario.objects:
         clear &= obj.footprint.distance(points) >= FURNITURE_CLEARANCE_M
-    return (inside | in_door | beyond) & clear
+    return (inside | in_door | beyond | passage) & clear
 
 
 def _free_point(scenario: Scenario, rng: np.random.Generator) -> tuple[float, float]:
@@ -224,6 +239,32 @@ def _door_points(
     outside = normal * (room + float(rng.uniform(0.4, OUTSIDE_DEPTH_M - 0.05))) + along * offset
     doorway = normal * room + along * offset
     return (float(outside[0]), float(outside[1])), (float(doorway[0]), float(doorway[1]))
+
+
+def _passing_walk(
+    scenario: Scenario, duration_s: float, rng: np.random.Generator
+) -> tuple[list[tuple[float, float]], list[float], list[float]]:
+    """A walk along the passage outside the door wall, from a random spot to one end and back and
+    forth until ``duration_s`` is filled, so that it crosses the doorway's view at least once."""
+    normal, along = _door_frame(scenario)
+    near, far, reach = _passage(scenario.room_half_m)
+    offset = float(rng.uniform(-reach, reach))
+    heading = 1.0 if rng.random() < 0.5 else -1.0
+
+    def at(side: float) -> tuple[float, float]:
+        point = normal * float(rng.uniform(near, far)) + along * side
+        return float(point[0]), float(point[1])
+
+    points, speeds, pauses = [at(offset)], [], []
+    walked, speed = 0.0, _walking_speed(rng)
+    while walked < (duration_s + 2.0) * speed:
+        end = heading * reach * float(rng.uniform(0.6, 1.0))
+        points.append(at(end))
+        walked += math.dist(points[-2], points[-1])
+        speeds.append(speed)
+        pauses.append(float(rng.uniform(0.3, 1.5)) if rng.random() < 0.2 else 0.0)
+        heading = -heading
+    return points, speeds, pauses
 
 
 def _beside_furniture(scenario: Scenario, rng: np.random.Generator) -> tuple[float, float]:
@@ -318,6 +359,8 @@ def _plan(behaviour: str, scenario: Scenario, duration_s: float, rng: np.random.
         if rng.random() < 0.5:
             points, speeds, pauses = points[::-1], speeds[::-1], [*pauses[-2::-1], 0.0]
         return _Plan(points, speeds, pauses, start)
+    if behaviour == "pass":  # walks past outside the room, seen only through the doorway
+        return _Plan(*_passing_walk(scenario, duration_s, rng), start)
     # cross: walks across the room from spot to spot, now and then stopping briefly
     points, speeds, pauses = _fill(
         [_free_point(scenario, rng)],
