@@ -33,6 +33,7 @@ from training.quantization import (
     box_logit_nodes,
     calibration_images,
     calibration_reader,
+    class_logit_nodes,
     head_conv_nodes,
     head_decode_nodes,
     leading_module_nodes,
@@ -250,7 +251,7 @@ def _conv_weights_are_int8(model: onnx.ModelProto, nodes: list[str]) -> list[boo
     return [(w := produced_by.get(c.input[1])) is not None and w.op_type == "DequantizeLinear" for c in convs]
 
 
-def test_int8_keeps_the_leading_modules_and_box_logits_float_unless_asked(
+def test_int8_keeps_the_leading_modules_and_head_logits_float_unless_asked(
     int8: Path, fp32: Path, dataset: Path, tmp_path: Path
 ) -> None:
     model = onnx.load(str(int8))
@@ -259,6 +260,9 @@ def test_int8_keeps_the_leading_modules_and_box_logits_float_unless_asked(
     assert not any(_conv_weights_are_int8(model, leading))
     assert not any(_conv_weights_are_int8(model, box_logit_nodes(model)))
     assert len(box_logit_nodes(model)) == 3  # one per stride
+    assert not any(_conv_weights_are_int8(model, class_logit_nodes(model)))
+    assert len(class_logit_nodes(model)) == 3
+    assert not set(class_logit_nodes(model)) & set(box_logit_nodes(model))
     after = sorted(set(leading_module_nodes(model, DEFAULT_FLOAT_LEADING_MODULES + 1)) - set(leading))
     assert all(_conv_weights_are_int8(model, after)), "the module after the float ones is quantised"
     feed = model.graph.input[0].name
@@ -266,14 +270,15 @@ def test_int8_keeps_the_leading_modules_and_box_logits_float_unless_asked(
 
     quantised = quantize_int8(
         fp32, tmp_path / "all.onnx", calibration_images(dataset, CALIB_COUNT),
-        float_leading_modules=0, keep_box_logits_float=False,
+        float_leading_modules=0, keep_box_logits_float=False, keep_class_logits_float=False,
     )  # fmt: skip
     everything = onnx.load(str(quantised))
     assert all(_conv_weights_are_int8(everything, leading_module_nodes(everything, 1)))
     assert all(_conv_weights_are_int8(everything, box_logit_nodes(everything)))
+    assert all(_conv_weights_are_int8(everything, class_logit_nodes(everything)))
     record = json.loads(onnx_metadata(quantised)["triscan.quantization"])
     assert record["float_leading_modules"] == record["float_leading_nodes"] == 0
-    assert record["float_box_logit_nodes"] == 0
+    assert record["float_box_logit_nodes"] == record["float_class_logit_nodes"] == 0
     assert record["float_head_conv_nodes"] == 0
 
     head_float = quantize_int8(
@@ -284,7 +289,8 @@ def test_int8_keeps_the_leading_modules_and_box_logits_float_unless_asked(
     assert set(box_logit_nodes(head_model)) < set(convs)  # the box logits and more
     assert {n.split("/")[2][:3] for n in convs} == {"cv2", "cv3"}  # /model.22/cv2.0/...: both branches
     assert not any(_conv_weights_are_int8(head_model, convs))
-    assert all(_conv_weights_are_int8(model, sorted(set(convs) - set(box_logit_nodes(model)))))  # default
+    logits = set(box_logit_nodes(model)) | set(class_logit_nodes(model))
+    assert all(_conv_weights_are_int8(model, sorted(set(convs) - logits)))  # default
     assert json.loads(onnx_metadata(head_float)["triscan.quantization"])["float_head_conv_nodes"] == len(
         convs
     )
@@ -305,7 +311,8 @@ def test_int8_metadata_is_carried_over(int8: Path, fp32: Path) -> None:
     assert (
         quant["float_leading_modules"] == DEFAULT_FLOAT_LEADING_MODULES and quant["float_leading_nodes"] > 10
     )
-    assert quant["float_box_logit_nodes"] == 3 and quant["float_head_nodes"] > 10
+    assert quant["float_box_logit_nodes"] == quant["float_class_logit_nodes"] == 3
+    assert quant["float_head_nodes"] > 10
     assert quant["calibration_images"] == CALIB_COUNT
 
 
@@ -564,5 +571,15 @@ def test_int8_recipes_score_every_recipe_beside_fp32_on_the_same_samples(fp32: P
         assert s.worst_class in CLASS_NAMES and 0.0 <= s.worst_class_map50 <= s.map50 + 1e-9 <= 1.0 + 1e-9
     table = format_recipe_table(scores)
     assert table.count("\n") == 8 and "| minmax, modules 0–2 float, box logits float |" in table
+    class_logits = compare_recipes(
+        fp32, dataset, methods=["minmax"], float_modules=[3], box_logits=(True,), class_logits=(False, True),
+        split="test", every=1, calib_count=CALIB_COUNT,
+    )  # fmt: skip
+    assert [s.recipe for s in class_logits] == [
+        "fp32",
+        "minmax, modules 0–2 float, box logits float, class logits int8",
+        "minmax, modules 0–2 float, box logits float",
+    ]
+    assert class_logits[2].map50 == scores[5].map50, "the same recipe scores the same"
     with pytest.raises(ValueError, match="every"):
         compare_recipes(fp32, dataset, methods=["minmax"], every=0)

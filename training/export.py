@@ -53,6 +53,7 @@ def export_models(
     activation_type: ActivationType = DEFAULT_ACTIVATION_TYPE,
     float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
     keep_box_logits_float: bool = True,
+    keep_class_logits_float: bool = True,
     keep_head_convs_float: bool = False,
     compare_count: int = 20,
     timing_runs: int = 200,
@@ -102,6 +103,7 @@ def export_models(
         activation_type=activation_type,
         float_leading_modules=float_leading_modules,
         keep_box_logits_float=keep_box_logits_float,
+        keep_class_logits_float=keep_class_logits_float,
         keep_head_convs_float=keep_head_convs_float,
     )
     fp32_batch = add_batch_axis(fp32, batch_variant_path(fp32))
@@ -122,6 +124,7 @@ def export_models(
         "calibration_method": method,
         "float_leading_modules": float_leading_modules,
         "float_box_logits": keep_box_logits_float,
+        "float_class_logits": keep_class_logits_float,
         "float_head_convs": keep_head_convs_float,
         "int8_vs_fp32": compare_outputs(fp32, int8, compare),
     }

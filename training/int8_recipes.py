@@ -39,6 +39,7 @@ log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import p
 # each with the box logits quantised and float.
 RECIPE_FLOAT_MODULES: tuple[int, ...] = (0, 1, DEFAULT_FLOAT_LEADING_MODULES)
 RECIPE_BOX_LOGITS_FLOAT: tuple[bool, ...] = (False, True)
+RECIPE_CLASS_LOGITS_FLOAT: tuple[bool, ...] = (True,)  # the export's default (--class-logits int8 float)
 
 
 @dataclass(frozen=True)
@@ -54,13 +55,18 @@ class RecipeScore:
 
 
 def recipe_name(
-    method: str, float_leading_modules: int, box_logits_float: bool, head_convs_float: bool = False
+    method: str,
+    float_leading_modules: int,
+    box_logits_float: bool,
+    head_convs_float: bool = False,
+    class_logits_float: bool = True,
 ) -> str:
     label = float_modules_label(float_leading_modules)
     leading = f"{label} float" if label else "all modules int8"
-    if head_convs_float:  # the box logits are among the head's convs
+    if head_convs_float:  # both logit convs are among the head's convs
         return f"{method}, {leading}, Detect head convs float"
-    return f"{method}, {leading}, box logits {'float' if box_logits_float else 'int8'}"
+    name = f"{method}, {leading}, box logits {'float' if box_logits_float else 'int8'}"
+    return name if class_logits_float else f"{name}, class logits int8"
 
 
 def score(
@@ -92,14 +98,15 @@ def compare_recipes(
     methods: list[CalibMethod],
     float_modules: Sequence[int] = RECIPE_FLOAT_MODULES,
     box_logits: Sequence[bool] = RECIPE_BOX_LOGITS_FLOAT,
+    class_logits: Sequence[bool] = RECIPE_CLASS_LOGITS_FLOAT,
     head_convs: bool = False,
     split: str = "test",
     every: int = 5,
     calib_count: int = DEFAULT_CALIB_COUNT,
 ) -> list[RecipeScore]:
-    """fp32 first, then each method × leading float modules × box logits (float or not), on every
-    ``every``-th sample; with ``head_convs`` True, one more recipe per method × leading modules that
-    keeps every conv of the Detect head float (box logits included)."""
+    """fp32 first, then each method × leading float modules × box logits × class logits (float or
+    not), on every ``every``-th sample; with ``head_convs`` True, one more recipe per method × leading
+    modules that keeps every conv of the Detect head float (both logit convs included)."""
     from training.evaluate import dataset_samples
 
     if every < 1:
@@ -111,15 +118,18 @@ def compare_recipes(
         reference = score(fp32, "fp32", samples, scratch, None)
         log.info("%s", reference)
         scores = [reference]
-        # (box logits float, head convs float): the box-logit choices, then the head convs (logits included)
-        variants = [(box_float, False) for box_float in box_logits] + ([(True, True)] if head_convs else [])
+        # (box logits float, class logits float, head convs float): the logit choices, then the head
+        # convs (logits included)
+        variants = [(box, cls, False) for box in box_logits for cls in class_logits]
+        variants += [(True, True, True)] if head_convs else []
         for method in methods:
             for leading in float_modules:
-                for box_float, head_float in variants:
-                    name = recipe_name(method, leading, box_float, head_float)
+                for box_float, class_float, head_float in variants:
+                    name = recipe_name(method, leading, box_float, head_float, class_float)
                     model = quantize_int8(
-                        fp32, scratch / f"{method}-{leading}-{box_float}-{head_float}.onnx", calibration,
-                        method=method, float_leading_modules=leading, keep_box_logits_float=box_float,
+                        fp32, scratch / f"{method}-{leading}-{box_float}-{class_float}-{head_float}.onnx",
+                        calibration, method=method, float_leading_modules=leading,
+                        keep_box_logits_float=box_float, keep_class_logits_float=class_float,
                         keep_head_convs_float=head_float,
                     )  # fmt: skip
                     scores.append(score(model, name, samples, scratch, reference.map50))
@@ -162,6 +172,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the box branches' last convs quantised, float, or one recipe each (default: %(default)s)",
     )  # fmt: skip
     parser.add_argument(
+        "--class-logits", nargs="+", choices=("int8", "float"),
+        default=["float" if kept else "int8" for kept in RECIPE_CLASS_LOGITS_FLOAT],
+        help="the class branches' last convs quantised, float, or one recipe each (default: %(default)s)",
+    )  # fmt: skip
+    parser.add_argument(
         "--head-convs", action="store_true",
         help="also score, per method and leading modules, the recipe keeping every Detect head conv float",
     )  # fmt: skip
@@ -171,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("training.quantization").setLevel(logging.WARNING)
     scores = compare_recipes(
         args.fp32, args.data, methods=args.methods, float_modules=args.float_modules,
-        box_logits=tuple(choice == "float" for choice in args.box_logits), head_convs=args.head_convs,
+        box_logits=tuple(choice == "float" for choice in args.box_logits),
+        class_logits=tuple(choice == "float" for choice in args.class_logits), head_convs=args.head_convs,
         split=args.split,
         every=args.every, calib_count=args.calib_count,
     )  # fmt: skip

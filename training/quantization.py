@@ -175,18 +175,33 @@ def float_modules_label(count: int) -> str:
     return {0: "", 1: "stem"}.get(count, f"modules 0–{count - 1}")
 
 
+def _last_convs(model: Any, branch: int, what: str) -> list[str]:
+    """Names of the nodes of the last conv of each stride's ``cv2`` (``branch`` 0) or ``cv3`` (1)."""
+    prefix = _detect_head(model)[1][branch]  # /model.<head>/cv2. or cv3.
+    pattern = re.compile(re.escape(prefix.rsplit("/", 1)[1]) + r"\d+\.2/")
+    nodes = [n.name for n in model.graph.node if n.name.startswith(prefix) and pattern.search(n.name)]
+    if not nodes:
+        raise ExportError(f"no {what} convs under {prefix}: not an Ultralytics Detect head")
+    return nodes
+
+
 def box_logit_nodes(model: Any) -> list[str]:
     """Names of the box branches' last convs in the Detect head (``/model.<head>/cv2.<i>.2/…``).
 
     Their outputs are the 16-bin distance distributions the DFL decodes into box edges.
     """
-    prefix = _detect_head(model)[1][0]  # /model.<head>/cv2.
-    nodes = [
-        n.name for n in model.graph.node if n.name.startswith(prefix) and re.search(r"cv2\.\d+\.2/", n.name)
-    ]
-    if not nodes:
-        raise ExportError(f"no box-logit convs under {prefix}: not an Ultralytics Detect head")
-    return nodes
+    return _last_convs(model, 0, "box-logit")
+
+
+def class_logit_nodes(model: Any) -> list[str]:
+    """Names of the class branches' last convs in the Detect head (``/model.<head>/cv3.<i>.2/…``).
+
+    Their outputs are the class logits the decode turns into scores. One uint8 range per stride covers
+    every anchor's logit, and nearly all anchors are background far below zero, so a quantised logit
+    moves in steps of up to half a logit (scores 0.38, 0.5, 0.62, …) and is cut at the largest value
+    calibration saw: at a stride where no calibration image scored above 0.5, no detection ever can.
+    """
+    return _last_convs(model, 1, "class-logit")
 
 
 def head_conv_nodes(model: Any) -> list[str]:
@@ -301,6 +316,7 @@ def _quantization_record(
     float_leading_modules: int,
     float_leading_nodes: int,
     float_box_logit_nodes: int,
+    float_class_logit_nodes: int,
     float_head_conv_nodes: int,
 ) -> str:
     """The ``triscan.quantization`` metadata value: how this INT8 file was made, as sorted JSON."""
@@ -312,6 +328,7 @@ def _quantization_record(
             "calibration": f"percentile {PERCENTILE} asymmetric" if method == "percentile" else method,
             "calibration_images": calibration_count,
             "float_box_logit_nodes": float_box_logit_nodes,
+            "float_class_logit_nodes": float_class_logit_nodes,
             "float_head_conv_nodes": float_head_conv_nodes,
             "float_head_nodes": float_head_nodes,
             "float_leading_modules": float_leading_modules,
@@ -333,6 +350,7 @@ def quantize_int8(
     keep_head_float: bool = True,
     float_leading_modules: int = DEFAULT_FLOAT_LEADING_MODULES,
     keep_box_logits_float: bool = True,
+    keep_class_logits_float: bool = True,
     keep_head_convs_float: bool = False,
     preprocess: bool = True,
 ) -> Path:
@@ -356,7 +374,8 @@ def quantize_int8(
 
     ``float_leading_modules`` leaves the first N modules float (:func:`leading_module_nodes`; 1 is the
     stem alone, 0 quantises it too), ``keep_box_logits_float`` the box branches' last convs
-    (:func:`box_logit_nodes`), ``keep_head_convs_float`` every conv branch of the Detect head, box
+    (:func:`box_logit_nodes`), ``keep_class_logits_float`` the class branches' last convs
+    (:func:`class_logit_nodes`), ``keep_head_convs_float`` every conv branch of the Detect head, box
     logits included (:func:`head_conv_nodes`), ``keep_head_float`` the head's decode tail
     (:func:`head_decode_nodes`).
 
@@ -380,12 +399,13 @@ def quantize_int8(
         head = head_decode_nodes(graph_in) if keep_head_float else []
         leading = leading_module_nodes(graph_in, float_leading_modules)
         box_logits = box_logit_nodes(graph_in) if keep_box_logits_float else []
+        class_logits = class_logit_nodes(graph_in) if keep_class_logits_float else []
         head_convs = head_conv_nodes(graph_in) if keep_head_convs_float else []
         reader = calibration_reader(input_name(graph_in), images)
         model = _quantize_static(
             model_in,
             reader,
-            sorted(set(head + leading + box_logits + head_convs)),
+            sorted(set(head + leading + box_logits + class_logits + head_convs)),
             Path(scratch),
             method=method,
             per_channel=per_channel,
@@ -403,6 +423,7 @@ def quantize_int8(
         float_leading_modules=float_leading_modules,
         float_leading_nodes=len(leading),
         float_box_logit_nodes=len(box_logits),
+        float_class_logit_nodes=len(class_logits),
         float_head_conv_nodes=len(head_convs),
     )
     set_metadata(model, {f"{META_PREFIX}precision": "int8", f"{META_PREFIX}quantization": quantization})

@@ -48,6 +48,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="quantise the box branches' last convs too (default: float, for box tightness)",
     )  # fmt: skip
     p.add_argument(
+        "--quantize-class-logits", action="store_true",
+        help="quantise the class branches' last convs too (default: float, so scores keep their "
+        "resolution and range)",
+    )  # fmt: skip
+    p.add_argument(
         "--float-head-convs", action="store_true",
         help="keep every conv of the Detect head float (box and class branches): tighter INT8 boxes, "
         "about a quarter more time per frame",
@@ -77,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         activation_type=recipe["activations"],
         float_leading_modules=recipe["float_modules"],
         keep_box_logits_float=not args.quantize_box_logits,
+        keep_class_logits_float=not args.quantize_class_logits,
         keep_head_convs_float=args.float_head_convs,
         compare_count=args.compare_count,
         timing_runs=args.timing_runs,
