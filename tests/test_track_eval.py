@@ -13,6 +13,7 @@ import numpy as np
 from bench.tracking import detection_at
 from common.messages import Detection, StageTimings
 from common.model_spec import CLASS_NAMES, SHIPPED_MODEL
+from services.tracker.core import TrackerConfig
 from services.tracker.mot import MotScore
 from training.track_eval import (
     BagTracks,
@@ -76,6 +77,12 @@ def test_perfect_detections_score_near_one_for_furniture_and_people_apart(tmp_pa
     assert (
         written["people"]["mota"] == report.scores["people"].mota and written["furniture"]["goal_mota"] == 0.9
     )
+    # With leg_tracker's travel rule the walker (0.1 m a frame) waits for 0.5 m; the chair does not.
+    travel = evaluate_tracks(
+        detector, iter([("m0", frames)]), tmp_path, source="synthetic",
+        tracker=TrackerConfig(person_confirm_travel_m=0.5),
+    )  # fmt: skip
+    assert travel.scores["furniture"].misses == 2 and 5 <= travel.scores["people"].misses <= 8
 
 
 def test_a_model_without_people_is_scored_on_furniture_only_and_says_so(tmp_path: Path) -> None:

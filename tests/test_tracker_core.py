@@ -200,6 +200,33 @@ def test_people_side_by_side_are_two_people_where_furniture_that_close_is_one_ob
     assert core.counters.tracks_created == 3  # the second person 0.5 m off is someone else
 
 
+def test_with_a_travel_rule_only_a_person_who_moves_is_confirmed() -> None:
+    """leg_tracker's rule, opt-in: a still person-like cluster stays tentative however often it is seen,
+    a walker is confirmed once it has moved far enough, and furniture is confirmed as before."""
+    core = TrackerCore(TrackerConfig(person_confirm_travel_m=0.5))
+    states: dict[str, list[str]] = {"still": [], "walker": [], "chair": []}
+    for k in range(20):
+        walker = (1.0 + 0.1 * k, -1.0)  # 1 m/s at 10 Hz
+        dets = [det(2.0, 2.0, "person"), det(*walker, "person"), det(-2.0, 0.0, "chair")]
+        tracks = core.update(message(k, dets, pose(0, 0, 0)))
+        assert tracks is not None
+        for t in tracks.tracks:
+            name = (
+                "chair" if t.class_name == "chair" else ("still" if t.x_m > 1.5 and t.y_m > 1.5 else "walker")
+            )
+            states[name].append(t.state)
+    assert set(states["still"]) == {"tentative"} and len(states["still"]) == 20
+    assert states["chair"][2] == "confirmed"  # the third hit, as without the rule
+    first = states["walker"].index("confirmed")
+    assert 5 <= first <= 8 and set(states["walker"][first:]) == {"confirmed"}  # after about 0.5 m
+    default = TrackerCore()
+    for k in range(3):
+        tracks = default.update(message(k, [det(2.0, 2.0, "person")], pose(0, 0, 0)))
+    assert tracks is not None and tracks.tracks[0].state == "confirmed"  # off by default
+    with pytest.raises(ValueError, match="invalid tracker config"):
+        TrackerConfig(person_confirm_travel_m=-1.0)
+
+
 def test_a_tentative_track_dies_quickly_and_ids_are_never_reused() -> None:
     core = TrackerCore(TrackerConfig(tentative_misses=1))
     first = core.update(message(0, [det(1.0, 1.0)]))

@@ -42,7 +42,7 @@ from common.inference import OnnxDetector
 from common.messages import Detections, Odometry
 from common.model_spec import CLASS_NAMES
 from services.simulator.lidar import LidarSpec
-from services.tracker.core import REPORTED_STATES, TrackerCore
+from services.tracker.core import REPORTED_STATES, TrackerConfig, TrackerCore
 from services.tracker.mot import DEFAULT_GATE_M, GROUPS, ClearMot, MotScore, hypotheses_of
 
 log = logging.getLogger(__name__)
@@ -173,13 +173,19 @@ class TrackReport:
 
 
 def evaluate_tracks(
-    detector: OnnxDetector, motions: Iterator[tuple[str, list[MotionFrame]]], out_dir: Path, *, source: str
+    detector: OnnxDetector,
+    motions: Iterator[tuple[str, list[MotionFrame]]],
+    out_dir: Path,
+    *,
+    source: str,
+    tracker: TrackerConfig | None = None,
 ) -> TrackReport:
-    """Score every motion and write ``tracks.json`` into ``out_dir``."""
+    """Score every motion with the ``tracker`` rules (default: the service's) and write
+    ``tracks.json`` into ``out_dir``."""
     classes = tuple(getattr(detector, "class_names", CLASS_NAMES))
     scored = GROUPS if PERSON in classes else ("furniture",)
     report = TrackReport(detector.model_id, source, classes=classes, scored=scored)
-    core = TrackerCore()
+    core = TrackerCore(tracker)
     for name, frames in motions:
         for group, score in score_motion(core, name, frames, detector).items():
             report.scores[group] = report.scores[group].merged(score)
@@ -250,8 +256,9 @@ def person_passes(tracks: list[dict[str, float | int]], gap_s: float = PASS_GAP_
     return passes
 
 
-def track_bag(detector: OnnxDetector, config: Any) -> BagTracks:
-    """Detector and tracker over ``config.bag`` (a :class:`training.real_eval.BagEvalConfig`)."""
+def track_bag(detector: OnnxDetector, config: Any, tracker: TrackerConfig | None = None) -> BagTracks:
+    """Detector and tracker (the ``tracker`` rules, default the service's) over ``config.bag`` (a
+    :class:`training.real_eval.BagEvalConfig`)."""
     from collections import Counter
 
     from common.messages import StageTimings
@@ -259,7 +266,7 @@ def track_bag(detector: OnnxDetector, config: Any) -> BagTracks:
 
     bag = _load(config)
     rejected: Counter[str] = Counter(bag.skipped)
-    core = TrackerCore()
+    core = TrackerCore(tracker)
     confirmed: dict[int, dict[str, Any]] = {}
     mot = ClearMot(DEFAULT_GATE_M) if bag.people is not None else None
     t0 = bag.stream[0].stamp_ns

@@ -17,6 +17,7 @@ from common.encoding import PADDINGS
 from common.model_spec import BOX_GRIDS
 from services.cli.command import Command, add_recipe_argument
 from services.simulator.sensors import PROFILES
+from services.tracker import add_tracker_arguments, tracker_config
 
 # The --fresh worlds' settings when no --preset gives them.
 FRESH_DEFAULTS: dict[str, object] = {"seed": 1000, "positions": 90, "frame_stride": 15, "noise": ["clean"]}
@@ -95,6 +96,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="score the tracker (CLEAR MOT, furniture and people apart) over every scan of the --fresh "
         "motions instead of the detections; with --bag: its confirmed tracks and person passes",
     )  # fmt: skip
+    add_tracker_arguments(p)
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
     p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
 
@@ -145,7 +147,8 @@ def _run_bag(args: argparse.Namespace) -> int:
 
         from training.track_eval import format_bag_tracks, track_bag
 
-        tracked = [track_bag(detector_for(model, args.threads), config) for model in args.model]
+        rules = tracker_config(args)
+        tracked = [track_bag(detector_for(model, args.threads), config, rules) for model in args.model]
         print("\n".join(format_bag_tracks(report) for report in tracked))
         args.out.mkdir(parents=True, exist_ok=True)
         out = args.out / "bag_tracks.json"
@@ -246,7 +249,9 @@ def run(args: argparse.Namespace) -> int:
             args.seed, args.fresh, args.positions, detector, spec=condition_spec(conditions[0]),
             clutter=args.clutter, people=args.people, open_space=args.open_space,
         )  # fmt: skip
-        track_report = evaluate_tracks(detector, motions, args.out, source=worlds.source(conditions[0]))
+        track_report = evaluate_tracks(
+            detector, motions, args.out, source=worlds.source(conditions[0]), tracker=tracker_config(args)
+        )
         print(format_report(track_report))
         print(f"written to {args.out}/tracks.json")
         return 0

@@ -23,7 +23,8 @@ from services.runtime import (
     service_parser,
     stop_event_on_signals,
 )
-from services.tracker.core import DEFAULT_FORGET_AFTER_S, TrackerCore
+from services.tracker import add_tracker_arguments, tracker_config
+from services.tracker.core import DEFAULT_FORGET_AFTER_S, TrackerConfig, TrackerCore
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)  # the import path, also with -m
 
@@ -34,13 +35,14 @@ def run(
     *,
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
+    config: TrackerConfig | None = None,
 ) -> TrackerCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
     Track ids start at the wall clock in milliseconds, so a restarted tracker never hands out an id it
     handed out before (it would have to have opened more than a thousand tracks a second).
     """
-    core = TrackerCore(first_track_id=time.time_ns() // 1_000_000, forget_after_s=forget_after_s)
+    core = TrackerCore(config, first_track_id=time.time_ns() // 1_000_000, forget_after_s=forget_after_s)
     with ServiceRuntime("tracker", settings, stop, duration_s=duration_s) as runtime:
         publishers = runtime.robot_publishers(tracks_key)
 
@@ -62,6 +64,7 @@ def run(
 def main(argv: list[str] | None = None) -> int:
     parser = service_parser("services.tracker", __doc__.splitlines()[0])
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
+    add_tracker_arguments(parser)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
     run(
@@ -69,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         stop_event_on_signals(),
         forget_after_s=args.forget_after,
         duration_s=args.duration,
+        config=tracker_config(args),
     )
     return 0
 

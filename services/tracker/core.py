@@ -18,8 +18,9 @@ Method (docs/tracking.md has the reasoning and the scores):
   ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library).
 * **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it; a
   confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
-  without a hit; a tentative track is deleted after ``tentative_misses`` misses. The class is the one
-  with the most summed score over the track, the score a running mean.
+  without a hit; a tentative track is deleted after ``tentative_misses`` misses. With
+  ``person_confirm_travel_m`` set, a person track also has to move that far to be confirmed. The class
+  is the one with the most summed score over the track, the score a running mean.
 * **Ids** come from one counter per core, never reused: not for the robot, not for any robot.
 
 Bad input loses nothing else (counted by reason in :class:`TrackerCounters`):
@@ -123,11 +124,18 @@ class TrackerConfig:
     jump_m: float = 1.0
     jump_rad: float = math.radians(30.0)
     score_smoothing: float = 0.3  # weight of the newest detection's score in the track's running score
+    # A person track is confirmed only once it has also moved this far (0: never asked), leg_tracker's
+    # rule for starting a person (its dist_travelled_together_to_initiate_leg_pair, 0.5 m): a still
+    # cluster of points that looks like legs is more often a table leg or a broken-up wall than a
+    # person, at the price of someone who stands the whole time they are seen.
+    person_confirm_travel_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
             raise ValueError(f"invalid tracker config: {self}")
         if not (self.delete_after_s > 0 and self.jump_m > 0 and self.jump_rad > 0):
+            raise ValueError(f"invalid tracker config: {self}")
+        if not self.person_confirm_travel_m >= 0:
             raise ValueError(f"invalid tracker config: {self}")
 
 
@@ -172,6 +180,8 @@ class _Track:
         "hits",
         "last_hit_ns",
         "misses",
+        "moved_m",
+        "origin",
         "p_pp",
         "p_pv",
         "p_vv",
@@ -187,6 +197,7 @@ class _Track:
     def __init__(self, track_id: int, x: float, y: float, det: Detection, stamp_ns: int, model: MotionModel):
         self.track_id = track_id
         self.x, self.y, self.vx, self.vy = x, y, 0.0, 0.0
+        self.origin, self.moved_m = (x, y), 0.0  # the farthest the filtered position got from its start
         self.p_pp = model.measurement_std_m**2
         self.p_pv = 0.0
         self.p_vv = model.initial_speed_std_mps**2
@@ -223,6 +234,7 @@ class _Track:
         self.y += k_p * ry
         self.vx += k_v * rx
         self.vy += k_v * ry
+        self.moved_m = max(self.moved_m, math.hypot(self.x - self.origin[0], self.y - self.origin[1]))
         self.p_vv -= k_v * self.p_pv
         self.p_pv *= 1.0 - k_p
         self.p_pp *= 1.0 - k_p
@@ -409,7 +421,7 @@ class TrackerCore:
         for ti, di in matches:
             track, det = robot.tracks[ti], message.detections[di]
             track.update(points[di][0], points[di][1], det, stamp, models[ti], smooth)
-            if track.hits >= self.config.confirm_hits:
+            if track.state != "tentative" or self._confirms(track):
                 track.state = "confirmed"
         matched = {ti for ti, _ in matches}
         kept: list[_Track] = []
@@ -431,7 +443,7 @@ class TrackerCore:
             kept.append(_Track(self._next_id, points[di][0], points[di][1], det, stamp, model))
             self._next_id += 1
             self.counters.tracks_created += 1
-            if self.config.confirm_hits <= 1:
+            if self._confirms(kept[-1]):
                 kept[-1].state = "confirmed"
         if len(kept) > MAX_TRACKS:  # only a flood of detections gets here: keep the established tracks
             kept.sort(key=lambda t: (t.state == "tentative", -t.hits))
@@ -440,6 +452,13 @@ class TrackerCore:
         robot.tracks = kept
         self.counters.published += 1
         return self._message(message, robot, pose)
+
+    def _confirms(self, track: _Track) -> bool:
+        """Whether a tentative track has earned confirmation: enough hits, and a person enough travel."""
+        if track.hits < self.config.confirm_hits:
+            return False
+        travel = self.config.person_confirm_travel_m
+        return travel <= 0.0 or CLASS_NAMES[track.class_id] != "person" or track.moved_m >= travel
 
     def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
         """A second detection of an object a track already follows: within ``duplicate_m`` (a person:
