@@ -117,63 +117,6 @@ def test_dropouts_and_spurious_returns_leave_the_noise_stream_alone() -> None:
     np.testing.assert_array_equal(faulty.true_ranges, clean.true_ranges)  # truth never degrades
 
 
-def test_dark_patches_lie_on_the_room_walls_clear_of_the_door_and_come_from_their_own_stream() -> None:
-    from services.simulator.lidar import (
-        DARK_PATCH_COUNT,
-        DARK_PATCH_DOOR_CLEARANCE_M,
-        DARK_PATCH_RADIUS_M,
-        DARK_PATCH_RETURN,
-        dark_patches_of,
-    )
-
-    chosen = 0
-    for index in range(40):
-        scenario = sample_scenario(index, seed=3, room_half_m=2.0 + index % 3)
-        assert dark_patches_of(scenario, 3, 0.0) is None
-        patches = dark_patches_of(scenario, 3, 0.5)
-        if patches is None:
-            continue
-        chosen += 1
-        np.testing.assert_array_equal(patches, dark_patches_of(scenario, 3, 0.5))  # seeded
-        assert DARK_PATCH_COUNT[0] <= len(patches) <= DARK_PATCH_COUNT[1]
-        room = scenario.room_half_m
-        xy, radius, chance = patches[:, :2], patches[:, 2], patches[:, 3]
-        on_face = np.isclose(np.abs(xy), room).any(axis=1) & (np.abs(xy) <= room + 1e-9).all(axis=1)
-        assert on_face.all(), "every patch sits on a room wall's inner face"
-        assert np.all((DARK_PATCH_RADIUS_M[0] <= radius) & (radius <= DARK_PATCH_RADIUS_M[1]))
-        assert np.all((DARK_PATCH_RETURN[0] <= chance) & (chance <= DARK_PATCH_RETURN[1]))
-        for jamb in scenario.door.opening:
-            assert np.all(np.hypot(*(xy - jamb).T) >= radius + DARK_PATCH_DOOR_CLEARANCE_M - 1e-9)
-    assert 10 < chosen < 30
-    with pytest.raises(ValueError, match="dark-walls share"):
-        dark_patches_of(sample_scenario(0, seed=3), 3, 1.5)
-
-
-def test_dark_patches_drop_wall_returns_there_and_leave_every_other_beam_alone() -> None:
-    scenario = sample_scenario(1, seed=0)
-    room = scenario.room_half_m
-    pose = (0.0, 0.0, 0.0)
-    # Patches across the room's four walls, one that never returns and one that always does.
-    dark = np.array(
-        [[room, 0.6, 0.4, 0.0], [-room, 0.3, 0.4, 0.0], [0.5, room, 0.4, 0.0], [0.2, -room, 0.4, 1.0]]
-    )
-    with World(scenario) as world:
-        plain = Lidar(world, DEFAULT_SPEC, rng=np.random.default_rng(4)).scan(pose)
-        darkened = Lidar(world, DEFAULT_SPEC, rng=np.random.default_rng(4)).scan(pose, dark=dark)
-    on_wall = plain.hit_object == -1
-    angles = DEFAULT_SPEC.bearings_rad
-    origin = np.asarray(plain.lidar_pose[:2])  # the sensor sits ahead of the robot's centre
-    points = origin + plain.true_ranges[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    blanked = np.zeros(len(angles), dtype=bool)
-    for x, y, radius, chance in dark:
-        if chance == 0.0:
-            blanked |= on_wall & (np.hypot(points[:, 0] - x, points[:, 1] - y) < radius)
-    assert blanked.sum() > 20
-    assert np.all(np.isinf(darkened.ranges[blanked]))
-    np.testing.assert_array_equal(darkened.ranges[~blanked], plain.ranges[~blanked])  # noise stream intact
-    np.testing.assert_array_equal(darkened.true_ranges, plain.true_ranges)  # truth never degrades
-
-
 def test_rates_outside_zero_one_are_refused() -> None:
     with pytest.raises(ValueError, match="dropout_rate"):
         replace(DEFAULT_SPEC, dropout_rate=1.5)
@@ -250,33 +193,6 @@ def test_randomised_set_records_its_settings_and_keeps_true_geometry_labels(
         differing += int(not np.array_equal(a, b))
         sentinel_gain += int(b[63].sum()) - int(a[63].sum())
     assert differing > 0 and sentinel_gain > 0
-
-
-def test_a_dark_walled_set_records_its_patches_and_keeps_its_labels(
-    clean_and_randomised: tuple[Path, Path], tmp_path: Path
-) -> None:
-    clean, _ = clean_and_randomised
-    dark = tmp_path / "dark"
-    generate_dataset(
-        DatasetConfig(out=dark, scenarios=4, positions=3, seed=13, frame_stride=6, dark_walls=1.0),
-        progress=False,
-    )
-    summary = json.loads((dark / "summary.json").read_text())
-    assert summary["config"]["dark_walls"] == 1.0
-    assert "dark_walls" not in json.loads((clean / "summary.json").read_text())["config"]
-    records = [json.loads(line) for line in (dark / "scenarios.jsonl").read_text().splitlines()]
-    assert all(len(r["lidar"]["dark_patches"]) >= 4 for r in records)
-    assert (clean / "samples.jsonl").read_text() == (dark / "samples.jsonl").read_text()
-    for label in sorted((clean / "labels").rglob("*.txt")):  # labels follow the true geometry
-        assert label.read_text() == (dark / label.relative_to(clean)).read_text()
-    from training.png import read_tensor_png
-
-    sentinel_gain = sum(
-        int(read_tensor_png(dark / image.relative_to(clean))[63].sum())
-        - int(read_tensor_png(image)[63].sum())
-        for image in sorted((clean / "images").rglob("*.png"))
-    )
-    assert sentinel_gain > 0, "dark patches send wall beams to the sentinel row"
 
 
 def test_open_space_rooms_move_only_the_walls_and_rebuild_from_their_record() -> None:

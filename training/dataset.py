@@ -42,7 +42,7 @@ from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
 from services.simulator.clutter import Clutter, sample_clutter
 from services.simulator.defaults import SCAN_PERIOD_S
 from services.simulator.labels import ObjectLabel, label_scan, yolo_lines
-from services.simulator.lidar import Lidar, LidarReading, check_dark_walls, dark_patches_of
+from services.simulator.lidar import Lidar, LidarReading
 from services.simulator.people import Person, sample_people
 from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
@@ -95,8 +95,6 @@ class DatasetConfig:
     raster_yaw_deg: float = 0.0
     # Share of scenarios whose walls move out to an open-space room (services.simulator.scenario).
     open_space: float = 0.0
-    # Share of scenarios whose walls have dark patches that break up their returns (simulator.lidar).
-    dark_walls: float = 0.0
 
     def __post_init__(self) -> None:
         if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
@@ -115,7 +113,6 @@ class DatasetConfig:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
         check_open_space(self.open_space)
-        check_dark_walls(self.dark_walls)
         object.__setattr__(self, "raster_yaw_deg", check_raster_yaw(self.raster_yaw_deg))  # a ValueError
 
     @property
@@ -137,8 +134,6 @@ class DatasetConfig:
             fields.pop("raster_yaw_deg")
         if self.open_space == 0.0:
             fields.pop("open_space")
-        if self.dark_walls == 0.0:
-            fields.pop("dark_walls")
         return fields
 
 
@@ -246,15 +241,11 @@ def scans_of_motion(
     clutter_rng: np.random.Generator | None = None,
     people: int = 0,
     people_rng: np.random.Generator | None = None,
-    dark: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[LidarReading]]:
     """Drive one motion and keep the scans a model stacks (:func:`stacked_period_s` apart), among up to
-    ``clutter`` clutter items and ``people`` people, with the walls' ``dark`` patches. With people, a
-    share of motions keeps the robot standing where it starts, as a robot waiting for people to pass
-    does."""
-    poses, kept = _scans_of_motion(
-        lidar, motion, scenario, clutter, clutter_rng, people, people_rng, None, dark
-    )
+    ``clutter`` clutter items and ``people`` people. With people, a share of motions keeps the robot
+    standing where it starts, as a robot waiting for people to pass does."""
+    poses, kept = _scans_of_motion(lidar, motion, scenario, clutter, clutter_rng, people, people_rng, None)
     return poses, [reading for _, reading in kept]
 
 
@@ -267,7 +258,6 @@ def _scans_of_motion(
     people: int,
     people_rng: np.random.Generator | None,
     keep: Callable[[int], bool] | None,
-    dark: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[tuple[int, LidarReading]]]:
     """:func:`scans_of_motion`, ray-casting only the ticks ``keep`` accepts (all when ``None``)."""
     period_s = stacked_period_s(lidar.spec)
@@ -285,7 +275,7 @@ def _scans_of_motion(
             poses = np.repeat(poses[:1], len(poses), axis=0)
         walkers = tuple(sample_people(scenario, poses, period_s, len(poses) * period_s, people, people_rng))
     return poses, [
-        (t, lidar.scan(tuple(pose), items, t * period_s, walkers, dark))
+        (t, lidar.scan(tuple(pose), items, t * period_s, walkers))
         for t, pose in enumerate(poses)
         if keep is None or keep(t)
     ]
@@ -311,7 +301,6 @@ def simulate_samples(
     invalid: InvalidRule = "sentinel",
     people: int = 0,
     raster_yaw_deg: float = 0.0,
-    dark: np.ndarray | None = None,
 ) -> Iterator[Sample]:
     """Simulate one scenario and yield its samples, tensors made exactly as on the robot.
 
@@ -319,7 +308,7 @@ def simulate_samples(
     and deployment share one code path from ranges to tensor. ``spec`` is the scenario's sensor
     (noise, dropouts, spurious returns); ``clutter`` the most unlabelled clutter items per motion.
     ``raster_yaw_deg`` turns tensors and labels alike (:mod:`common.encoding`); the samples' poses and
-    people stay in the world frame. ``dark``: the walls' dark patches (:func:`dark_patches_of`).
+    people stay in the world frame.
     """
     world.load(scenario)
     lidar = Lidar(world, spec, rng=np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 2])))
@@ -329,9 +318,8 @@ def simulate_samples(
     for p_index, motion in enumerate(motions):
         # With a frame stride of 3 or more, the windows a sample needs are disjoint: only their scans
         # are cast (the stacker then holds exactly the three scans of each sample when it is made).
-        ticks = _window_ticks(frame_stride)
         _, kept = _scans_of_motion(
-            lidar, motion, scenario, clutter, clutter_rng, people, people_rng, ticks, dark
+            lidar, motion, scenario, clutter, clutter_rng, people, people_rng, _window_ticks(frame_stride)
         )
         readings = dict(kept)
         stacker = ScanStacker(padding, invalid, raster_yaw_deg)
@@ -384,9 +372,6 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
     }
     if config.sensor != DEFAULT_PROFILE:
         lidar_record["sensor"] = scenario_sensor(config, index)
-    dark = dark_patches_of(scenario, config.seed, config.dark_walls)
-    if dark is not None:  # world x, y, radius and return chance of each patch
-        lidar_record["dark_patches"] = dark.round(4).tolist()
     result.scenario_json["lidar"] = lidar_record
     samples = simulate_samples(
         _world(),
@@ -400,7 +385,6 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
         invalid=config.invalid,
         people=config.people,
         raster_yaw_deg=config.raster_yaw_deg,
-        dark=dark,
     )
     for sample in samples:
         write_rgb_png(image_dir / f"{sample.name}.png", sample.tensor)

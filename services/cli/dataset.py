@@ -79,14 +79,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "reach beyond the 4 m full scale and people walk farther off, as in halls (default 0)",
     )
     dr.add_argument(
-        "--dark-walls",
-        type=float,
-        default=0.0,
-        metavar="SHARE",
-        help="share of scenarios whose walls have dark patches that return few or no beams, breaking "
-        "far walls into leg-sized runs of points as real ones are (default 0)",
-    )
-    dr.add_argument(
         "--sensor",
         type=_sensor,
         default=DEFAULT_PROFILE,
@@ -118,7 +110,6 @@ def run(args: argparse.Namespace) -> int:
         sensor=args.sensor,
         raster_yaw_deg=args.raster_yaw,
         open_space=args.open_space,
-        dark_walls=args.dark_walls,
         **({"noise_sigma_m": tuple(args.noise_sigma)} if args.noise_sigma else {}),
     )
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)

@@ -16,13 +16,6 @@ mixed pixels return something short (``spurious_rate``: a beam comes back at a r
 its true hit). Both are drawn from a second stream spawned from the caller's generator, so turning
 them on leaves the Gaussian noise of every beam exactly as it was: the same world under several
 imperfection settings differs only by the imperfections.
-
-Those dropouts strike each beam on its own. A dark or glossy stretch of wall (a black skirting board,
-a glass panel, a monitor stand) fails the same way scan after scan, so a real wall a few metres off is
-broken into short runs of points, and at 3 m such a run is as wide as a leg. Dark patches
-(:func:`dark_patches_of`, ``triscan dataset --dark-walls``) put that into the world: spots on the room's
-walls, fixed for a scenario, where a beam comes back only with the patch's
-probability, drawn from a third stream per scan (a weak return flickers).
 """
 
 from __future__ import annotations
@@ -37,9 +30,8 @@ import pybullet as p
 from services.simulator.clutter import CLUTTER_OBJECT, Clutter, clutter_distances
 from services.simulator.people import Person, people_distances
 from services.simulator.robot import Pose
-from services.simulator.scenario import Scenario
 from services.simulator.sensors import DEFAULT_SPEC, LidarSpec
-from services.simulator.world import WALL_OBJECT, World
+from services.simulator.world import World
 
 # PyBullet rejects batches above MAX_RAY_INTERSECTION_BATCH_SIZE (16384 in 3.2.7) and, in 3.2.7,
 # silently returns no results for a batch of exactly that size; one ray less is always safe.
@@ -81,48 +73,6 @@ def with_imperfections(text: str, spec: LidarSpec = DEFAULT_SPEC) -> LidarSpec:
     return replace(spec, **changes)  # LidarSpec checks the ranges
 
 
-DARK_PATCH_COUNT = (4, 12)  # patches in a dark-walled scenario, both ends included
-DARK_PATCH_RADIUS_M = (0.05, 0.4)  # a patch blanks up to twice this much of a wall face
-DARK_PATCH_RETURN = (0.0, 0.6)  # chance that a beam on the patch still comes back, per scan
-DARK_PATCH_DOOR_CLEARANCE_M = 0.3  # patches keep off the door's jambs, which the doorframe label needs
-
-
-def sample_dark_patches(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
-    """Dark patches on the inner faces of the room's walls (the enclosure shows only through the door),
-    as ``float64[K, 4]`` rows of world ``x, y``, radius and return probability: a wall and a spot along
-    it drawn uniformly, clear of the door's jambs."""
-    room = scenario.room_half_m
-    jambs = scenario.door.opening
-    count = int(rng.integers(DARK_PATCH_COUNT[0], DARK_PATCH_COUNT[1] + 1))
-    patches: list[tuple[float, float, float, float]] = []
-    while len(patches) < count:
-        wall, offset = int(rng.integers(0, 4)), float(rng.uniform(-room, room))
-        centre = np.array([room, offset]) if wall % 2 == 0 else np.array([offset, room])
-        centre = centre if wall < 2 else -centre
-        radius = float(rng.uniform(*DARK_PATCH_RADIUS_M))
-        returns = float(rng.uniform(*DARK_PATCH_RETURN))
-        if min(float(np.hypot(*(centre - jamb))) for jamb in jambs) < radius + DARK_PATCH_DOOR_CLEARANCE_M:
-            continue
-        patches.append((float(centre[0]), float(centre[1]), radius, returns))
-    return np.array(patches, dtype=np.float64)
-
-
-def check_dark_walls(share: float) -> float:
-    """A share of dark-walled scenarios, checked to lie in [0, 1]."""
-    if not 0.0 <= share <= 1.0:
-        raise ValueError(f"the dark-walls share must lie in [0, 1], got {share}")
-    return share
-
-
-def dark_patches_of(scenario: Scenario, seed: int, share: float) -> np.ndarray | None:
-    """The dark patches of a ``share`` of scenarios (None for the rest and for share 0), drawn from the
-    scenario's own stream, so the choice and the patches change nothing else the data set draws."""
-    if check_dark_walls(share) == 0.0:
-        return None
-    rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 7]))
-    return sample_dark_patches(scenario, rng) if rng.random() < share else None
-
-
 @dataclass(frozen=True)
 class LidarReading:
     """One scan with its ground truth.
@@ -162,7 +112,7 @@ class Lidar:
         self.world = world
         self.spec = spec
         self.rng = rng
-        self.fault_rng, self.dark_rng = rng.spawn(2)  # faults and dark patches: never shift the noise
+        self.fault_rng = rng.spawn(1)[0]  # dropouts and spurious returns: never shifts the noise stream
         bearings = spec.bearings_rad
         self._cos_b = np.cos(bearings)
         self._sin_b = np.sin(bearings)
@@ -208,10 +158,9 @@ class Lidar:
         clutter: tuple[Clutter, ...] = (),
         t_s: float = 0.0,
         people: tuple[Person, ...] = (),
-        dark: np.ndarray | None = None,
     ) -> LidarReading:
         """One scan from a robot pose (the sensor offset is applied here), with ``clutter`` and
-        ``people`` as they stand at ``t_s`` and the walls' ``dark`` patches (:func:`sample_dark_patches`).
+        ``people`` as they stand at ``t_s``.
 
         Both are merged with the world's first hits before any noise: a beam stopped by clutter has
         the clutter's true range and object index ``CLUTTER_OBJECT``, so it counts for no label; a
@@ -221,7 +170,7 @@ class Lidar:
         sensor_pose = self.pose_of(robot_pose)
         true_ranges, bodies = self.cast(sensor_pose)
         hit_object = self.world.hit_object(bodies)
-        if clutter or people or dark is not None:
+        if clutter or people:
             angles = sensor_pose[2] + spec.bearings_rad
             directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
         if clutter:
@@ -242,15 +191,6 @@ class Lidar:
             spurious = draws[0] < spec.spurious_rate
             noisy = np.where(spurious, spec.range_min + draws[1] * (reach - spec.range_min), noisy)
             noisy = np.where(draws[2] < spec.dropout_rate, np.inf, noisy)
-        if dark is not None:  # a beam on a dark patch of wall comes back only with the patch's chance
-            draws = self.dark_rng.random(spec.beams)  # every scan, whatever it hits
-            on_wall = (hit_object == WALL_OBJECT) & np.isfinite(true_ranges)
-            hits = np.asarray(sensor_pose[:2]) + np.where(on_wall, true_ranges, 0.0)[:, None] * directions
-            returns = np.ones(spec.beams)
-            for x, y, radius, chance in dark:
-                inside = on_wall & (np.hypot(hits[:, 0] - x, hits[:, 1] - y) < radius)
-                returns = np.where(inside, np.minimum(returns, chance), returns)
-            noisy = np.where(draws < returns, noisy, np.inf)
         valid = (noisy >= spec.range_min) & (noisy <= spec.range_max)  # inf and NaN fail both
         ranges = np.where(valid, noisy, np.inf).astype(np.float32)
         return LidarReading(
