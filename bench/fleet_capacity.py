@@ -9,7 +9,8 @@ on loopback. A step passes when, over its measured window:
 * p99 scan→detection latency < ``--p99-limit-ms`` (100 ms), and
 * at least ``--min-answered`` (95 %) of scans got their detections (the detector keeps only the newest
   tensor per robot, so overload shows up as unanswered scans, not as a queue), and
-* the children's resident memory did not grow by more than ``--rss-growth-mb`` over the window.
+* no child process's resident memory (a ``--detectors N`` launch's processes each on its own) grew by
+  more than ``--rss-growth-mb`` over the window.
 
 The capacity is the largest passing N. Every step's figures are printed and written as JSON.
 
@@ -25,13 +26,16 @@ output for the recorded scans, re-stamped per robot and tick) straight onto the 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
+import multiprocessing
 import os
 import subprocess
 import threading
 import time
 from dataclasses import asdict, dataclass, field
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +44,9 @@ import numpy as np
 
 from bench.harness import (
     add_detector_model_argument,
+    proc_cpu_s,
+    proc_status_mb,
+    process_tree,
     start_loopback_service,
     thread_cpu_s,
     tree_cpu_s,
@@ -63,6 +70,7 @@ ROOT = Path(__file__).resolve().parents[1]
 WARM_UP_S = 3.0  # at least this, and until every robot has been answered (peers connect on retry)
 MAX_WARM_UP_S = 60.0
 RECORDED_SCANS = 200
+ROBOTS_PER_PROCESS = 150  # robots one bench process sends for at 10 Hz with time to spare (0.2 ms a scan)
 
 
 @dataclass
@@ -74,13 +82,19 @@ class FleetStep:
     latency_ms: dict[str, float] = field(default_factory=dict)
     rss_mb_start: dict[str, float] = field(default_factory=dict)
     rss_mb_end: dict[str, float] = field(default_factory=dict)
-    publish_lag_ms_max: float = 0.0  # how late this process itself published (a bench limit, not triscan's)
+    # Memory by process (pid → MiB) at the window's start and end, which the growth limit applies to:
+    # 16 processes that each warm up by 2 MB are not a leak, one that grows by 20 MB is.
+    rss_mb_by_pid_start: dict[int, float] = field(default_factory=dict)
+    rss_mb_by_pid_end: dict[int, float] = field(default_factory=dict)
+    publish_lag_ms_max: float = (
+        0.0  # how late the robot processes started a tick (a bench limit, not triscan's)
+    )
     rss_mb_timeline: list[dict[str, float]] = field(default_factory=list)  # {"t_s", "encoder", "detector"}
     detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
     detector_mean_batch: float = 0.0  # tensors per model call over the whole step (--batch)
     latency_ms_max_per_s: list[float] = field(default_factory=list)  # NaN: nothing answered that second
-    # Cores each process kept busy over the window (CPU seconds / wall seconds); "bench" is this process,
-    # the load generator, which the machine's two cores also carry.
+    # Cores each process kept busy over the window (CPU seconds / wall seconds); "bench" is this process
+    # and its robot processes, the load generator, which the measured host's cores also carry.
     cpu_cores: dict[str, float] = field(default_factory=dict)
     # The detector's cores by thread name: its inference threads, Zenoh's threads, "python" (main and
     # Zenoh's callback thread).
@@ -162,27 +176,19 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
         counters = json.loads(payload_bytes(sample))
         detector_stats[int(counters["pid"])] = counters
 
+    services = (detector_port, encoder_port) if runs_encoder(args) else (detector_port,)
+    fleet = RobotProcesses(robot_ids, frames, args, connect=(bench_port, *services))
     try:
         with open_session(ZenohSettings.loopback(bench_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
             stats_sub = session.declare_subscriber(service_stats_key("detector"), on_detector_stats)
-            key = tensor_key if args.encode_on_robots else scan_key
-            publishers = [session.declare_publisher(key(rid)) for rid in robot_ids]
-            # Each process sharing the fleet subscribes to the announced robots it serves.
-            topic = TENSOR if args.encode_on_robots else SCAN
-            sources = [announce_source(session, rid, topic) for rid in robot_ids]
-            if args.encode_on_robots:
-                for rid in robot_ids:
-                    wait_for_subscriber(session, tensor_key(rid))
-            else:
-                wait_for_subscriber(session, scan_key(robot_ids[0]))
             if runs_encoder(args):  # the encoder announces each robot's tensors to the detector
                 wait_for_service(session, "detector")
-            if not args.encode_on_robots:  # a robot's owner takes its scans once its token has settled
-                time.sleep(announce_lead_s(SCAN))
-            published = _publish_fleet(step, robot_ids, publishers, frames, args, children, received, lock)
+            fleet.start()
+            published = _drive_fleet(step, fleet, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
+            step.rss_mb_by_pid_end = _rss_mb_by_pid(children)
 
             detector = summed_counters(detector_stats.values())
             step.detector_dropped_stale = int(detector.get("dropped_stale", 0))
@@ -190,9 +196,8 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
             step.detector_mean_batch = round(int(detector.get("processed", 0)) / calls, 2) if calls else 0.0
             sub.undeclare()
             stats_sub.undeclare()
-            for source in sources:
-                source.undeclare()
     finally:
+        fleet.stop()
         stop_processes(children, grace_s=30)
     _judge_step(step, published, received, args)
     return step
@@ -238,66 +243,184 @@ def _rss_mb(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
     return {n: round(tree_rss_mb(p.pid), 1) for n, p in children.items()}
 
 
-def _publish_fleet(
-    step: FleetStep,
+def _rss_mb_by_pid(children: dict[str, subprocess.Popen[bytes]]) -> dict[int, float]:
+    """Resident memory of each child process and of each of its descendants now, in MB."""
+    memory = {}
+    for child in children.values():
+        for pid in process_tree(child.pid):
+            try:
+                memory[pid] = round(proc_status_mb(pid), 1)
+            except (FileNotFoundError, ProcessLookupError):
+                continue  # it ended meanwhile (a sibling restarting)
+    return memory
+
+
+def robot_processes(robots: int, requested: int | None) -> int:
+    """How many processes publish the bench's robots: ``requested``, else one per
+    :data:`ROBOTS_PER_PROCESS` robots, so that a many-core host's fleet is not held back by one Python
+    process sending every scan."""
+    return max(1, min(robots, requested or -(-robots // ROBOTS_PER_PROCESS)))
+
+
+def _robot_process(
+    connect: tuple[int, ...],
     robot_ids: list[str],
-    publishers: list[Any],
+    first_index: int,
+    fleet_size: int,
     frames: list[RecordedFrame],
+    args: argparse.Namespace,
+    pipe: Connection,
+    stop: Any,
+) -> None:
+    """One process of the bench's robots: announce them, wait for their subscribers, report ready, then
+    publish each robot's frames at ``--rate`` from the start time it is sent until ``stop`` is set.
+
+    Robot ``first_index + i`` of the whole fleet publishes at its own slot of the tick, so the fleet's
+    scans arrive spread over the period as independent robots' do, not in bursts per process. Sends back
+    every (robot, seq, publish stamp) and each tick's (due stamp, how late it started).
+    """
+    encode_on_robots = args.encode_on_robots
+    key = tensor_key if encode_on_robots else scan_key
+    with open_session(ZenohSettings.loopback(None, connect)) as session:
+        publishers = [session.declare_publisher(key(rid)) for rid in robot_ids]
+        topic = TENSOR if encode_on_robots else SCAN
+        tokens = [announce_source(session, rid, topic) for rid in robot_ids]
+        for rid in robot_ids if encode_on_robots else robot_ids[:1]:
+            wait_for_subscriber(session, key(rid))
+        if not encode_on_robots:  # a robot's owner takes its scans once its token has settled
+            time.sleep(announce_lead_s(SCAN))
+        pipe.send("ready")
+        start = float(pipe.recv())  # time.monotonic() is one clock for every process of the host
+        period = 1.0 / args.rate
+        period_ns = round(1e9 * period)
+        published: list[tuple[str, int, int]] = []
+        lags: list[tuple[int, float]] = []
+        tick = 0
+        while not stop.is_set():
+            due = start + tick * period
+            if (now := time.monotonic()) < due:
+                time.sleep(due - now)
+            lags.append((time.time_ns(), (time.monotonic() - due) * 1e3))
+            base = frames[tick % len(frames)]
+            seq = base.seq(tick)
+            for offset, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
+                slot = due + (first_index + offset) * period / fleet_size
+                if (wait := slot - time.monotonic()) > 0:
+                    time.sleep(wait)
+                stamp = time.time_ns()
+                publisher.put(base.payload(rid, tick, stamp, period_ns))
+                published.append((rid, seq, stamp))
+            tick += 1
+        for token in tokens:
+            token.undeclare()
+    pipe.send((published, lags))
+    pipe.close()
+
+
+class RobotProcesses:
+    """The bench's robots, split over :func:`robot_processes` spawned processes of their own."""
+
+    def __init__(
+        self,
+        robot_ids: list[str],
+        frames: list[RecordedFrame],
+        args: argparse.Namespace,
+        connect: tuple[int, ...],
+    ) -> None:
+        context = multiprocessing.get_context("spawn")  # Zenoh's runtime threads do not survive a fork
+        self.size = len(robot_ids)
+        count = robot_processes(self.size, args.robot_processes)
+        self.stop_event = context.Event()
+        self.pipes: list[Connection] = []
+        self.processes: list[Any] = []
+        bounds = [round(i * self.size / count) for i in range(count + 1)]
+        for first, end in itertools.pairwise(bounds):
+            here, there = context.Pipe()
+            process = context.Process(
+                target=_robot_process,
+                args=(connect, robot_ids[first:end], first, self.size, frames, args, there, self.stop_event),
+                daemon=True,
+            )
+            self.pipes.append(here)
+            self.processes.append(process)
+
+    def start(self, timeout_s: float = 60.0) -> None:
+        """Start every process, wait until each has its subscribers, and give them one start time."""
+        for process in self.processes:
+            process.start()
+        for pipe in self.pipes:
+            if not pipe.poll(timeout_s) or pipe.recv() != "ready":
+                raise TimeoutError(f"a robot process was not ready within {timeout_s:.0f} s")
+        start = time.monotonic() + 0.05
+        for pipe in self.pipes:
+            pipe.send(start)
+        self.start_s = start
+
+    def pids(self) -> list[int]:
+        return [p.pid for p in self.processes if p.pid is not None]
+
+    def finish(self) -> tuple[list[tuple[str, int, int]], list[tuple[int, float]]]:
+        """Stop publishing; every process's (robot, seq, stamp) sends and per-tick lags."""
+        self.stop_event.set()
+        published: list[tuple[str, int, int]] = []
+        lags: list[tuple[int, float]] = []
+        for pipe in self.pipes:
+            if pipe.poll(30.0):
+                sent, late = pipe.recv()
+                published += sent
+                lags += late
+        return published, lags
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        for process in self.processes:
+            if process.pid is not None:
+                process.join(timeout=10.0)
+                if process.is_alive():
+                    process.kill()
+
+
+def _drive_fleet(
+    step: FleetStep,
+    fleet: RobotProcesses,
     args: argparse.Namespace,
     children: dict[str, subprocess.Popen[bytes]],
     received: dict[tuple[str, int], int],
     lock: threading.Lock,
 ) -> dict[tuple[str, int], int]:
-    """Publish every robot's frames at ``--rate`` through warm-up and the measured window.
+    """Let the robots publish through warm-up and the measured window, which starts once warm-up is
+    over and every robot has been answered.
 
-    Returns the publish stamp of each (robot, seq) sent in the measured window, which starts once
-    warm-up is over and every robot has been answered; records RSS, CPU and publish lag into ``step``.
+    Returns the publish stamp of each (robot, seq) sent in the measured window; records RSS, CPU and
+    publish lag into ``step``.
     """
-    robots = len(robot_ids)
-    published: dict[tuple[str, int], int] = {}
+    robots = fleet.size
     next_rss_sample = 0.0
-    period = 1.0 / args.rate
-    period_ns = round(1e9 * period)
-    start = time.monotonic()
-    tick = 0
     measure_from: float | None = None  # once every robot has been answered and warm-up is over
     while measure_from is None or time.monotonic() - measure_from < args.seconds:
-        due = start + tick * period
-        if (now := time.monotonic()) < due:
-            time.sleep(due - now)
-        if measure_from is None and time.monotonic() - start >= WARM_UP_S:
+        time.sleep(0.05)
+        if measure_from is None and time.monotonic() - fleet.start_s >= WARM_UP_S:
             with lock:
                 answered = {rid for rid, _ in received}
             if len(answered) == robots:
                 measure_from = time.monotonic()
+                window_ns = [time.time_ns(), 0]
                 step.rss_mb_start = _rss_mb(children)
-                cpu_start = _cpu_s(children)
+                step.rss_mb_by_pid_start = _rss_mb_by_pid(children)
+                cpu_start = _cpu_s(children, fleet)
                 threads_start = thread_cpu_s(children["detector"].pid)
-            elif time.monotonic() - start > MAX_WARM_UP_S:
+            elif time.monotonic() - fleet.start_s > MAX_WARM_UP_S:
                 step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
                 break
-        if measure_from is not None:
-            step.publish_lag_ms_max = max(step.publish_lag_ms_max, (time.monotonic() - due) * 1e3)
-            if (elapsed := time.monotonic() - measure_from) >= next_rss_sample:
-                step.rss_mb_timeline.append({"t_s": round(elapsed, 1), **_rss_mb(children)})
-                next_rss_sample += args.rss_every
-        measuring = measure_from is not None
-        base = frames[tick % len(frames)]
-        seq = base.seq(tick)
-        # Robots publish spread over the tick, as independent robots would, not in one burst.
-        for index, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
-            stamp = time.time_ns()
-            publisher.put(base.payload(rid, tick, stamp, period_ns))
-            if measuring:
-                published[(rid, seq)] = stamp
-            slot = due + (index + 1) * period / robots
-            if (wait := slot - time.monotonic()) > 0:
-                time.sleep(wait)
-        tick += 1
+        if measure_from is not None and (elapsed := time.monotonic() - measure_from) >= next_rss_sample:
+            step.rss_mb_timeline.append({"t_s": round(elapsed, 1), **_rss_mb(children)})
+            next_rss_sample += args.rss_every
     if measure_from is not None:
         window = time.monotonic() - measure_from
+        window_ns[1] = time.time_ns()
         step.cpu_cores = {
-            name: round((seconds - cpu_start[name]) / window, 3) for name, seconds in _cpu_s(children).items()
+            name: round((seconds - cpu_start[name]) / window, 3)
+            for name, seconds in _cpu_s(children, fleet).items()
         }
         threads_end = thread_cpu_s(children["detector"].pid)
         used = {
@@ -306,12 +429,19 @@ def _publish_fleet(
         step.detector_thread_cores = {
             name: round(cores, 3) for name, cores in sorted(used.items(), key=lambda item: -item[1])
         }
-    return published
+    sent, lags = fleet.finish()
+    if measure_from is None:
+        return {}
+    first, end = window_ns
+    step.publish_lag_ms_max = round(max((lag for at, lag in lags if first <= at < end), default=0.0), 2)
+    return {(rid, seq): stamp for rid, seq, stamp in sent if first <= stamp < end}
 
 
-def _cpu_s(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
-    """CPU seconds used so far by each child (with its siblings: ``--detectors``) and by this process."""
-    return {**{n: tree_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time()}
+def _cpu_s(children: dict[str, subprocess.Popen[bytes]], fleet: RobotProcesses) -> dict[str, float]:
+    """CPU seconds used so far by each child (with its siblings: ``--detectors``) and by the bench: this
+    process and its robot processes."""
+    robots = sum(proc_cpu_s(pid) for pid in fleet.pids())
+    return {**{n: tree_cpu_s(p.pid) for n, p in children.items()}, "bench": time.process_time() + robots}
 
 
 def _worst_latency_per_second(
@@ -344,7 +474,8 @@ def _judge_step(
     step.answered_share = round(len(latencies) / max(1, len(published)), 4)
     if len(latencies):
         step.latency_ms = latency_quantiles_ms(latencies)
-    growth = max(step.rss_mb_end[n] - step.rss_mb_start.get(n, step.rss_mb_end[n]) for n in step.rss_mb_end)
+    start, end = step.rss_mb_by_pid_start, step.rss_mb_by_pid_end
+    growth = max((end[pid] - start[pid] for pid in end.keys() & start.keys()), default=0.0)
     reasons = [step.why_not] if step.why_not else []
     if not len(latencies) or step.latency_ms["p99"] >= args.p99_limit_ms:
         reasons.append(f"p99 {step.latency_ms.get('p99', float('inf'))} ms >= {args.p99_limit_ms}")
@@ -390,6 +521,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--encode-on-robots",
         action="store_true",
         help="the robots send tensors (their own encoder on board): this host runs the detector alone",
+    )
+    parser.add_argument(
+        "--robot-processes",
+        type=int,
+        default=None,
+        help=f"processes publishing the robots (default: one per {ROBOTS_PER_PROCESS} robots)",
     )
     parser.add_argument("--p99-limit-ms", type=float, default=100.0)
     parser.add_argument("--min-answered", type=float, default=0.95)

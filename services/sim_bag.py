@@ -12,27 +12,42 @@ at its rate, header stamps and log times counted from ``T0_NS``, written by rosb
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from common.messages import Scan
+import msgpack
+
+from common.messages import Scan, decode_message, encode_message
 from services.simulator.defaults import SCAN_RATE_HZ, SIM_SEED
 
 T0_NS: Final[int] = 1_700_000_000_000_000_000  # a plausible wall-clock start (2023-11-14)
 DEFAULT_TOPIC: Final[str] = "/scan"
+RECORDED_SCANS_ENV: Final[str] = "TRISCAN_RECORDED_SCANS"  # a folder of recorded scans (no PyBullet needed)
 
 
 def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_HZ) -> list[Scan]:
     """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
 
     For bags, benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
+    With ``$TRISCAN_RECORDED_SCANS`` naming a folder, the scans are read from a file there when one of
+    these arguments exists, and written there when they are simulated: a fleet server without PyBullet
+    (it has the base dependencies only) runs the benches on scans recorded on another machine.
     """
+    folder = os.environ.get(RECORDED_SCANS_ENV)
+    cached = Path(folder) / f"scans_seed{seed}_n{count}_{rate_hz:g}hz.msgpack" if folder else None
+    if cached is not None and cached.is_file():
+        return [decode_message(payload, Scan) for payload in msgpack.unpackb(cached.read_bytes())]
     from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
 
     period_ns = round(1e9 / rate_hz)
     with SimulatedFleet(1, seed=seed, rate_hz=rate_hz) as fleet:
-        return [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
+        scans = [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
+    if cached is not None:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_bytes(msgpack.packb([encode_message(scan) for scan in scans], use_bin_type=True))
+    return scans
 
 
 def laser_scan_message(scan: Scan, stamp_ns: int) -> Any:

@@ -78,3 +78,33 @@ def test_the_counters_of_several_processes_add_up() -> None:
         "rejected": {"bad_key": 3, "too_large": 1},
         "shard": {"member": "a", "members": 2},
     }
+
+
+def test_the_robots_are_split_over_enough_processes_to_send_them_on_time() -> None:
+    per = fleet_capacity.ROBOTS_PER_PROCESS
+    assert fleet_capacity.robot_processes(1, None) == 1
+    assert fleet_capacity.robot_processes(per, None) == 1
+    assert fleet_capacity.robot_processes(per + 1, None) == 2
+    assert fleet_capacity.robot_processes(5 * per, None) == 5
+    assert fleet_capacity.robot_processes(10, 4) == 4  # as asked
+    assert fleet_capacity.robot_processes(3, 8) == 3  # never a process without a robot
+
+
+def test_memory_growth_is_judged_process_by_process() -> None:
+    import argparse
+
+    args = argparse.Namespace(p99_limit_ms=100.0, min_answered=0.95, rss_growth_mb=20.0)
+    published = {("fleet000", seq): seq * 1_000_000 for seq in range(10)}
+    received = {key: stamp + 5_000_000 for key, stamp in published.items()}
+
+    def judged(start: dict[int, float], end: dict[int, float]) -> fleet_capacity.FleetStep:
+        step = fleet_capacity.FleetStep(1, rss_mb_by_pid_start=start, rss_mb_by_pid_end=end)
+        fleet_capacity._judge_step(step, published, received, args)
+        return step
+
+    sixteen_warming = judged({pid: 130.0 for pid in range(16)}, {pid: 132.0 for pid in range(16)})
+    assert sixteen_warming.passed, sixteen_warming.why_not  # 32 MB in all, 2 MB each
+    one_leaking = judged({1: 130.0, 2: 130.0}, {1: 155.0, 2: 130.0})
+    assert not one_leaking.passed and "RSS grew 25.0 MB" in one_leaking.why_not
+    restarted = judged({1: 130.0}, {2: 180.0})  # a process that came and went is not compared
+    assert restarted.passed

@@ -41,9 +41,9 @@ def test_pipeline_latency_reports_every_field(tmp_path: Path) -> None:
     [
         ((), {"encoder", "detector"}),
         (("--batch", "4", "--from-scans"), {"detector"}),
-        (("--encode-on-robots",), {"detector"}),
+        (("--encode-on-robots", "--robot-processes", "2"), {"detector"}),
     ],
-    ids=["encoder+detector", "from-scans-batched", "encode-on-robots"],
+    ids=["encoder+detector", "from-scans-batched", "encode-on-robots-two-robot-processes"],
 )
 def test_fleet_capacity_runs_a_step_and_writes_json(
     tmp_path: Path, extra: tuple[str, ...], processes: set[str]

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from services.cli import main
-from services.sim_bag import DEFAULT_TOPIC, T0_NS
+from services.sim_bag import DEFAULT_TOPIC, RECORDED_SCANS_ENV, T0_NS, recorded_scans
 from services.simulator.defaults import SCAN_PERIOD_S
 
 SCANS = 3
@@ -28,3 +28,21 @@ def test_sim_bag_writes_the_simulated_scans_at_the_simulator_rate(
         assert [(c.topic, c.msgtype) for c in reader.connections] == [(DEFAULT_TOPIC, LASER_SCAN)]
         log_times = [timestamp for _, timestamp, _ in reader.messages()]
     assert log_times == [T0_NS + round(i * SCAN_PERIOD_S * 1e9) for i in range(SCANS)]
+
+
+def test_recorded_scans_are_read_back_from_the_folder_that_names_them_without_simulating(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(RECORDED_SCANS_ENV, str(tmp_path))
+    simulated = recorded_scans(4, seed=3)
+    assert len(list(tmp_path.iterdir())) == 1
+
+    import services.simulator.fleet as fleet
+
+    def no_simulator(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the recorded file should have been read")
+
+    monkeypatch.setattr(fleet, "SimulatedFleet", no_simulator)
+    assert recorded_scans(4, seed=3) == simulated
+    with pytest.raises(AssertionError, match="recorded file"):
+        recorded_scans(4, seed=4)  # other arguments: another file, so it simulates
