@@ -260,7 +260,7 @@ def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
 
     config = DatasetConfig(
         out=tmp_path / "a", scenarios=6, positions=4, seed=5, frame_stride=5, people=4, sensor="random",
-        open_space=0.5,
+        open_space=0.5, door_watch=0.3,
     )  # fmt: skip
     summary = generate_dataset(config, progress=False)
     assert (
@@ -273,7 +273,7 @@ def test_a_set_with_people_and_random_sensors(tmp_path: Path) -> None:
     assert len(set(sensors)) >= 3 and set(sensors) <= set(PROFILES)
     config_json = json.loads((tmp_path / "a" / "summary.json").read_text())["config"]
     assert config_json["people"] == 4 and config_json["sensor"] == "random"
-    assert config_json["open_space"] == 0.5
+    assert config_json["open_space"] == 0.5 and config_json["door_watch"] == 0.3
     records = [json.loads(line) for line in (tmp_path / "a" / "scenarios.jsonl").open()]
     rooms = [record["door"].get("room_half_m", 2.0) for record in records]
     assert min(rooms) == 2.0 < max(rooms), "a share of the rooms are open spaces"
@@ -331,3 +331,44 @@ def test_the_live_simulator_scans_with_a_profile() -> None:
         scan, truth = fleet.step(0)[0]
     assert len(scan.ranges) == spec.beams and scan.angle_min == pytest.approx(spec.angle_min)
     assert not any(o.class_id == PERSON for o in truth.objects)
+
+
+@pytest.mark.parametrize("room_half_m", [2.0, 4.5])
+def test_a_door_watch_stands_the_robot_close_in_front_of_the_doorway_facing_it(room_half_m: float) -> None:
+    """``--door-watch``: the robot stands 0.6-1.6 m inside the door wall, within 0.5 m of the door's
+    centre line and facing out within 45 degrees, and someone passes outside; the other motions of the
+    scenario are the ones it had without door watching."""
+    from training.dataset import plan_motions
+
+    scenario = sample_scenario(3, seed=1, room_half_m=room_half_m)
+    plain = plan_motions(scenario, 1, 12)
+    assert plan_motions(scenario, 1, 12, door_watch=0.0) == plain
+    mixed = plan_motions(scenario, 1, 12, door_watch=0.5)
+    watching = [m for m in mixed if m.door_watch]
+    assert 0 < len(watching) < len(mixed)
+    assert all(m == p for m, p in zip(mixed, plain, strict=True) if not m.door_watch)
+    normal = np.array([math.cos(scenario.door.yaw), math.sin(scenario.door.yaw)])
+    along = np.array([-normal[1], normal[0]])
+    for motion in plan_motions(scenario, 1, 12, door_watch=1.0):
+        assert motion.door_watch
+        start = np.asarray(motion.start_xy)
+        assert 0.6 - 1e-9 <= room_half_m - start @ normal <= 1.6 + 1e-9
+        assert abs(start @ along) <= 0.5 + 1e-9
+        facing = math.remainder(motion.heading_rad - scenario.door.yaw, math.tau)
+        assert abs(facing) <= math.radians(45.0) + 1e-9
+    robot = np.array([[*watching[0].start_xy, watching[0].heading_rad]] * 60)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        first, *_ = sample_people(scenario, robot, 0.1, 6.0, 2, rng, first_behaviour="pass")
+        assert (first.centres @ normal).min() > room_half_m, "the first person walks outside the door wall"
+    with pytest.raises(ValueError, match="behaviour"):
+        sample_people(scenario, robot, 0.1, 6.0, 2, rng, first_behaviour="dance")
+
+
+def test_door_watching_needs_people() -> None:
+    from training.dataset import DatasetConfig
+
+    with pytest.raises(ValueError, match="needs people"):
+        DatasetConfig(out=Path("x"), door_watch=0.1)
+    with pytest.raises(ValueError, match="door-watch share"):
+        DatasetConfig(out=Path("x"), people=2, door_watch=1.5)

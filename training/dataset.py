@@ -48,6 +48,7 @@ from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
     Scenario,
     check_open_space,
+    door_watch_cells,
     room_half_of,
     sample_robot_positions,
     sample_scenario,
@@ -95,6 +96,8 @@ class DatasetConfig:
     raster_yaw_deg: float = 0.0
     # Share of scenarios whose walls move out to an open-space room (services.simulator.scenario).
     open_space: float = 0.0
+    # Share of motions where the robot watches the doorway from close by while someone passes outside.
+    door_watch: float = 0.0
 
     def __post_init__(self) -> None:
         if self.scenarios < 1 or self.positions < 1 or self.frame_stride < 1 or self.workers < 1:
@@ -113,6 +116,10 @@ class DatasetConfig:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
         check_open_space(self.open_space)
+        if not 0.0 <= self.door_watch <= 1.0:
+            raise ValueError(f"the door-watch share must lie in [0, 1], got {self.door_watch}")
+        if self.door_watch > 0.0 and self.people == 0:
+            raise ValueError("door watching needs people (--people N): someone has to pass the door")
         object.__setattr__(self, "raster_yaw_deg", check_raster_yaw(self.raster_yaw_deg))  # a ValueError
 
     @property
@@ -134,6 +141,8 @@ class DatasetConfig:
             fields.pop("raster_yaw_deg")
         if self.open_space == 0.0:
             fields.pop("open_space")
+        if self.door_watch == 0.0:
+            fields.pop("door_watch")
         return fields
 
 
@@ -201,6 +210,8 @@ class Motion:
     start_xy: tuple[float, float]
     heading_rad: float
     waypoints: list[tuple[float, float]]
+    # The robot stands in front of the doorway, facing it, while someone passes outside (--door-watch).
+    door_watch: bool = False
 
 
 @dataclass(frozen=True)
@@ -216,14 +227,30 @@ class Sample:
     people_legs: tuple[tuple[tuple[float, float, float], ...], ...] = ()  # each person's legs at t-1
 
 
-def plan_motions(scenario: Scenario, seed: int, positions: int) -> list[Motion]:
-    """Draw every position, heading and waypoint pair of a scenario from its own motion stream."""
+def plan_motions(scenario: Scenario, seed: int, positions: int, door_watch: float = 0.0) -> list[Motion]:
+    """Draw every position, heading and waypoint pair of a scenario from its own motion stream.
+
+    A share ``door_watch`` of the motions is then replaced, from a stream of its own (so the others
+    stay as they were), by a robot standing 0.6–1.6 m in front of the doorway and facing it within
+    45° (:func:`door_watch_cells`): the real recordings' hard case, a walker seen beyond a near wall
+    only through a narrow opening.
+    """
     rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 1]))
     motions = []
     for start in sample_robot_positions(scenario, positions, rng):
         heading = math.radians(float(rng.choice(HEADINGS_DEG)))
         waypoints = sample_waypoints(scenario, start, rng)
         motions.append(Motion((float(start[0]), float(start[1])), heading, waypoints))
+    if door_watch <= 0.0:
+        return motions
+    watch_rng = np.random.default_rng(np.random.SeedSequence([seed, scenario.index, 7]))
+    cells = door_watch_cells(scenario)
+    for index, motion in enumerate(motions):
+        if watch_rng.random() >= door_watch or not len(cells):
+            continue
+        x, y = cells[watch_rng.integers(0, len(cells))]
+        heading = scenario.door.yaw + math.radians(float(watch_rng.uniform(-45.0, 45.0)))
+        motions[index] = replace(motion, start_xy=(float(x), float(y)), heading_rad=heading, door_watch=True)
     return motions
 
 
@@ -271,9 +298,14 @@ def _scans_of_motion(
     if people > 0:
         if scenario is None or people_rng is None:
             raise ValueError("people need the scenario and a generator to place them")
-        if people_rng.random() < STATIONARY_SHARE:
+        if people_rng.random() < STATIONARY_SHARE or motion.door_watch:
             poses = np.repeat(poses[:1], len(poses), axis=0)
-        walkers = tuple(sample_people(scenario, poses, period_s, len(poses) * period_s, people, people_rng))
+        walkers = tuple(
+            sample_people(
+                scenario, poses, period_s, len(poses) * period_s, people, people_rng,
+                first_behaviour="pass" if motion.door_watch else None,
+            )
+        )  # fmt: skip
     return poses, [
         (t, lidar.scan(tuple(pose), items, t * period_s, walkers))
         for t, pose in enumerate(poses)
@@ -362,7 +394,7 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
     result = ScenarioResult(index=index, split=split, scenario_json=scenario.to_json())
     image_dir = config.out / "images" / split
     label_dir = config.out / "labels" / split
-    motions = plan_motions(scenario, config.seed, config.positions)
+    motions = plan_motions(scenario, config.seed, config.positions, config.door_watch)
     result.positions = len(motions)
     spec = scenario_lidar_spec(config, index)
     lidar_record: dict[str, object] = {

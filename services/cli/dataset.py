@@ -79,6 +79,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "reach beyond the 4 m full scale and people walk farther off, as in halls (default 0)",
     )
     dr.add_argument(
+        "--door-watch",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of motions where the robot stands 0.6-1.6 m in front of the doorway, facing it, while "
+        "someone passes outside: people seen only through a near opening (needs --people; default 0)",
+    )
+    dr.add_argument(
         "--sensor",
         type=_sensor,
         default=DEFAULT_PROFILE,
@@ -110,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
         sensor=args.sensor,
         raster_yaw_deg=args.raster_yaw,
         open_space=args.open_space,
+        door_watch=args.door_watch,
         **({"noise_sigma_m": tuple(args.noise_sigma)} if args.noise_sigma else {}),
     )
     summary = generate_dataset(config, overwrite=args.overwrite, progress=not args.no_progress)

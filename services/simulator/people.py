@@ -422,17 +422,25 @@ def sample_people(
     duration_s: float,
     max_people: int,
     rng: np.random.Generator,
+    first_behaviour: str | None = None,
 ) -> list[Person]:
     """Between 0 and ``max_people`` people for one robot motion (``robot_path``: float64[T, ≥2], one row
     every ``robot_dt_s``). Someone who does not fit after a few draws is left out, so a crowded room
-    gets fewer people; a group that does not fit whole loses its later members."""
+    gets fewer people; a group that does not fit whole loses its later members. With
+    ``first_behaviour`` there is at least one person, and the first one behaves so."""
     if max_people <= 0:
         return []
+    if first_behaviour is not None and first_behaviour not in BEHAVIOURS:
+        raise ValueError(f"behaviour must be one of {BEHAVIOURS}, got {first_behaviour!r}")
     wanted = int(rng.integers(0, max_people + 1))
+    if first_behaviour is not None:
+        wanted = max(wanted, 1)
     robot_xy = np.asarray(robot_path, dtype=np.float64)[:, :2]
     placed: list[Person] = []
     while len(placed) < wanted:
         behaviour = str(rng.choice(BEHAVIOURS, p=BEHAVIOUR_SHARES))
+        if first_behaviour is not None and not placed:
+            behaviour = first_behaviour
         size = int(rng.integers(2, 4)) if behaviour == "group" else 1
         size = min(size, wanted - len(placed))
         group: list[Person] = []

@@ -349,6 +349,28 @@ def free_grid_cells(scenario: Scenario) -> np.ndarray:
     n = round(2 * ROBOT_GRID_HALF_M / ROBOT_GRID_STEP_M) + 1
     axis = np.linspace(-ROBOT_GRID_HALF_M, ROBOT_GRID_HALF_M, n)
     cells = np.stack(np.meshgrid(axis, axis, indexing="xy"), axis=-1).reshape(-1, 2)
+    return free_of_objects(scenario, cells)
+
+
+def door_watch_cells(scenario: Scenario, nearest_m: float = 0.6, farthest_m: float = 1.6) -> np.ndarray:
+    """Free robot centres in front of the doorway, inside the room, ``nearest_m``–``farthest_m`` from
+    the door wall and at most 0.5 m to either side of the door's centre line (any room size).
+
+    From there a robot looks out through the doorway at close range, as robots parked by a door or a
+    gap in a partition do: people beyond it show only through the opening.
+    """
+    half = scenario.door.room_half_m
+    outs = np.arange(half - farthest_m, half - nearest_m + 1e-9, ROBOT_GRID_STEP_M)
+    sides = np.arange(-0.5, 0.5 + 1e-9, ROBOT_GRID_STEP_M)
+    grid = np.stack(np.meshgrid(outs, sides, indexing="xy"), axis=-1).reshape(-1, 2)
+    yaw = scenario.door.yaw
+    normal, along = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+    return free_of_objects(scenario, grid[:, :1] * normal + grid[:, 1:] * along)
+
+
+def free_of_objects(scenario: Scenario, cells: np.ndarray) -> np.ndarray:
+    """The robot centres among ``cells`` (float64[N, 2]) that keep the clearances of
+    :func:`free_grid_cells` from every object."""
     free = np.ones(len(cells), dtype=bool)
     for obj in scenario.objects:
         if obj.has_legs:
