@@ -349,8 +349,11 @@ def test_a_door_watch_stands_the_robot_close_in_front_of_the_doorway_facing_it(r
     assert all(m == p for m, p in zip(mixed, plain, strict=True) if not m.door_watch)
     normal = np.array([math.cos(scenario.door.yaw), math.sin(scenario.door.yaw)])
     along = np.array([-normal[1], normal[0]])
-    for motion in plan_motions(scenario, 1, 12, door_watch=1.0):
+    for motion, before in zip(plan_motions(scenario, 1, 12, door_watch=1.0), plain, strict=True):
         assert motion.door_watch
+        shift = np.subtract(motion.start_xy, before.start_xy)
+        moved = np.subtract(motion.waypoints, before.waypoints)
+        np.testing.assert_allclose(moved, [shift] * len(before.waypoints))  # the drive moves along
         start = np.asarray(motion.start_xy)
         assert 0.6 - 1e-9 <= room_half_m - start @ normal <= 1.6 + 1e-9
         assert abs(start @ along) <= 0.5 + 1e-9

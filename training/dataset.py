@@ -250,7 +250,11 @@ def plan_motions(scenario: Scenario, seed: int, positions: int, door_watch: floa
             continue
         x, y = cells[watch_rng.integers(0, len(cells))]
         heading = scenario.door.yaw + math.radians(float(watch_rng.uniform(-45.0, 45.0)))
-        motions[index] = replace(motion, start_xy=(float(x), float(y)), heading_rad=heading, door_watch=True)
+        # The drive moves with the start, so the motion lasts as long as it did; the robot stands
+        # still through it (a door watch is a waiting robot's view).
+        dx, dy = x - motion.start_xy[0], y - motion.start_xy[1]
+        waypoints = [(float(wx + dx), float(wy + dy)) for wx, wy in motion.waypoints]
+        motions[index] = Motion((float(x), float(y)), heading, waypoints, door_watch=True)
     return motions
 
 
