@@ -147,11 +147,11 @@ def cpu_per_scan(
     """
     cores = cores or os.cpu_count() or 1
     network_ms = network_cpu_ms_per_frame(bound, cores)
-    seconds = float(fleet["seconds_per_step"])
     rows = []
     for step in fleet["steps"]:
         if not step.get("cpu_cores") or not step["scans_answered"]:
             continue
+        seconds = float(step.get("window_s") or fleet["seconds_per_step"])  # the window as measured
         answered_per_s = step["scans_answered"] / seconds
         per_process = {name: round(1e3 * c / answered_per_s, 2) for name, c in step["cpu_cores"].items()}
         total = sum(per_process.values())

@@ -1,7 +1,8 @@
 """How many robots one encoder + detector pair serves: N robots at 10 Hz, N growing until it breaks.
 
-For each N of a ladder, this process publishes N robots' scans at ``--rate`` Hz (real simulated scans,
-recorded once and replayed with fresh ids, seqs and stamps, so the publisher costs almost nothing),
+For each N of a ladder, N robots publish scans at ``--rate`` Hz from processes of this bench's own
+(``--robot-processes``; real simulated scans, recorded once and replayed with fresh ids, seqs and
+stamps, so the publishers cost little),
 into one ``services.encoder`` and one ``services.detector`` process (``--workers`` inference threads,
 each running up to ``--batch`` robots per model call), or one ``--from-scans`` detector, over Zenoh
 on loopback. A step passes when, over its measured window:
@@ -16,7 +17,7 @@ The capacity is the largest passing N. Every step's figures are printed and writ
 
 ``--encode-on-robots`` measures a fleet server instead: the robots encode their own scans on board (a
 Pi 5 running ``services.encoder`` next to its LiDAR, the design card's robot) and send stacked tensors,
-so this host runs the detector alone. This process then publishes recorded tensors (the encoder's
+so this host runs the detector alone. The robots then publish recorded tensors (the encoder's
 output for the recorded scans, re-stamped per robot and tick) straight onto the tensor keys.
 
     python -m bench.fleet_capacity --ladder 10,20,30,40,50 --seconds 20 --workers 2
@@ -86,9 +87,9 @@ class FleetStep:
     # 16 processes that each warm up by 2 MB are not a leak, one that grows by 20 MB is.
     rss_mb_by_pid_start: dict[int, float] = field(default_factory=dict)
     rss_mb_by_pid_end: dict[int, float] = field(default_factory=dict)
-    publish_lag_ms_max: float = (
-        0.0  # how late the robot processes started a tick (a bench limit, not triscan's)
-    )
+    # How late a robot was sent after its slot in the tick, at worst (a bench limit, not triscan's).
+    publish_lag_ms_max: float = 0.0
+    window_s: float = 0.0  # the measured window's length, which the per-second figures divide by
     rss_mb_timeline: list[dict[str, float]] = field(default_factory=list)  # {"t_s", "encoder", "detector"}
     detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
     detector_mean_batch: float = 0.0  # tensors per model call over the whole step (--batch)
@@ -177,15 +178,20 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
         detector_stats[int(counters["pid"])] = counters
 
     services = (detector_port, encoder_port) if runs_encoder(args) else (detector_port,)
-    fleet = RobotProcesses(robot_ids, frames, args, connect=(bench_port, *services))
+    fleet: RobotProcesses | None = None
     try:
+        fleet = RobotProcesses(robot_ids, frames, args, connect=(bench_port, *services))
         with open_session(ZenohSettings.loopback(bench_port)) as session:
             sub = session.declare_subscriber(wildcard_key(DETECTIONS), on_detections)
             stats_sub = session.declare_subscriber(service_stats_key("detector"), on_detector_stats)
             if runs_encoder(args):  # the encoder announces each robot's tensors to the detector
                 wait_for_service(session, "detector")
-            fleet.start()
-            published = _drive_fleet(step, fleet, args, children, received, lock)
+            try:
+                fleet.start()
+            except RuntimeError as exc:  # a step the robots could not even start fails, the ladder goes on
+                step.why_not = str(exc)
+            else:
+                published = _drive_fleet(step, fleet, args, children, received, lock)
             time.sleep(1.0)
             step.rss_mb_end = _rss_mb(children)
             step.rss_mb_by_pid_end = _rss_mb_by_pid(children)
@@ -197,7 +203,8 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
             sub.undeclare()
             stats_sub.undeclare()
     finally:
-        fleet.stop()
+        if fleet is not None:
+            fleet.stop()
         stop_processes(children, grace_s=30)
     _judge_step(step, published, received, args)
     return step
@@ -250,7 +257,7 @@ def _rss_mb_by_pid(children: dict[str, subprocess.Popen[bytes]]) -> dict[int, fl
         for pid in process_tree(child.pid):
             try:
                 memory[pid] = round(proc_status_mb(pid), 1)
-            except (FileNotFoundError, ProcessLookupError):
+            except (FileNotFoundError, ProcessLookupError, RuntimeError):  # gone, or a zombie
                 continue  # it ended meanwhile (a sibling restarting)
     return memory
 
@@ -277,7 +284,7 @@ def _robot_process(
 
     Robot ``first_index + i`` of the whole fleet publishes at its own slot of the tick, so the fleet's
     scans arrive spread over the period as independent robots' do, not in bursts per process. Sends back
-    every (robot, seq, publish stamp) and each tick's (due stamp, how late it started).
+    every (robot, seq, publish stamp) and each tick's (end stamp, how late its latest robot was sent).
     """
     encode_on_robots = args.encode_on_robots
     key = tensor_key if encode_on_robots else scan_key
@@ -290,7 +297,9 @@ def _robot_process(
         if not encode_on_robots:  # a robot's owner takes its scans once its token has settled
             time.sleep(announce_lead_s(SCAN))
         pipe.send("ready")
-        start = float(pipe.recv())  # time.monotonic() is one clock for every process of the host
+        start = pipe.recv()  # time.monotonic() is one clock for every process of the host
+        if start is None:  # the step ends before it began (another robot process failed)
+            return
         period = 1.0 / args.rate
         period_ns = round(1e9 * period)
         published: list[tuple[str, int, int]] = []
@@ -298,18 +307,18 @@ def _robot_process(
         tick = 0
         while not stop.is_set():
             due = start + tick * period
-            if (now := time.monotonic()) < due:
-                time.sleep(due - now)
-            lags.append((time.time_ns(), (time.monotonic() - due) * 1e3))
+            late = 0.0
             base = frames[tick % len(frames)]
             seq = base.seq(tick)
             for offset, (rid, publisher) in enumerate(zip(robot_ids, publishers, strict=True)):
                 slot = due + (first_index + offset) * period / fleet_size
                 if (wait := slot - time.monotonic()) > 0:
                     time.sleep(wait)
+                late = max(late, time.monotonic() - slot)
                 stamp = time.time_ns()
                 publisher.put(base.payload(rid, tick, stamp, period_ns))
                 published.append((rid, seq, stamp))
+            lags.append((time.time_ns(), late * 1e3))
             tick += 1
         for token in tokens:
             token.undeclare()
@@ -334,6 +343,7 @@ class RobotProcesses:
         self.pipes: list[Connection] = []
         self.processes: list[Any] = []
         bounds = [round(i * self.size / count) for i in range(count + 1)]
+        self._child_ends: list[Connection] = []
         for first, end in itertools.pairwise(bounds):
             here, there = context.Pipe()
             process = context.Process(
@@ -342,37 +352,67 @@ class RobotProcesses:
                 daemon=True,
             )
             self.pipes.append(here)
+            self._child_ends.append(there)
             self.processes.append(process)
+        self.started = False
+        self.start_s = 0.0
 
     def start(self, timeout_s: float = 60.0) -> None:
-        """Start every process, wait until each has its subscribers, and give them one start time."""
+        """Start every process, wait until each has its subscribers, and give them one start time.
+
+        Raises ``RuntimeError`` naming the first process that exited or was not ready by ``timeout_s``.
+        """
         for process in self.processes:
             process.start()
+        for end in self._child_ends:  # only the child holds it now: its exit reads as end-of-file here
+            end.close()
+        deadline = time.monotonic() + timeout_s
+        for index, (pipe, process) in enumerate(zip(self.pipes, self.processes, strict=True)):
+            try:
+                ready = pipe.poll(max(0.0, deadline - time.monotonic())) and pipe.recv() == "ready"
+            except EOFError:
+                ready = False
+            if not ready:
+                process.join(timeout=1.0)
+                why = f"exited with {process.exitcode}" if process.exitcode is not None else "was not ready"
+                raise RuntimeError(
+                    f"robot process {index} of {len(self.processes)} {why} within {timeout_s:.0f} s"
+                )
+        self.start_s = time.monotonic() + 0.05
         for pipe in self.pipes:
-            if not pipe.poll(timeout_s) or pipe.recv() != "ready":
-                raise TimeoutError(f"a robot process was not ready within {timeout_s:.0f} s")
-        start = time.monotonic() + 0.05
-        for pipe in self.pipes:
-            pipe.send(start)
-        self.start_s = start
+            pipe.send(self.start_s)
+        self.started = True
 
     def pids(self) -> list[int]:
         return [p.pid for p in self.processes if p.pid is not None]
 
-    def finish(self) -> tuple[list[tuple[str, int, int]], list[tuple[int, float]]]:
-        """Stop publishing; every process's (robot, seq, stamp) sends and per-tick lags."""
+    def finish(self) -> tuple[list[tuple[str, int, int]], list[tuple[int, float]], int]:
+        """Stop publishing; every process's (robot, seq, stamp) sends and per-tick lags, and how many
+        processes sent no report (their robots' scans would be missing from the figures)."""
         self.stop_event.set()
         published: list[tuple[str, int, int]] = []
         lags: list[tuple[int, float]] = []
+        missing = 0
         for pipe in self.pipes:
-            if pipe.poll(30.0):
-                sent, late = pipe.recv()
-                published += sent
-                lags += late
-        return published, lags
+            try:
+                sent, late = pipe.recv() if pipe.poll(30.0) else ([], [])
+            except EOFError:
+                sent, late = [], []
+            if not sent:
+                missing += 1
+            published += sent
+            lags += late
+        return published, lags, missing
 
     def stop(self) -> None:
+        """End every robot process, one waiting for its start time included."""
         self.stop_event.set()
+        if not self.started:
+            for pipe in self.pipes:
+                try:
+                    pipe.send(None)
+                except (BrokenPipeError, OSError):
+                    continue  # it has exited already
         for process in self.processes:
             if process.pid is not None:
                 process.join(timeout=10.0)
@@ -404,11 +444,11 @@ def _drive_fleet(
                 answered = {rid for rid, _ in received}
             if len(answered) == robots:
                 measure_from = time.monotonic()
-                window_ns = [time.time_ns(), 0]
+                first_ns = time.time_ns()
+                cpu_start = _cpu_s(children, fleet)  # CPU first: the window is timed from here
+                threads_start = thread_cpu_s(children["detector"].pid)
                 step.rss_mb_start = _rss_mb(children)
                 step.rss_mb_by_pid_start = _rss_mb_by_pid(children)
-                cpu_start = _cpu_s(children, fleet)
-                threads_start = thread_cpu_s(children["detector"].pid)
             elif time.monotonic() - fleet.start_s > MAX_WARM_UP_S:
                 step.why_not = f"only {len(answered)}/{robots} robots answered within {MAX_WARM_UP_S:.0f} s"
                 break
@@ -417,7 +457,8 @@ def _drive_fleet(
             next_rss_sample += args.rss_every
     if measure_from is not None:
         window = time.monotonic() - measure_from
-        window_ns[1] = time.time_ns()
+        end_ns = time.time_ns()
+        step.window_s = round(window, 3)
         step.cpu_cores = {
             name: round((seconds - cpu_start[name]) / window, 3)
             for name, seconds in _cpu_s(children, fleet).items()
@@ -429,12 +470,13 @@ def _drive_fleet(
         step.detector_thread_cores = {
             name: round(cores, 3) for name, cores in sorted(used.items(), key=lambda item: -item[1])
         }
-    sent, lags = fleet.finish()
+    sent, lags, missing = fleet.finish()
+    if missing:
+        step.why_not = f"{missing} robot process(es) sent no report: their robots are not counted"
     if measure_from is None:
         return {}
-    first, end = window_ns
-    step.publish_lag_ms_max = round(max((lag for at, lag in lags if first <= at < end), default=0.0), 2)
-    return {(rid, seq): stamp for rid, seq, stamp in sent if first <= stamp < end}
+    step.publish_lag_ms_max = round(max((lag for at, lag in lags if first_ns <= at < end_ns), default=0.0), 2)
+    return {(rid, seq): stamp for rid, seq, stamp in sent if first_ns <= stamp < end_ns}
 
 
 def _cpu_s(children: dict[str, subprocess.Popen[bytes]], fleet: RobotProcesses) -> dict[str, float]:
@@ -543,6 +585,8 @@ def parse_step_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.from_scans and args.encode_on_robots:
         parser.error("--from-scans and --encode-on-robots are two different fleets: choose one")
+    if args.robot_processes is not None and args.robot_processes < 1:
+        parser.error(f"--robot-processes must be >= 1, got {args.robot_processes}")
     try:
         detector_model(args)
     except ValueError as exc:  # a --batch the model cannot take: the detector would refuse it too

@@ -12,6 +12,7 @@ at its rate, header stamps and log times counted from ``T0_NS``, written by rosb
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,12 +32,14 @@ def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_
     """``count`` consecutive scans of one simulated robot, stamped at its tick times from 0.
 
     For bags, benchmarks and replays that need real scans up front, so their timed loops simulate nothing.
-    With ``$TRISCAN_RECORDED_SCANS`` naming a folder, the scans are read from a file there when one of
-    these arguments exists, and written there when they are simulated: a fleet server without PyBullet
-    (it has the base dependencies only) runs the benches on scans recorded on another machine.
+    With ``$TRISCAN_RECORDED_SCANS`` naming a folder (every caller: the benches, ``triscan sim-bag``),
+    the scans are read from the file there for these arguments and this simulator's code when it exists,
+    and written there when they are simulated: a fleet server without PyBullet (it has the base
+    dependencies only) runs the benches on scans recorded on another machine of the same checkout.
     """
     folder = os.environ.get(RECORDED_SCANS_ENV)
-    cached = Path(folder) / f"scans_seed{seed}_n{count}_{rate_hz:g}hz.msgpack" if folder else None
+    name = f"scans_seed{seed}_n{count}_{rate_hz:g}hz_sim{_simulator_digest()}.msgpack"
+    cached = Path(folder) / name if folder else None
     if cached is not None and cached.is_file():
         return [decode_message(payload, Scan) for payload in msgpack.unpackb(cached.read_bytes())]
     from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
@@ -46,8 +49,18 @@ def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_
         scans = [fleet.step(tick * period_ns)[0][0] for tick in range(count)]
     if cached is not None:
         cached.parent.mkdir(parents=True, exist_ok=True)
-        cached.write_bytes(msgpack.packb([encode_message(scan) for scan in scans], use_bin_type=True))
+        partial = cached.with_suffix(f".{os.getpid()}.part")  # a reader never sees half a file
+        partial.write_bytes(msgpack.packb([encode_message(scan) for scan in scans], use_bin_type=True))
+        os.replace(partial, cached)
     return scans
+
+
+def _simulator_digest() -> str:
+    """A short digest of the simulator's source: scans recorded by other simulator code are not reused."""
+    digest = hashlib.blake2b(digest_size=4)
+    for source in sorted((Path(__file__).parent / "simulator").glob("*.py")):
+        digest.update(source.read_bytes())
+    return digest.hexdigest()
 
 
 def laser_scan_message(scan: Scan, stamp_ns: int) -> Any:

@@ -33,6 +33,13 @@ def test_cpu_per_scan_prices_every_process_against_the_network_at_the_bound() ->
     assert row["ceiling_robots_at_full_cpu"] == pytest.approx(13.3)
 
 
+def test_a_step_is_priced_over_its_window_as_measured() -> None:
+    # 1,000 scans in a window of 12.5 s (not the nominal 10): 80 a second, 1.2 cores → 15 ms a scan.
+    step = {"robots": 10, "scans_answered": 1000, "cpu_cores": {"detector": 1.2}, "window_s": 12.5}
+    (row,) = cpu_per_scan({"seconds_per_step": 10.0, "steps": [step]}, BOUND, rate_hz=10.0, cores=2)
+    assert row["cpu_ms_per_scan"] == {"detector": 15.0}
+
+
 def test_a_one_session_bound_counts_only_the_cores_it_used() -> None:
     fleet = {"seconds_per_step": 1.0, "steps": [{"robots": 1, "scans_answered": 10, "cpu_cores": {"d": 0.1}}]}
     one_thread = {**BOUND, "best_workers": 1, "best_threads": 1}

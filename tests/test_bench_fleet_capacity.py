@@ -108,3 +108,10 @@ def test_memory_growth_is_judged_process_by_process() -> None:
     assert not one_leaking.passed and "RSS grew 25.0 MB" in one_leaking.why_not
     restarted = judged({1: 130.0}, {2: 180.0})  # a process that came and went is not compared
     assert restarted.passed
+
+
+def test_a_fleet_without_robot_processes_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        fleet_capacity.parse_step_args(["--robot-processes", "0"])
+    assert exit_info.value.code == 2
+    assert "--robot-processes must be >= 1" in capsys.readouterr().err

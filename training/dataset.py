@@ -250,8 +250,8 @@ def plan_motions(scenario: Scenario, seed: int, positions: int, door_watch: floa
             continue
         x, y = cells[watch_rng.integers(0, len(cells))]
         heading = scenario.door.yaw + math.radians(float(watch_rng.uniform(-45.0, 45.0)))
-        # The drive moves with the start, so the motion lasts as long as it did; the robot stands
-        # still through it (a door watch is a waiting robot's view).
+        # The drive moves with the start, so the motion lasts about as long as it did (its first turn
+        # differs); the robot stands still through it (a door watch is a waiting robot's view).
         dx, dy = x - motion.start_xy[0], y - motion.start_xy[1]
         waypoints = [(float(wx + dx), float(wy + dy)) for wx, wy in motion.waypoints]
         motions[index] = Motion((float(x), float(y)), heading, waypoints, door_watch=True)
@@ -302,6 +302,8 @@ def _scans_of_motion(
     if people > 0:
         if scenario is None or people_rng is None:
             raise ValueError("people need the scenario and a generator to place them")
+        # A door watch stands still here, after its clutter was placed about the drive it does not
+        # make: moved earlier, the same command would make another set. It always has people.
         if people_rng.random() < STATIONARY_SHARE or motion.door_watch:
             poses = np.repeat(poses[:1], len(poses), axis=0)
         walkers = tuple(

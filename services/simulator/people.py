@@ -427,7 +427,7 @@ def sample_people(
     """Between 0 and ``max_people`` people for one robot motion (``robot_path``: float64[T, ≥2], one row
     every ``robot_dt_s``). Someone who does not fit after a few draws is left out, so a crowded room
     gets fewer people; a group that does not fit whole loses its later members. With
-    ``first_behaviour`` there is at least one person, and the first one behaves so."""
+    ``first_behaviour`` at least one person is tried, and the first one behaves so."""
     if max_people <= 0:
         return []
     if first_behaviour is not None and first_behaviour not in BEHAVIOURS:
