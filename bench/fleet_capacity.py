@@ -93,6 +93,8 @@ class FleetStep:
     rss_mb_timeline: list[dict[str, float]] = field(default_factory=list)  # {"t_s", "encoder", "detector"}
     detector_dropped_stale: int = 0  # from the detector's own stats: tensors replaced before inference
     detector_mean_batch: float = 0.0  # tensors per model call over the whole step (--batch)
+    # Robots each detector process answered for, fewest first: how evenly the processes share them.
+    detector_robots_per_process: list[int] = field(default_factory=list)
     latency_ms_max_per_s: list[float] = field(default_factory=list)  # NaN: nothing answered that second
     # Cores each process kept busy over the window (CPU seconds / wall seconds); "bench" is this process
     # and its robot processes, the load generator, which the measured host's cores also carry.
@@ -200,6 +202,8 @@ def run_step(robots: int, frames: list[RecordedFrame], args: argparse.Namespace)
             step.detector_dropped_stale = int(detector.get("dropped_stale", 0))
             calls = int(detector.get("inference_calls", 0))
             step.detector_mean_batch = round(int(detector.get("processed", 0)) / calls, 2) if calls else 0.0
+            served = (int(counters.get("robots", 0)) for counters in detector_stats.values())
+            step.detector_robots_per_process = sorted(served)
             sub.undeclare()
             stats_sub.undeclare()
     finally:

@@ -70,6 +70,7 @@ def test_fleet_capacity_runs_a_step_and_writes_json(
     assert set(step["latency_ms"]) == {"p50", "p95", "p99", "max"}
     assert set(step["rss_mb_end"]) == processes
     assert step["detector_mean_batch"] >= 1.0  # read from the detector's own stats
+    assert sum(step["detector_robots_per_process"]) == 2  # each robot answered by one process
     # The detector's CPU split by thread: its one inference thread by name, and Zenoh's threads.
     assert "inference-0" in step["detector_thread_cores"] and "rx-0" in step["detector_thread_cores"]
     assert report["encode_on_robots"] == ("--encode-on-robots" in extra)
