@@ -83,6 +83,9 @@ def test_triscan_train_takes_unset_flags_from_the_recipe(tmp_path: Path, trained
     assert main(["train", "--data", "d.yaml", "--recipe", str(other)]) == 0
     assert trained[-1].epochs == 7 and trained[-1].patience == shipped.patience
     assert trained[-1].recipe == other
+    assert trained[-1].lr0 is None  # the recipe's, unless --lr0 says otherwise
+    assert main(["train", "--data", "d.yaml", "--lr0", "0.0003"]) == 0
+    assert trained[-1].lr0 == 0.0003
 
 
 def test_triscan_export_takes_unset_flags_from_the_recipe(monkeypatch: pytest.MonkeyPatch) -> None:

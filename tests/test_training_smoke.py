@@ -215,6 +215,9 @@ def test_a_fine_tune_keeps_the_trained_weights_and_a_gentle_bias_warm_up(tmp_pat
     assert fresh["pretrained"] is False and "warmup_bias_lr" not in fresh
     assert tuned["pretrained"] is True and tuned["warmup_bias_lr"] == tuned["lr0"]
     assert tuned["lr0"] == load_recipe().train.ultralytics["lr0"]
+    gentle = TrainConfig(data=tmp_path / "data.yaml", out=tmp_path / "run", init=tmp_path / "w.pt", lr0=2e-4)
+    slower = recipe(gentle, "cpu")
+    assert slower["lr0"] == slower["warmup_bias_lr"] == 2e-4  # --lr0 wins over the recipe's
 
 
 def test_fine_tuning_refuses_weights_of_another_network(

@@ -70,6 +70,7 @@ class TrainConfig:
     amp: bool | None = None  # mixed precision: None uses it on a GPU (Ultralytics' check needs its hub)
     plots: bool = True  # Ultralytics' training plots (they need polars)
     cache: bool = False  # hold the decoded training images in RAM (worth it where cores are many)
+    lr0: float | None = None  # the peak learning rate; None: the recipe's (a fine-tune may want less)
 
     def __post_init__(self) -> None:
         check_arch(self.arch)
@@ -192,9 +193,10 @@ def _with_narrowed_box_branch(network: Any, spec: dict[str, Any]) -> Any:
 def recipe(config: TrainConfig, device: str) -> dict[str, Any]:
     """Ultralytics ``train`` arguments: the recipe file's fixed ones plus this run's sizes."""
     fixed = load_recipe(config.recipe).train.ultralytics
-    lr0 = fixed["lr0"]
+    lr0 = fixed["lr0"] if config.lr0 is None else config.lr0
     return {
         **fixed,
+        "lr0": lr0,
         "data": str(config.data),
         "epochs": config.epochs,
         "batch": config.batch,

@@ -50,6 +50,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_recipe_option(p, "--seed", type=int)
     add_recipe_option(p, "--fraction", type=float, help="share of the training images to use (recipe)")
     p.add_argument(
+        "--lr0", type=float, default=None,
+        help="peak learning rate (default: the recipe's lr0): a fine-tune that loses its start's accuracy "
+        "in the first epochs may want a lower one",
+    )  # fmt: skip
+    p.add_argument(
         "--init", type=Path, default=None, metavar="WEIGHTS",
         help="start from these weights instead of random ones, e.g. a shipped .pt to fine-tune on your "
         "own rooms (--arch must name its network; another --activation, or fewer --dfl-bins with the box "
@@ -88,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         init=args.init,
         dfl_bins=dfl_bins,
         recipe=recipe_path,
+        lr0=args.lr0,
         **settings,
     )
     summary = train(config, resume=args.resume, resume_from=args.resume_from, stop_after=args.stop_after)
