@@ -47,11 +47,11 @@ from bench.harness import (
     add_detector_model_argument,
     proc_cpu_s,
     proc_status_mb,
-    process_tree,
     start_loopback_service,
     thread_cpu_s,
     tree_cpu_s,
     tree_rss_mb,
+    tree_values,
 )
 from bench.machine import machine_info
 from bench.report import latency_quantiles_ms, summed_counters, write_report
@@ -256,14 +256,10 @@ def _rss_mb(children: dict[str, subprocess.Popen[bytes]]) -> dict[str, float]:
 
 def _rss_mb_by_pid(children: dict[str, subprocess.Popen[bytes]]) -> dict[int, float]:
     """Resident memory of each child process and of each of its descendants now, in MB."""
-    memory = {}
+    memory: dict[int, float] = {}
     for child in children.values():
-        for pid in process_tree(child.pid):
-            try:
-                memory[pid] = round(proc_status_mb(pid), 1)
-            except (FileNotFoundError, ProcessLookupError, RuntimeError):  # gone, or a zombie
-                continue  # it ended meanwhile (a sibling restarting)
-    return memory
+        memory.update(tree_values(child.pid, proc_status_mb))
+    return {pid: round(mb, 1) for pid, mb in memory.items()}
 
 
 def robot_processes(robots: int, requested: int | None) -> int:

@@ -77,15 +77,21 @@ def process_tree(pid: int) -> list[int]:
     return pids
 
 
-def _tree_sum(pid: int, read: Callable[[int], float]) -> float:
-    """``read`` of ``pid`` and of each of its descendants, summed; one that ends meanwhile counts 0."""
-    total = 0.0
+def tree_values(pid: int, read: Callable[[int], float]) -> dict[int, float]:
+    """``read`` of ``pid`` and of each of its live descendants, by pid; one that ends meanwhile (or is a
+    zombie, with no memory left to read) is left out."""
+    values = {}
     for member in process_tree(pid):
         try:
-            total += read(member)
-        except (FileNotFoundError, ProcessLookupError):
+            values[member] = read(member)
+        except (FileNotFoundError, ProcessLookupError, RuntimeError):
             continue
-    return total
+    return values
+
+
+def _tree_sum(pid: int, read: Callable[[int], float]) -> float:
+    """``read`` of ``pid`` and of each of its descendants, summed; one that ends meanwhile counts 0."""
+    return sum(tree_values(pid, read).values())
 
 
 def tree_cpu_s(pid: int) -> float:

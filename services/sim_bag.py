@@ -38,8 +38,9 @@ def recorded_scans(count: int, seed: int = SIM_SEED, rate_hz: float = SCAN_RATE_
     dependencies only) runs the benches on scans recorded on another machine of the same checkout.
     """
     folder = os.environ.get(RECORDED_SCANS_ENV)
-    name = f"scans_seed{seed}_n{count}_{rate_hz:g}hz_sim{_simulator_digest()}.msgpack"
-    cached = Path(folder) / name if folder else None
+    cached = None
+    if folder:  # the digest reads the simulator's source: only when a recording may be reused
+        cached = Path(folder) / f"scans_seed{seed}_n{count}_{rate_hz:g}hz_sim{_simulator_digest()}.msgpack"
     if cached is not None and cached.is_file():
         return [decode_message(payload, Scan) for payload in msgpack.unpackb(cached.read_bytes())]
     from services.simulator.fleet import SimulatedFleet  # PyBullet: only when scans are recorded
