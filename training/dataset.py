@@ -48,6 +48,7 @@ from services.simulator.robot import follow_waypoints
 from services.simulator.scenario import (
     Scenario,
     check_open_space,
+    check_share,
     door_watch_cells,
     room_half_of,
     sample_robot_positions,
@@ -116,8 +117,7 @@ class DatasetConfig:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
         check_open_space(self.open_space)
-        if not 0.0 <= self.door_watch <= 1.0:
-            raise ValueError(f"the door-watch share must lie in [0, 1], got {self.door_watch}")
+        check_share(self.door_watch, "door-watch")
         if self.door_watch > 0.0 and self.people == 0:
             raise ValueError("door watching needs people (--people N): someone has to pass the door")
         object.__setattr__(self, "raster_yaw_deg", check_raster_yaw(self.raster_yaw_deg))  # a ValueError

@@ -190,12 +190,6 @@ def people_distances(
 # --- placement -------------------------------------------------------------------------------------
 
 
-def _door_frame(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
-    """The doorway's outward normal and its direction along the wall, in the world frame."""
-    yaw = scenario.door.yaw
-    return np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-
-
 def _passage(room_half_m: float) -> tuple[float, float, float]:
     """The centres' band in the passage outside the door wall: nearest and farthest distance from the
     room's centre across the wall, and the reach along it either side of the door."""
@@ -210,7 +204,7 @@ def _allowed(points: np.ndarray, scenario: Scenario) -> np.ndarray:
     room = scenario.room_half_m
     inside_half = room - INSIDE_MARGIN_M
     inside = np.all(np.abs(points) <= inside_half, axis=1)
-    normal, along = _door_frame(scenario)
+    normal, along = scenario.door.axes
     out = points @ normal
     side = np.abs(points @ along)
     corridor = (out >= inside_half - 0.01) & (out <= room + OUTSIDE_DEPTH_M)
@@ -233,7 +227,7 @@ def _door_points(
     scenario: Scenario, rng: np.random.Generator
 ) -> tuple[tuple[float, float], tuple[float, float]]:
     """A point just outside the door and one in the doorway, both on one line across it."""
-    normal, along = _door_frame(scenario)
+    normal, along = scenario.door.axes
     offset = float(rng.uniform(-1.0, 1.0)) * max(scenario.door.width_m / 2.0 - 0.2, 0.0)
     room = scenario.room_half_m
     outside = normal * (room + float(rng.uniform(0.4, OUTSIDE_DEPTH_M - 0.05))) + along * offset
@@ -246,7 +240,7 @@ def _passing_walk(
 ) -> tuple[list[tuple[float, float]], list[float], list[float]]:
     """A walk along the passage outside the door wall, from a random spot to one end and back and
     forth until ``duration_s`` is filled, so that it crosses the doorway's view at least once."""
-    normal, along = _door_frame(scenario)
+    normal, along = scenario.door.axes
     near, far, reach = _passage(scenario.room_half_m)
     offset = float(rng.uniform(-reach, reach))
     heading = 1.0 if rng.random() < 0.5 else -1.0

@@ -124,6 +124,12 @@ class Doorway:
         return self.wall_k * math.pi / 2.0
 
     @property
+    def axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The door wall's outward normal and its direction along the wall, in the world frame."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return np.array([c, s]), np.array([-s, c])
+
+    @property
     def frame(self) -> Rect:
         """The doorframe label proxy: centred in the doorway, wall-thick across, door-wide along."""
         r = self.room_half_m + WALL_THICKNESS_M / 2.0
@@ -363,8 +369,7 @@ def door_watch_cells(scenario: Scenario, nearest_m: float = 0.6, farthest_m: flo
     outs = np.arange(half - farthest_m, half - nearest_m + 1e-9, ROBOT_GRID_STEP_M)
     sides = np.arange(-0.5, 0.5 + 1e-9, ROBOT_GRID_STEP_M)
     grid = np.stack(np.meshgrid(outs, sides, indexing="xy"), axis=-1).reshape(-1, 2)
-    yaw = scenario.door.yaw
-    normal, along = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+    normal, along = scenario.door.axes
     return free_of_objects(scenario, grid[:, :1] * normal + grid[:, 1:] * along)
 
 
@@ -382,11 +387,17 @@ def free_of_objects(scenario: Scenario, cells: np.ndarray) -> np.ndarray:
     return cells[free]
 
 
+def check_share(share: float, what: str) -> float:
+    """``share`` back when it is a share (of scenarios, of motions), in [0, 1]; else a one-line
+    ``ValueError`` naming ``what`` it is the share of."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"the {what} share must lie in [0, 1], got {share}")
+    return share
+
+
 def check_open_space(share: float) -> float:
     """``share`` back when it is a share of scenarios, in [0, 1]; else a one-line ``ValueError``."""
-    if not 0.0 <= share <= 1.0:
-        raise ValueError(f"the open-space share must lie in [0, 1], got {share}")
-    return share
+    return check_share(share, "open-space")
 
 
 def room_half_of(seed: int, index: int, open_space: float) -> float:
