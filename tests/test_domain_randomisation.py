@@ -16,13 +16,8 @@ import pytest
 
 from services.simulator.clutter import (
     CLUTTER_OBJECT,
-    DEFAULT_KINDS,
-    KINDS,
-    BentStub,
     Pole,
     WallStub,
-    check_kinds,
-    clutter_distances,
     ray_circle_distances,
     ray_rect_distances,
     sample_clutter,
@@ -78,54 +73,6 @@ def test_clutter_keeps_off_furniture_and_the_robot_path() -> None:
             assert gaps.min() >= 0.35
     assert kinds == {Pole, WallStub}
     assert sample_clutter(scenario, robot_path, 3.0, 0, rng) == []
-
-
-def test_columns_and_bends_are_opt_in_and_keep_the_same_clearances() -> None:
-    scenario = sample_scenario(3, seed=11)
-    robot_path = np.array([[-1.2, -1.2], [-1.1, -1.2], [-1.0, -1.15]])
-    # The default kinds draw exactly what the two-kind clutter drew: old sets stay byte for byte.
-    default = [sample_clutter(scenario, robot_path, 3.0, 3, np.random.default_rng(s)) for s in range(20)]
-    named = [
-        sample_clutter(scenario, robot_path, 3.0, 3, np.random.default_rng(s), DEFAULT_KINDS)
-        for s in range(20)
-    ]
-    assert default == named
-    rng = np.random.default_rng(8)
-    columns: list[float] = []
-    for _ in range(200):
-        for item in sample_clutter(scenario, robot_path, 3.0, 3, rng, ("column", "bend")):
-            assert isinstance(item, Pole | BentStub)
-            if isinstance(item, Pole):
-                columns.append(item.radius_m)
-            else:  # both arms reach out from the corner, no farther than the extent the checks use
-                corners = np.concatenate([arm.corners() for arm in item.arms])
-                assert np.hypot(*(corners - item.corner).T).max() <= item.extent_m + 1e-9
-                assert min(arm.distance(np.array(item.corner)) for arm in item.arms) == 0.0
-            path = item.path(3.0)
-            for obj in scenario.objects:
-                assert np.all(obj.footprint.distance(path) > item.extent_m)
-            assert np.hypot(*(path[:, None, :] - robot_path[None]).transpose(2, 0, 1)).min() >= 0.35
-    assert columns and min(columns) >= 0.12 and max(columns) <= 0.35  # bins and pillars, not legs
-
-
-def test_a_bend_returns_both_arms() -> None:
-    # An L with its corner at (2, 0): one arm towards +y, one towards -x (towards the sensor).
-    bend = BentStub(
-        (Rect((2.0, 0.25), (0.5, 0.04), math.pi / 2), Rect((1.75, 0.0), (0.5, 0.04), 0.0)), (2.0, 0.0), 0.6
-    )
-    d = clutter_distances([bend], (0.0, 0.0), unit_rays([0.0, 8.0, -8.0]), 0.0)
-    assert d[0] == pytest.approx(1.5)  # the arm that points at the sensor is hit at its end
-    assert d[1] == pytest.approx((2.0 - 0.02) / math.cos(math.radians(8.0)))  # the other arm's face
-    assert math.isinf(d[2])
-
-
-def test_clutter_kinds_are_checked() -> None:
-    assert check_kinds(["bend", "pole"]) == ("bend", "pole") and set(DEFAULT_KINDS) < set(KINDS)
-    for bad in ([], ["pole", "pole"], ["table"]):
-        with pytest.raises(ValueError, match="clutter kinds must be distinct names among pole"):
-            check_kinds(bad)
-    with pytest.raises(ValueError, match="clutter kinds"):
-        DatasetConfig(out=Path("unused"), clutter=2, clutter_kinds=("lamp",))
 
 
 def test_scan_merges_clutter_as_unlabelled_hits() -> None:
@@ -231,7 +178,6 @@ def test_randomised_set_records_its_settings_and_keeps_true_geometry_labels(
     clean, randomised = clean_and_randomised
     summary = json.loads((randomised / "summary.json").read_text())
     assert summary["config"]["dropout_rate"] == [0.05, 0.1] and summary["config"]["clutter"] == 3
-    assert "clutter_kinds" not in summary["config"]  # the default kinds leave the summary as it was
     records = [json.loads(line) for line in (randomised / "scenarios.jsonl").read_text().splitlines()]
     assert all(0.05 <= r["lidar"]["dropout_rate"] <= 0.1 for r in records)
     # Same worlds, same motions: the sample list is the same and every label file is identical.

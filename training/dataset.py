@@ -23,7 +23,7 @@ import math
 import multiprocessing
 import shutil
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -39,7 +39,7 @@ from common.encoding import (
     check_raster_yaw,
 )
 from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
-from services.simulator.clutter import DEFAULT_KINDS, Clutter, check_kinds, sample_clutter
+from services.simulator.clutter import Clutter, sample_clutter
 from services.simulator.defaults import SCAN_PERIOD_S
 from services.simulator.labels import ObjectLabel, label_scan, yolo_lines
 from services.simulator.lidar import Lidar, LidarReading
@@ -91,7 +91,6 @@ class DatasetConfig:
     dropout_rate: tuple[float, float] = (0.0, 0.0)
     spurious_rate: tuple[float, float] = (0.0, 0.0)
     clutter: int = 0  # at most this many unlabelled clutter items per motion
-    clutter_kinds: tuple[str, ...] = DEFAULT_KINDS  # drawn evenly (services.simulator.clutter.KINDS)
     people: int = 0  # at most this many people per motion (0: the paper's four classes only)
     sensor: str = DEFAULT_PROFILE  # a profile of services.simulator.sensors, or "random" per scenario
     # Degrees every scan is turned by before binning, labels too (common.encoding); 0: the paper's raster.
@@ -114,7 +113,6 @@ class DatasetConfig:
                 raise ValueError(f"{name} must be a range 0 <= low <= high <= {upper}, got {lo}..{hi}")
         if self.clutter < 0:
             raise ValueError(f"clutter must be >= 0, got {self.clutter}")
-        object.__setattr__(self, "clutter_kinds", check_kinds(self.clutter_kinds))  # a ValueError
         if self.people < 0:
             raise ValueError(f"people must be >= 0, got {self.people}")
         check_sensor(self.sensor)
@@ -137,8 +135,6 @@ class DatasetConfig:
             fields.pop(key)
         if self.people == 0:
             fields.pop("people")
-        if self.clutter_kinds == DEFAULT_KINDS:
-            fields.pop("clutter_kinds")
         if self.sensor == DEFAULT_PROFILE:
             fields.pop("sensor")
         if self.raster_yaw_deg == 0.0:
@@ -276,14 +272,11 @@ def scans_of_motion(
     clutter_rng: np.random.Generator | None = None,
     people: int = 0,
     people_rng: np.random.Generator | None = None,
-    clutter_kinds: Sequence[str] = DEFAULT_KINDS,
 ) -> tuple[np.ndarray, list[LidarReading]]:
     """Drive one motion and keep the scans a model stacks (:func:`stacked_period_s` apart), among up to
     ``clutter`` clutter items and ``people`` people. With people, a share of motions keeps the robot
     standing where it starts, as a robot waiting for people to pass does."""
-    poses, kept = _scans_of_motion(
-        lidar, motion, scenario, clutter, clutter_rng, people, people_rng, None, clutter_kinds
-    )
+    poses, kept = _scans_of_motion(lidar, motion, scenario, clutter, clutter_rng, people, people_rng, None)
     return poses, [reading for _, reading in kept]
 
 
@@ -296,7 +289,6 @@ def _scans_of_motion(
     people: int,
     people_rng: np.random.Generator | None,
     keep: Callable[[int], bool] | None,
-    clutter_kinds: Sequence[str] = DEFAULT_KINDS,
 ) -> tuple[np.ndarray, list[tuple[int, LidarReading]]]:
     """:func:`scans_of_motion`, ray-casting only the ticks ``keep`` accepts (all when ``None``)."""
     period_s = stacked_period_s(lidar.spec)
@@ -305,9 +297,7 @@ def _scans_of_motion(
     if clutter > 0:
         if scenario is None or clutter_rng is None:
             raise ValueError("clutter needs the scenario and a generator to place it")
-        items = tuple(
-            sample_clutter(scenario, poses, len(poses) * period_s, clutter, clutter_rng, clutter_kinds)
-        )
+        items = tuple(sample_clutter(scenario, poses, len(poses) * period_s, clutter, clutter_rng))
     walkers: tuple[Person, ...] = ()
     if people > 0:
         if scenario is None or people_rng is None:
@@ -349,14 +339,12 @@ def simulate_samples(
     invalid: InvalidRule = "sentinel",
     people: int = 0,
     raster_yaw_deg: float = 0.0,
-    clutter_kinds: Sequence[str] = DEFAULT_KINDS,
 ) -> Iterator[Sample]:
     """Simulate one scenario and yield its samples, tensors made exactly as on the robot.
 
     Scans go through :class:`ScanStacker`, the FIFO the encoder service runs, so training, evaluation
     and deployment share one code path from ranges to tensor. ``spec`` is the scenario's sensor
-    (noise, dropouts, spurious returns); ``clutter`` the most unlabelled clutter items per motion, of
-    ``clutter_kinds``.
+    (noise, dropouts, spurious returns); ``clutter`` the most unlabelled clutter items per motion.
     ``raster_yaw_deg`` turns tensors and labels alike (:mod:`common.encoding`); the samples' poses and
     people stay in the world frame.
     """
@@ -369,9 +357,8 @@ def simulate_samples(
         # With a frame stride of 3 or more, the windows a sample needs are disjoint: only their scans
         # are cast (the stacker then holds exactly the three scans of each sample when it is made).
         _, kept = _scans_of_motion(
-            lidar, motion, scenario, clutter, clutter_rng, people, people_rng, _window_ticks(frame_stride),
-            clutter_kinds,
-        )  # fmt: skip
+            lidar, motion, scenario, clutter, clutter_rng, people, people_rng, _window_ticks(frame_stride)
+        )
         readings = dict(kept)
         stacker = ScanStacker(padding, invalid, raster_yaw_deg)
         for t, reading in kept:
@@ -436,7 +423,6 @@ def generate_scenario(index: int, split: str, config: DatasetConfig) -> Scenario
         invalid=config.invalid,
         people=config.people,
         raster_yaw_deg=config.raster_yaw_deg,
-        clutter_kinds=config.clutter_kinds,
     )
     for sample in samples:
         write_rgb_png(image_dir / f"{sample.name}.png", sample.tensor)

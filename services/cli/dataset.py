@@ -8,7 +8,6 @@ from pathlib import Path
 
 from common.encoding import INVALID_RULES, PADDINGS
 from services.cli.command import Command
-from services.simulator.clutter import DEFAULT_KINDS, KINDS
 from services.simulator.sensors import DEFAULT_PROFILE, RANDOM_PROFILE, SENSOR_CHOICES, check_sensor
 
 
@@ -61,16 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="up to N unlabelled clutter items per robot motion",
-    )
-    dr.add_argument(
-        "--clutter-kinds",
-        nargs="+",
-        choices=KINDS,
-        default=list(DEFAULT_KINDS),
-        metavar="KIND",
-        help=f"the kinds clutter is drawn from, evenly, among {', '.join(KINDS)} (default: "
-        f"{' '.join(DEFAULT_KINDS)}; a column is a bin or pillar, a bend two wall pieces at a corner)",
+        help="up to N unlabelled poles and wall stubs per robot motion",
     )
     dr.add_argument(
         "--people",
@@ -124,7 +114,6 @@ def run(args: argparse.Namespace) -> int:
         dropout_rate=tuple(args.dropout),
         spurious_rate=tuple(args.spurious),
         clutter=args.clutter,
-        clutter_kinds=tuple(args.clutter_kinds),
         people=args.people,
         sensor=args.sensor,
         raster_yaw_deg=args.raster_yaw,

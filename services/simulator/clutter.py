@@ -1,12 +1,9 @@
-"""Non-target clutter for domain-randomised data: poles, columns and short wall pieces.
+"""Non-target clutter for domain-randomised data: thin poles and short wall stubs.
 
 Real rooms hold things that are none of the classes, and the ones that fool a scan detector look like
-them: a lone pole is one chair leg (or one person's leg), a wall stub is a box side. In real recordings
-a person detector is fooled most by short, uneven returns at a few metres: the arc of a bin or a round
-pillar, a bit of wall with a corner or a jog in it. Those are the ``column`` and ``bend`` kinds, opt-in
-(``kinds``) so that sets made with the first two kinds stay byte for byte what they were. Clutter
-appears in the scans and is never labelled, so the network learns to tell them apart. People are not
-clutter: they are labelled (:mod:`services.simulator.people`).
+them: a lone pole is one chair leg (or one person's leg), a wall stub is a box side. Clutter appears in
+the scans and is never labelled, so the network learns to tell them apart. People are not clutter:
+they are labelled (:mod:`services.simulator.people`).
 
 Clutter is ray-cast in closed form here rather than added to the PyBullet world: it changes with every
 robot motion and legs move with every scan, and PyBullet leaks memory on every body removed or
@@ -30,14 +27,12 @@ FURNITURE_CLEARANCE_M = 0.08  # clutter never touches furniture (a pole against 
 ROBOT_CLEARANCE_M = 0.35  # nor comes near the robot's own path
 ROOM_MARGIN_M = 0.1  # and stays inside the room, off the walls
 PLACEMENT_TRIES = 30
-KINDS = ("pole", "stub", "column", "bend")
-DEFAULT_KINDS = ("pole", "stub")
+KINDS = ("pole", "stub")
 
 
 @dataclass(frozen=True)
 class Pole:
-    """A vertical cylinder: thin (lamp stand, coat rack, table base), one chair-leg-like return; or
-    thick (bin, plant pot, round pillar), an arc."""
+    """A thin vertical cylinder (lamp stand, coat rack, table base): one chair-leg-like return."""
 
     center: tuple[float, float]
     radius_m: float
@@ -76,39 +71,7 @@ class WallStub:
         return math.hypot(*self.rect.size) / 2.0
 
 
-@dataclass(frozen=True)
-class BentStub:
-    """Two wall pieces meeting at a corner (a cabinet's end, a wall with a jog): a short broken return."""
-
-    arms: tuple[Rect, Rect]
-    corner: tuple[float, float]
-    reach_m: float  # farthest point of either arm from the corner
-
-    def circles(self, t_s: float) -> list[tuple[float, float, float]]:
-        return []
-
-    def rects(self, t_s: float) -> list[Rect]:
-        return list(self.arms)
-
-    def path(self, duration_s: float) -> np.ndarray:
-        return np.array([self.corner])
-
-    @property
-    def extent_m(self) -> float:
-        return self.reach_m
-
-
-Clutter = Pole | WallStub | BentStub
-
-
-def check_kinds(kinds: Sequence[str]) -> tuple[str, ...]:
-    """``kinds`` as a tuple, or a ValueError that names the kinds there are."""
-    out = tuple(kinds)
-    unknown = [k for k in out if k not in KINDS]
-    if not out or unknown or len(set(out)) != len(out):
-        got = ", ".join(out) or "none"
-        raise ValueError(f"clutter kinds must be distinct names among {', '.join(KINDS)}, got {got}")
-    return out
+Clutter = Pole | WallStub
 
 
 def ray_circle_distances(
@@ -173,29 +136,8 @@ def _draw_item(kind: str, rng: np.random.Generator, room_half_m: float) -> Clutt
     centre = (float(rng.uniform(-lim, lim)), float(rng.uniform(-lim, lim)))
     if kind == "pole":
         return Pole(centre, float(rng.uniform(0.01, 0.03)))
-    if kind == "column":
-        return Pole(centre, float(rng.uniform(0.12, 0.35)))
-    if kind == "bend":
-        return _bent_stub(centre, rng)
     size = (float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.02, 0.12)))
     return WallStub(Rect(centre, size, float(rng.uniform(0.0, math.pi))))
-
-
-def _bent_stub(corner: tuple[float, float], rng: np.random.Generator) -> BentStub:
-    """Two arms of 0.1–0.6 m from one corner, 45–135° apart, as thick as a panel or a wall."""
-    thickness = float(rng.uniform(0.02, 0.12))
-    first = float(rng.uniform(0.0, 2.0 * math.pi))
-    turn = float(rng.uniform(math.pi / 4.0, 3.0 * math.pi / 4.0)) * (1.0 if rng.random() < 0.5 else -1.0)
-    arms = []
-    reach = 0.0
-    for yaw in (first, first + turn):
-        length = float(rng.uniform(0.1, 0.6))
-        # Each arm runs from the corner (overlapping it by half a thickness, so the corner is closed).
-        mid = length / 2.0 - thickness / 2.0
-        centre = (corner[0] + mid * math.cos(yaw), corner[1] + mid * math.sin(yaw))
-        arms.append(Rect(centre, (length, thickness), yaw))
-        reach = max(reach, math.hypot(length, thickness))
-    return BentStub((arms[0], arms[1]), corner, reach)
 
 
 def _fits(item: Clutter, scenario: Scenario, robot_path: np.ndarray, duration_s: float) -> bool:
@@ -216,19 +158,17 @@ def sample_clutter(
     duration_s: float,
     max_items: int,
     rng: np.random.Generator,
-    kinds: Sequence[str] = DEFAULT_KINDS,
 ) -> list[Clutter]:
     """Between 0 and ``max_items`` clutter items for one robot motion, none touching furniture or robot.
 
-    ``robot_path`` is float64[T, ≥2] of the robot's positions over the motion; each item's kind is
-    drawn evenly from ``kinds``. An item that does not fit after a few draws is left out, so a crowded
-    room simply gets less clutter.
+    ``robot_path`` is float64[T, ≥2] of the robot's positions over the motion. An item that does not
+    fit after a few draws is left out, so a crowded room simply gets less clutter.
     """
     if max_items <= 0:
         return []
     placed: list[Clutter] = []
     for _ in range(int(rng.integers(0, max_items + 1))):
-        kind = kinds[int(rng.integers(0, len(kinds)))]
+        kind = KINDS[int(rng.integers(0, len(KINDS)))]
         for _ in range(PLACEMENT_TRIES):
             item = _draw_item(kind, rng, scenario.room_half_m)
             if _fits(item, scenario, robot_path, duration_s):
