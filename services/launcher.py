@@ -97,6 +97,8 @@ class UpConfig:
     batch: int | None = None
     # The detector's --detectors (None: one process per core, services.detector.core.default_processes).
     detectors: int | None = None
+    # The tracker's --person-confirm-travel (None: its default, off; services.tracker.core).
+    person_confirm_travel_m: float | None = None
     seed: int = SIM_SEED
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
@@ -120,6 +122,10 @@ class UpConfig:
             raise ValueError(f"--max-restarts must be >= 0, got {self.max_restarts}")
         if self.batch is not None and self.batch < 1:
             raise ValueError(f"--batch must be >= 1, got {self.batch}")
+        if self.person_confirm_travel_m is not None:
+            from services.tracker.core import TrackerConfig
+
+            TrackerConfig(person_confirm_travel_m=self.person_confirm_travel_m)  # its ValueError names it
         if self.snapshot_dir is not None and self.replay is not None:
             raise ValueError("--snapshot draws the simulator's worlds and truth: it cannot go with --replay")
 
@@ -208,7 +214,11 @@ def service_commands(
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
             *(("--detectors", str(config.detectors)) if config.detectors is not None else ()),
         ],
-        "tracker": [],
+        "tracker": (
+            ["--person-confirm-travel", repr(config.person_confirm_travel_m)]
+            if config.person_confirm_travel_m is not None
+            else []
+        ),
         "visualizer": sink,
     }
     commands = {}

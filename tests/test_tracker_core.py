@@ -223,8 +223,9 @@ def test_with_a_travel_rule_only_a_person_who_moves_is_confirmed() -> None:
     for k in range(3):
         tracks = default.update(message(k, [det(2.0, 2.0, "person")], pose(0, 0, 0)))
     assert tracks is not None and tracks.tracks[0].state == "confirmed"  # off by default
-    with pytest.raises(ValueError, match="invalid tracker config"):
-        TrackerConfig(person_confirm_travel_m=-1.0)
+    for bad in (-1.0, math.nan):
+        with pytest.raises(ValueError, match="person confirm travel must be >= 0 metres"):
+            TrackerConfig(person_confirm_travel_m=bad)
 
 
 def test_a_tentative_track_dies_quickly_and_ids_are_never_reused() -> None:

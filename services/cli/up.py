@@ -15,6 +15,7 @@ from common.transport import add_zenoh_arguments
 from services.cli.command import Command
 from services.runtime import default_of
 from services.simulator.sensors import PROFILES
+from services.tracker import add_tracker_arguments
 
 SIMULATOR_ONLY_FLAGS = {
     "robots": "--robots",
@@ -81,6 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="detector processes sharing the robots (default: one per core)",
     )
+    add_tracker_arguments(p)
     p.add_argument(
         "--seed", type=int, default=None, help=f"simulator seed (default {up('seed')}; training used 0)"
     )
@@ -148,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         batch=args.batch,
         detectors=args.detectors,
+        person_confirm_travel_m=args.person_confirm_travel,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,

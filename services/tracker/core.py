@@ -135,8 +135,9 @@ class TrackerConfig:
             raise ValueError(f"invalid tracker config: {self}")
         if not (self.delete_after_s > 0 and self.jump_m > 0 and self.jump_rad > 0):
             raise ValueError(f"invalid tracker config: {self}")
-        if not self.person_confirm_travel_m >= 0:
-            raise ValueError(f"invalid tracker config: {self}")
+        travel = self.person_confirm_travel_m
+        if not travel >= 0:  # NaN included
+            raise ValueError(f"person confirm travel must be >= 0 metres, got {travel:g}")
 
 
 @dataclass
