@@ -382,3 +382,28 @@ def test_the_models_readme_states_each_cards_figures() -> None:
         latency = re.search(r"^fp32 \S+ ms, INT8 \S+ ms", (directory / "MODEL_CARD.md").read_text(), re.M)
         assert latency and latency.group(0) in row, directory
         assert (card["status"] == "default") == ("**default**" in row), directory
+
+
+def test_a_people_card_names_the_worlds_its_figures_come_from(tmp_path: Path) -> None:
+    """A five-class model's data, gate and unseen worlds hold people: the card's commands say so, and a
+    furniture card's gate stays as it was."""
+    plain = card_of(tmp_path / "plain", {"clean": 0.98})
+    assert "people" not in plain["quality_gate"] and "clutter" not in plain["quality_gate"]
+    a = artefacts(tmp_path / "people", {"clean": 0.98})
+    summary = json.loads((a["data"] / "summary.json").read_text())
+    summary["config"].update(people=4, sensor="random", raster_yaw_deg=180.0, open_space=0.5)
+    (a["data"] / "summary.json").write_text(json.dumps(summary))
+    grid = json.loads(a["grid"].read_text())
+    grid["worlds"].update(clutter=3, people=4, open_space=0.0)
+    a["grid"].write_text(json.dumps(grid))
+    card = write_card(
+        dataset_dir=a["data"], run_dir=a["run"], export_json=a["export"], eval_test_fp32=a["fp32"],
+        eval_test_int8=a["int8"], eval_gate=a["gate"],
+        gate={"seed": 1000, "scenarios": 6, "positions": 15, "frame_stride": 15, "people": 4, "clutter": 3},
+        out_dir=tmp_path / "card", train_command="triscan train --arch p", conditions=a["grid"],
+    )  # fmt: skip
+    text = (tmp_path / "card" / "MODEL_CARD.md").read_text()
+    assert "--clutter 3 --people 4 --sensor random --raster-yaw 180 --open-space 0.5`" in text
+    assert "every 15th window, with `--clutter 3 --people 4`, and requires" in text
+    assert "--frame-stride 15 --clutter 3 --people 4 --noise clean`" in text  # no open space: no flag
+    assert card["quality_gate"]["people"] == 4 and card["quality_gate"]["clutter"] == 3

@@ -42,6 +42,15 @@ class ShippedModel:
     def gate(self) -> dict[str, Any]:
         return self.card["quality_gate"]
 
+    @property
+    def gate_worlds(self) -> dict[str, Any]:
+        """What the gate's worlds hold besides furniture, and the model's own raster yaw."""
+        return {
+            "people": self.gate.get("people", 0),
+            "clutter": self.gate.get("clutter", 0),
+            "raster_yaw_deg": OnnxDetector(self.file("fp32")).raster_yaw_deg,
+        }
+
 
 CARDS = [ShippedModel(card.parent) for card in sorted(MODELS_DIR.glob("**/MODEL_CARD.json"))]
 DEFAULT = ShippedModel(SHIPPED_DIR)
@@ -71,14 +80,15 @@ def offline(tmp_path_factory: pytest.TempPathFactory) -> None:
 
 
 @pytest.fixture(scope="module")
-def unseen_set(tmp_path_factory: pytest.TempPathFactory) -> Callable[[dict[str, Any]], Path]:
+def unseen_set(tmp_path_factory: pytest.TempPathFactory) -> Callable[[ShippedModel], Path]:
     """A small data set from seeds no model was trained on, per gate setting, made when first asked."""
     from training.dataset import DatasetConfig, generate_dataset
 
     root, made = tmp_path_factory.mktemp("unseen"), {}
 
-    def of_gate(gate: dict[str, Any]) -> Path:
-        key = (gate["seed"], gate["scenarios"], gate["positions"], gate["frame_stride"])
+    def of_gate(model: ShippedModel) -> Path:
+        gate, worlds = model.gate, model.gate_worlds
+        key = (gate["seed"], gate["scenarios"], gate["positions"], gate["frame_stride"], *worlds.values())
         if key not in made:
             made[key] = root / "-".join(map(str, key))
             generate_dataset(
@@ -88,6 +98,7 @@ def unseen_set(tmp_path_factory: pytest.TempPathFactory) -> Callable[[dict[str, 
                     positions=gate["positions"],
                     seed=gate["seed"],
                     frame_stride=gate["frame_stride"],
+                    **worlds,
                 ),
                 progress=False,
             )
@@ -282,12 +293,12 @@ def test_onnx_gives_the_checkpoints_boxes_within_one_pixel(offline: None, shippe
 
 
 def test_eval_matches_ultralytics_val_within_0_01(
-    unseen_set: Callable[[dict[str, Any]], Path], offline: None, shipped: ShippedModel, tmp_path: Path
+    unseen_set: Callable[[ShippedModel], Path], offline: None, shipped: ShippedModel, tmp_path: Path
 ) -> None:
     from ultralytics import YOLO
 
     fp32 = shipped.file("fp32")
-    unseen = unseen_set(shipped.gate)
+    unseen = unseen_set(shipped)
     detector = OnnxDetector(  # Ultralytics' val does not round boxes to whole pixels
         fp32, conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, max_detections=VAL_MAX_DET, box_grid="none"
     )
@@ -319,7 +330,8 @@ def test_quality_gate_on_unseen_scenarios(model: str, shipped: ShippedModel, tmp
         iou_threshold=VAL_IOU,
         max_detections=VAL_MAX_DET,
     )
-    samples = fresh_samples(gate["seed"], gate["scenarios"], gate["positions"], "zero", gate["frame_stride"])
+    seed, scenarios, positions, stride = (gate[k] for k in ("seed", "scenarios", "positions", "frame_stride"))
+    samples = fresh_samples(seed, scenarios, positions, "zero", stride, **shipped.gate_worlds)
     report = evaluate(detector, samples, tmp_path, source="gate", plots=False)
     assert report.instances >= gate["min_instances"]
     assert report.overall["mAP50"] >= gate["min_map50"], report.overall

@@ -354,9 +354,18 @@ class QualityGate:
     min_instances: int
     min_map50: float
     measured_map50: float
+    people: int = 0  # the most people per motion (0: the paper's furniture-only worlds)
+    clutter: int = 0  # the most unlabelled clutter items per motion
 
     def to_json(self) -> Json:
-        return dict(self.__dict__)
+        """Every field, but people and clutter only when the gate's worlds hold them: a furniture-only
+        card's JSON stays as it was."""
+        return {k: v for k, v in self.__dict__.items() if v or k not in ("people", "clutter")}
+
+    @property
+    def worlds_flags(self) -> str:
+        """What the gate's worlds hold besides furniture, as ``triscan eval --fresh`` flags."""
+        return _worlds_flags(self.__dict__)
 
 
 @dataclass(frozen=True)
@@ -573,6 +582,8 @@ def _model_card(
             min_instances=gate_metrics.instances // 2,
             min_map50=min_map50,
             measured_map50=gate_metrics.overall.map50,
+            people=gate.get("people", 0),
+            clutter=gate.get("clutter", 0),
         ),
         int8_minus_fp32_map50=deltas,
         unseen_worlds=unseen,
@@ -641,6 +652,16 @@ def _randomisation_flags(cfg: Mapping[str, Any]) -> str:
         flags.append(f"--clutter {cfg['clutter']}")
     if cfg.get("invalid", "sentinel") != "sentinel":
         flags.append(f"--invalid {cfg['invalid']}")
+    # Options the paper's set does not use: its summary.json records each only when it is set.
+    for key, flag in (
+        ("people", "--people"),
+        ("sensor", "--sensor"),
+        ("raster_yaw_deg", "--raster-yaw"),
+        ("open_space", "--open-space"),
+        ("door_watch", "--door-watch"),
+    ):
+        if cfg.get(key):
+            flags.append(f"{flag} {cfg[key]:g}" if isinstance(cfg[key], float) else f"{flag} {cfg[key]}")
     return "".join(f" {flag}" for flag in flags)
 
 
@@ -728,10 +749,20 @@ def _gate_section(card: ModelCard, gate_metrics: Evaluation) -> list[str]:
         "",
         f"`tests/test_shipped_model.py` simulates {gate.scenarios} scenarios with seed {gate.seed} "
         f"(never trained on), {gate.positions} positions each, every {gate.frame_stride}th window, "
-        f"and requires mAP@0.5 ≥ **{gate.min_map50:.2f}**: the {gate_metrics.overall.map50:.3f} measured "
+        + (f"with `{gate.worlds_flags.strip()}`, " if gate.worlds_flags else "")
+        + f"and requires mAP@0.5 ≥ **{gate.min_map50:.2f}**: the {gate_metrics.overall.map50:.3f} measured "
         f"on that exact, deterministic set when the card was written, less {GATE_MARGIN:.2f}. A larger "
         "drop means the model file, encoder, simulator or decoding changed behaviour.",
     ]
+
+
+def _worlds_flags(worlds: Mapping[str, Any]) -> str:
+    """The ``triscan eval --fresh`` flags for what a grid's worlds hold besides the paper's room."""
+    return "".join(
+        f" --{key.replace('_', '-')} {worlds[key]:g}"
+        for key in ("clutter", "people", "open_space")
+        if worlds.get(key)
+    )
 
 
 def _conditions_section(card: ModelCard, path: Path) -> list[str]:
@@ -748,7 +779,8 @@ def _conditions_section(card: ModelCard, path: Path) -> list[str]:
         f"`triscan eval --model {card.directory}/{card.files['fp32']} "
         f"--model {card.directory}/{card.files['int8']} "
         f"--fresh {worlds['scenarios']} --seed {worlds['seed']} --positions {worlds['positions']} "
-        f"--frame-stride {worlds['frame_stride']} --noise {' '.join(fp32)}` ({path.name}): "
+        f"--frame-stride {worlds['frame_stride']}{_worlds_flags(worlds)} --noise {' '.join(fp32)}` "
+        f"({path.name}): "
         f"{worlds['scenarios']} scenarios of a seed never trained on, the same worlds under every "
         "condition (σ: range noise; drop: share of beams returned invalid; spur: share returned short), "
         "labels of the true geometry, both files fed identical tensors.",

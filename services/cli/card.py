@@ -28,6 +28,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     for flag in GATE_FLAGS:
         add_recipe_option(p, f"--gate-{flag.replace('_', '-')}", type=int)
+    for flag, what in (("people", "people"), ("clutter", "unlabelled clutter items")):
+        p.add_argument(
+            f"--gate-{flag}", type=int, default=0, metavar="N",
+            help=f"the gate's worlds hold up to N {what} per motion, as `triscan eval --fresh --{flag} N` "
+            "(default 0)",
+        )  # fmt: skip
     p.add_argument("--train-command", required=True, help="the exact training command, quoted in the card")
     p.add_argument("--notes", type=Path, default=None, help="markdown file with known limits and status")
     p.add_argument(
@@ -114,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
     }
     given = {flag: getattr(args, f"gate_{flag}") for flag in GATE_FLAGS}
     gate = {flag: worlds[flag] if value is None else value for flag, value in given.items()}
+    gate.update(people=args.gate_people, clutter=args.gate_clutter)
     card = write_card(
         dataset_dir=args.data,
         run_dir=args.run_dir,
