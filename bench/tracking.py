@@ -54,6 +54,7 @@ from common.messages import (
 from common.model_spec import CLASS_NAMES
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
+from services.tracker import add_tracker_arguments, tracker_config
 from services.tracker.core import REPORTED_STATES, TrackerConfig, TrackerCore
 from services.tracker.mot import DEFAULT_GATE_M, GROUPS, ClearMot, group_of, hypotheses_of
 
@@ -117,9 +118,16 @@ def _switches_per_robot_minute(scores: dict[str, Any], tracks: dict[str, list[Tr
 
 
 def live(
-    seconds: float, robots: int, seed: int, record: Path | None = None, model: Path | None = None
+    seconds: float,
+    robots: int,
+    seed: int,
+    record: Path | None = None,
+    model: Path | None = None,
+    person_confirm_travel_m: float | None = None,
 ) -> dict[str, Any]:
     (port,) = free_tcp_ports(1)
+    travel_m = person_confirm_travel_m
+    travel = () if travel_m is None else ("--person-confirm-travel", repr(travel_m))
     truths: dict[str, dict[int, GroundTruth]] = defaultdict(dict)
     tracks: dict[str, list[Tracks]] = defaultdict(list)
     recorded: dict[str, list[bytes]] = {TRUTH: [], DETECTIONS: []}
@@ -148,6 +156,7 @@ def live(
         sys.executable, "-m", "services.cli", "up", "--viewer", "none", "--duration", str(seconds),
         "--robots", str(robots), "--seed", str(seed), "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast",
         *(("--model", str(model)) if model is not None else ()),
+        *travel,
     ]  # fmt: skip
     with open_session(ZenohSettings.loopback(free_tcp_ports(1)[0], [port])) as session:
         up = subprocess.Popen(command)
@@ -282,8 +291,10 @@ def main(argv: list[str] | None = None) -> int:
     live_p.add_argument("--out", type=Path, default=Path("bench/results/tracking_live.json"))
     live_p.add_argument("--record", type=Path, default=None, help="keep the detections and truth here")
     live_p.add_argument("--model", type=Path, default=None, help="detector model (default: shipped)")
+    add_tracker_arguments(live_p)
     offline_p = sub.add_parser("offline", help="a fresh tracker over a --record'ed run, scored the same way")
     offline_p.add_argument("recording", type=Path)
+    add_tracker_arguments(offline_p)
     offline_p.add_argument("--out", type=Path, default=Path("bench/results/tracking_offline.json"))
     cost_p = sub.add_parser("cost", help="the tracker's time a frame")
     cost_p.add_argument("--objects", type=int, default=20)
@@ -292,9 +303,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.mode == "live":
-        report = live(args.seconds, args.robots, args.seed, args.record, args.model)
+        travel = args.person_confirm_travel
+        report = live(args.seconds, args.robots, args.seed, args.record, args.model, travel)
     elif args.mode == "offline":
-        report = offline(args.recording)
+        report = offline(args.recording, tracker_config(args))
     else:
         report = cost(args.objects, args.frames)
     write_report(report, args.out)

@@ -189,15 +189,18 @@ def test_a_second_detection_of_a_tracked_object_opens_no_track() -> None:
     assert person is not None and core.counters.tracks_created == 2
 
 
-def test_people_side_by_side_are_two_people_where_furniture_that_close_is_one_object() -> None:
-    core = TrackerCore()  # the defaults: 0.6 m for furniture, 0.4 m for people
+def test_a_second_detection_within_the_duplicate_radius_is_one_object_for_every_class() -> None:
+    core = TrackerCore()  # the default radius, 0.6 m
     for k in range(4):
         core.update(message(k, [det(2.0, 0.0, "desk"), det(0.0, 2.0, "person")], pose(0, 0, 0)))
     assert core.counters.tracks_created == 2
     both = [det(2.0, 0.0, "desk"), det(2.0, 0.5, "desk"), det(0.0, 2.0, "person"), det(0.5, 2.0, "person")]
     core.update(message(4, both, pose(0, 0, 0)))
-    assert core.counters.duplicates == 1  # the second desk 0.5 m off is the same desk seen twice
-    assert core.counters.tracks_created == 3  # the second person 0.5 m off is someone else
+    assert core.counters.duplicates == 2  # the second desk, and a person's second detection (a long stride)
+    assert core.counters.tracks_created == 2
+    apart = [det(2.0, 0.0, "desk"), det(0.0, 2.0, "person"), det(0.8, 2.0, "person")]
+    core.update(message(5, apart, pose(0, 0, 0)))
+    assert core.counters.tracks_created == 3  # 0.8 m off is someone else
 
 
 def test_with_a_travel_rule_only_a_person_who_moves_is_confirmed() -> None:

@@ -116,11 +116,11 @@ class TrackerConfig:
     tentative_misses: int = 2
     delete_after_s: float = 1.5
     still_delete_after_s: float = 30.0
-    # A second detection this close to a track its scan already updated is the same object seen twice.
-    # Furniture: a split desk or a doorframe's two jambs lie up to about 0.6 m from the track's centre.
-    # People walk side by side 0.5-0.7 m apart, so theirs is tighter.
+    # A second detection this close to a track its scan already updated is the same object seen twice:
+    # a split desk or a doorframe's two jambs lie up to about 0.6 m from the track's centre, and so do a
+    # walking person's two detections, one on each leg of a long stride. Two people walking closer
+    # than this share a track until they part (measured: bench.tracking, docs/tracking.md).
     duplicate_m: float = 0.6
-    person_duplicate_m: float = 0.4
     jump_m: float = 1.0
     jump_rad: float = math.radians(30.0)
     score_smoothing: float = 0.3  # weight of the newest detection's score in the track's running score
@@ -462,16 +462,14 @@ class TrackerCore:
         return travel <= 0.0 or CLASS_NAMES[track.class_id] != "person" or track.moved_m >= travel
 
     def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
-        """A second detection of an object a track already follows: within ``duplicate_m`` (a person:
-        ``person_duplicate_m``) of a confirmed track of the same group (furniture or person) that a
-        detection of this scan updated."""
+        """A second detection of an object a track already follows: within ``duplicate_m`` of a
+        confirmed track of the same group (furniture or person) that a detection of this scan updated."""
         person = det.class_name == "person"
-        radius = self.config.person_duplicate_m if person else self.config.duplicate_m
         return any(
             t.state == "confirmed"
             and t.misses == 0
             and (CLASS_NAMES[t.class_id] == "person") == person
-            and math.hypot(t.x - point[0], t.y - point[1]) < radius
+            and math.hypot(t.x - point[0], t.y - point[1]) < self.config.duplicate_m
             for t in tracks
         )
 
