@@ -352,3 +352,26 @@ def test_triscan_status_shows_the_trackers_counters() -> None:
     core.update(message(1, [det(2.0, 0.0)], pose(2.0, 0.0, 0.0)))
     line = format_status([ServiceStatus("tracker", "123", True, core.snapshot())])
     assert line.startswith("tracker") and "resets.odom_jump=1" in line and "tracks=1" in line
+
+
+@pytest.mark.parametrize(("decay_s", "same_id"), [(0.2, True), (0.0, False)])
+def test_a_person_who_stops_out_of_sight_keeps_their_id_while_their_track_slows(
+    decay_s: float, same_id: bool
+) -> None:
+    """1.4 m/s for 1.5 s, unseen for 0.8 s while they stop, then seen where they stopped: a track that
+    walked on at full speed would be 1.1 m off, past the gate (the default's 0.2 s decay keeps it
+    about 0.2 m off)."""
+    core = TrackerCore(TrackerConfig(person_coast_decay_s=decay_s))
+    walk = [message(k, [det(1.0 + 0.14 * k, 0.0, "person")], pose(0, 0, 0)) for k in range(15)]
+    for m in walk:
+        out = core.update(m)
+    assert out is not None
+    ((first_id, vx),) = [(t.track_id, t.vx_mps) for t in out.tracks]
+    assert vx == pytest.approx(1.4, abs=0.15)
+    for k in range(15, 23):
+        core.update(message(k, [], pose(0, 0, 0)))
+    back = core.update(message(23, [det(1.0 + 0.14 * 14, 0.0, "person")], pose(0, 0, 0)))
+    assert back is not None
+    assert (first_id in {t.track_id for t in back.tracks if t.misses == 0}) is same_id
+    with pytest.raises(ValueError, match="person coast decay must be >= 0 seconds"):
+        TrackerConfig(person_coast_decay_s=-0.1)

@@ -18,7 +18,9 @@ Method (docs/tracking.md has the reasoning and the scores):
   ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library).
 * **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it; a
   confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
-  without a hit; a tentative track is deleted after ``tentative_misses`` misses. With
+  without a hit; a coasting person's velocity decays (``person_coast_decay_s``), since people stop
+  and turn, and a track that kept walking would leave them; a tentative track is deleted after
+  ``tentative_misses`` misses. With
   ``person_confirm_travel_m`` set, a person track also has to move that far to be confirmed. The class
   is the one with the most summed score over the track, the score a running mean.
 * **Ids** come from one counter per core, never reused: not for the robot, not for any robot.
@@ -116,6 +118,10 @@ class TrackerConfig:
     tentative_misses: int = 2
     delete_after_s: float = 1.5
     still_delete_after_s: float = 30.0
+    # A person track that misses is predicted with its velocity decaying at this time constant: people
+    # stop and turn where a detector loses them, and a track that walked on at full speed would come
+    # back too far off to be found again (a new track, an ID switch). 0: no decay.
+    person_coast_decay_s: float = 0.2
     # A second detection this close to a track its scan already updated is the same object seen twice:
     # a split desk or a doorframe's two jambs lie up to about 0.6 m from the track's centre, and so do a
     # walking person's two detections, one on each leg of a long stride. Two people walking closer
@@ -135,6 +141,8 @@ class TrackerConfig:
             raise ValueError(f"invalid tracker config: {self}")
         if not (self.delete_after_s > 0 and self.jump_m > 0 and self.jump_rad > 0):
             raise ValueError(f"invalid tracker config: {self}")
+        if not self.person_coast_decay_s >= 0:  # NaN included
+            raise ValueError(f"person coast decay must be >= 0 seconds, got {self.person_coast_decay_s:g}")
         travel = self.person_confirm_travel_m
         if not travel >= 0:  # NaN included
             raise ValueError(f"person confirm travel must be >= 0 metres, got {travel:g}")
@@ -408,7 +416,11 @@ class TrackerCore:
         pose = self._pose_for(robot, robot_id, message.odom)
         laser = pose is None
         models = [FREE if laser else MOTION_MODELS[CLASS_NAMES[t.class_id]] for t in robot.tracks]
+        decay = self.config.person_coast_decay_s
         for track, model in zip(robot.tracks, models, strict=True):
+            if decay > 0.0 and track.misses and CLASS_NAMES[track.class_id] == "person":
+                keep = math.exp(-dt / decay)
+                track.vx, track.vy = track.vx * keep, track.vy * keep
             track.predict(dt, model)
         if pose is not None:
             robot.poses[stamp] = pose
