@@ -125,9 +125,11 @@ def live(
     model: Path | None = None,
     person_confirm_travel_m: float | None = None,
 ) -> dict[str, Any]:
-    (port,) = free_tcp_ports(1)
     travel_m = person_confirm_travel_m
-    travel = () if travel_m is None else ("--person-confirm-travel", repr(travel_m))
+    # The service's rules, checked before the loop starts: a bad value fails here, not in a child.
+    config = TrackerConfig() if travel_m is None else TrackerConfig(person_confirm_travel_m=float(travel_m))
+    travel = () if travel_m is None else ("--person-confirm-travel", repr(float(travel_m)))
+    (port,) = free_tcp_ports(1)
     truths: dict[str, dict[int, GroundTruth]] = defaultdict(dict)
     tracks: dict[str, list[Tracks]] = defaultdict(list)
     recorded: dict[str, list[bytes]] = {TRUTH: [], DETECTIONS: []}
@@ -189,6 +191,7 @@ def live(
         "robots": robots,
         "seed": seed,
         "gate_m": DEFAULT_GATE_M,
+        "tracker_config": dataclasses.asdict(config),
         "scored_states": list(REPORTED_STATES),
         "tracks_messages": sum(len(v) for v in tracks.values()),
         "undecodable": len(bad),

@@ -84,7 +84,8 @@ def _models_dir() -> Path:
 MODELS_DIR: Final[Path] = _models_dir()
 MODEL_ENV: Final[str] = "TRISCAN_MODEL"
 # Each shipped network's files and card (MODEL_CARD.json) share one directory: the paper's YOLOv8n in
-# models/ itself, the pico with 12 DFL bins in models/yolov8p-dfl12/. The default is the 12-bin pico:
+# models/ itself, the pico with 12 DFL bins in models/yolov8p-dfl12/, the five-class people preview in
+# models/yolov8p-relu-dfl12/. The default is the 12-bin pico:
 # it meets every accuracy goal on unseen worlds in fp32 and INT8 and runs faster than YOLOv8n
 # (models/yolov8p-dfl12/MODEL_CARD.md).
 SHIPPED_DIR: Final[Path] = MODELS_DIR / "yolov8p-dfl12"

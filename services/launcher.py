@@ -215,7 +215,7 @@ def service_commands(
             *(("--detectors", str(config.detectors)) if config.detectors is not None else ()),
         ],
         "tracker": (
-            ["--person-confirm-travel", repr(config.person_confirm_travel_m)]
+            ["--person-confirm-travel", repr(float(config.person_confirm_travel_m))]
             if config.person_confirm_travel_m is not None
             else []
         ),

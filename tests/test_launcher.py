@@ -99,7 +99,9 @@ def test_detectors_reach_the_detector_and_zero_is_refused_before_anything_starts
         up(UpConfig(viewer="none", detectors=0), threading.Event())
 
 
-def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refused() -> None:
+def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refused(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     from services.cli import main as cli_main
 
     ports = {name: port for port, name in enumerate(SERVICES, start=1)}
@@ -110,6 +112,7 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     with pytest.raises(ValueError, match="person confirm travel must be >= 0 metres, got -1"):
         UpConfig(person_confirm_travel_m=-1.0)
     assert cli_main(["up", "--person-confirm-travel", "-1", "--duration", "1"]) == 2  # before any start
+    assert "person confirm travel must be >= 0 metres, got -1" in caplog.text
 
 
 def test_a_replay_replaces_the_simulator_and_gets_its_flags(tmp_path: Path) -> None:

@@ -281,6 +281,11 @@ def test_epochs_before_needs_a_curve_to_count(caplog: pytest.LogCaptureFixture) 
                  "--eval-int8", "i", "--eval-gate", "g", "--train-command", "t",
                  "--compare-curve-epochs-before", "30"]) == 2  # fmt: skip
     assert "give both" in caplog.text
+    caplog.clear()
+    assert main(["card", "--data", "d", "--run-dir", "r", "--export-report", "e", "--eval-fp32", "f",
+                 "--eval-int8", "i", "--eval-gate", "g", "--train-command", "t",
+                 "--gate-people", "-1"]) == 2  # fmt: skip
+    assert "--gate-people must be >= 0, got -1" in caplog.text
 
 
 def test_a_curve_without_a_common_epoch_is_refused(tmp_path: Path) -> None:
@@ -404,6 +409,7 @@ def test_a_people_card_names_the_worlds_its_figures_come_from(tmp_path: Path) ->
     )  # fmt: skip
     text = (tmp_path / "card" / "MODEL_CARD.md").read_text()
     assert "--clutter 3 --people 4 --sensor random --raster-yaw 180 --open-space 0.5`" in text
+    assert "labelled `person`, a LiDAR profile per scenario (`--sensor`), the raster turned 180°, " in text
     assert "every 15th window, with `--clutter 3 --people 4`, and requires" in text
     assert "--frame-stride 15 --clutter 3 --people 4 --noise clean`" in text  # no open space: no flag
     assert card["quality_gate"]["people"] == 4 and card["quality_gate"]["clutter"] == 3

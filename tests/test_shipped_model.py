@@ -1,7 +1,8 @@
 """The models shipped in models/: same boxes as their checkpoints, same figures as Ultralytics, a gate.
 
 Each card is checked: every shipped network's files and card share a directory (the paper's YOLOv8n in
-models/, the default pico in models/yolov8p-dfl12/), and the default is the one
+models/, the default pico in models/yolov8p-dfl12/, the people preview in models/yolov8p-relu-dfl12/),
+and the default is the one
 ``common.model_spec.SHIPPED_DIR`` names.
 The gate threshold is not picked to pass: it is read from the card, where it is derived from the
 held-out figures the card reports (see the card's "Quality gate" section).

@@ -358,9 +358,9 @@ def test_triscan_status_shows_the_trackers_counters() -> None:
 def test_a_person_who_stops_out_of_sight_keeps_their_id_while_their_track_slows(
     decay_s: float, same_id: bool
 ) -> None:
-    """1.4 m/s for 1.5 s, unseen for 0.8 s while they stop, then seen where they stopped: a track that
-    walked on at full speed would be 1.1 m off, past the gate (the default's 0.2 s decay keeps it
-    about 0.2 m off)."""
+    """1.4 m/s for 1.5 s, then unseen for 0.9 s while they stop, then seen where they stopped: a track
+    that walked on at full speed would be about 1.3 m off, past the 0.8 m gate; with the default's
+    0.2 s decay (from the second missed scan on) it is about 0.35 m off."""
     core = TrackerCore(TrackerConfig(person_coast_decay_s=decay_s))
     walk = [message(k, [det(1.0 + 0.14 * k, 0.0, "person")], pose(0, 0, 0)) for k in range(15)]
     for m in walk:
@@ -373,5 +373,6 @@ def test_a_person_who_stops_out_of_sight_keeps_their_id_while_their_track_slows(
     back = core.update(message(23, [det(1.0 + 0.14 * 14, 0.0, "person")], pose(0, 0, 0)))
     assert back is not None
     assert (first_id in {t.track_id for t in back.tracks if t.misses == 0}) is same_id
-    with pytest.raises(ValueError, match="person coast decay must be >= 0 seconds"):
-        TrackerConfig(person_coast_decay_s=-0.1)
+    for bad in (-0.1, math.nan):
+        with pytest.raises(ValueError, match="person coast decay must be >= 0 seconds"):
+            TrackerConfig(person_coast_decay_s=bad)

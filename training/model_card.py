@@ -358,7 +358,7 @@ class QualityGate:
     clutter: int = 0  # the most unlabelled clutter items per motion
 
     def to_json(self) -> Json:
-        """Every field, but people and clutter only when the gate's worlds hold them: a furniture-only
+        """Every field, but people and clutter only if the gate's worlds hold them: a furniture-only
         card's JSON stays as it was."""
         return {k: v for k, v in self.__dict__.items() if v or k not in ("people", "clutter")}
 
@@ -652,7 +652,7 @@ def _randomisation_flags(cfg: Mapping[str, Any]) -> str:
         flags.append(f"--clutter {cfg['clutter']}")
     if cfg.get("invalid", "sentinel") != "sentinel":
         flags.append(f"--invalid {cfg['invalid']}")
-    # Options the paper's set does not use: its summary.json records each only when it is set.
+    # Options the paper's set does not use: its summary.json records each only if it is set.
     for key, flag in (
         ("people", "--people"),
         ("sensor", "--sensor"),
@@ -680,6 +680,16 @@ def _data_section(data: DatasetSummary) -> list[str]:
             "the ranges given; unlabelled clutter per motion; labels of the true geometry), "
             if randomised
             else ""
+        )
+        + "".join(
+            f"{what}, "
+            for key, what in (
+                ("people", "people walking and standing in each motion, labelled `person`"),
+                ("sensor", "a LiDAR profile per scenario (`--sensor`)"),
+                ("raster_yaw_deg", f"the raster turned {cfg.get('raster_yaw_deg', 0):g}°"),
+                ("open_space", "a share of the rooms open spaces"),
+            )
+            if cfg.get(key)
         )
         + f"padding **{cfg['padding']}**, "
         f"scenarios train/val/test {data.scenarios['train']}/{data.scenarios['val']}/"

@@ -89,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
     def notes(path: Path | None) -> str:
         return path.read_text() if path else ""
 
+    for flag in ("people", "clutter"):
+        if getattr(args, f"gate_{flag}") < 0:
+            raise ValueError(f"--gate-{flag} must be >= 0, got {getattr(args, f'gate_{flag}')}")
     if args.compare_curve_epochs_before and not args.compare_curve:
         raise ValueError(
             "--compare-curve-epochs-before counts the epochs of --compare-curve's runs: give both"

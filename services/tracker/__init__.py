@@ -14,7 +14,8 @@ if TYPE_CHECKING:
 
 
 def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
-    """The tracker rules a user may change, for the tracker service and ``triscan eval --tracks``."""
+    """The tracker rules a user may change: for the tracker service, ``triscan up`` (which passes them on),
+    ``triscan eval --tracks`` and ``bench.tracking``."""
     parser.add_argument(
         "--person-confirm-travel", type=float, default=None, metavar="M",
         help="confirm a person track only once it has moved M metres, as leg_tracker starts people: drops "

@@ -120,7 +120,8 @@ class TrackerConfig:
     still_delete_after_s: float = 30.0
     # A person track that misses is predicted with its velocity decaying at this time constant: people
     # stop and turn where a detector loses them, and a track that walked on at full speed would come
-    # back too far off to be found again (a new track, an ID switch). 0: no decay.
+    # back too far off to be found again (a new track, an ID switch). In the laser frame (no odometry)
+    # it also slows what the robot's own motion adds to a coasting person's track. 0: no decay.
     person_coast_decay_s: float = 0.2
     # A second detection this close to a track its scan already updated is the same object seen twice:
     # a split desk or a doorframe's two jambs lie up to about 0.6 m from the track's centre, and so do a
