@@ -19,11 +19,13 @@ service's ``run`` is then: build its pure core, subscribe the core's handlers, a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
 import json
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -107,6 +109,23 @@ def exit_code_of(main: Callable[[], int]) -> int:
         log.debug("refused", exc_info=True)
         log.error("%s", exc)
         return USAGE_EXIT
+
+
+def exit_process(code: int) -> NoReturn:
+    """End a service's process with ``code`` once its ``main`` has returned, without Python's
+    finalization.
+
+    By then the service's Zenoh session is closed, but Zenoh's own threads may still need the GIL for
+    a moment (to drop a callback they held). Python 3.11 unwinds a thread that asks for the GIL while
+    the interpreter finalizes, and unwound through Rust frames that aborts the whole process ("FATAL:
+    exception not rethrown", CPython gh-87135), so a clean stop would exit with SIGABRT now and then.
+    Logs and the standard streams are flushed first; nothing else is left to run.
+    """
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe or stream: nothing more to write
+            stream.flush()
+    os._exit(code)
 
 
 def configure_logging(verbose: bool = False) -> None:

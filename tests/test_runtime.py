@@ -75,3 +75,25 @@ def test_robot_publishers_announce_each_robot_until_it_is_forgotten(free_port: C
         assert wait_for(lambda: sources() == expected[1:], timeout=10)
         publishers.close()
         assert wait_for(lambda: sources() == [], timeout=10)
+
+
+def test_a_service_process_ends_with_its_code_and_its_last_log_lines() -> None:
+    """``exit_process`` skips Python's finalization (where a Zenoh thread asking for the GIL aborts the
+    process) but not what the service wrote last."""
+    import subprocess
+    import sys
+
+    script = (
+        "import logging, sys\n"
+        "from services.runtime import exit_process\n"
+        "logging.basicConfig(level=logging.INFO)\n"
+        "logging.getLogger('svc').info('stopping after 1 s')\n"
+        "sys.stdout.write('buffered, not yet flushed')\n"
+        "exit_process(3)\n"
+        "print('never')\n"
+    )
+    command = [sys.executable, "-c", script]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 3
+    assert "stopping after 1 s" in done.stderr
+    assert done.stdout == "buffered, not yet flushed"

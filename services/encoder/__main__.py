@@ -31,6 +31,7 @@ from services.runtime import (
     add_service_arguments,
     configure_logging,
     exit_code_of,
+    exit_process,
     service_parser,
     stop_event_on_signals,
 )
@@ -179,4 +180,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(exit_code_of(main))
+    exit_process(exit_code_of(main))

@@ -29,6 +29,7 @@ from services.runtime import (
     configure_logging,
     default_of,
     exit_code_of,
+    exit_process,
     service_parser,
     stop_event_on_signals,
 )
@@ -192,4 +193,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(exit_code_of(main))
+    exit_process(exit_code_of(main))

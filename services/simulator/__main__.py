@@ -33,6 +33,7 @@ from services.runtime import (
     announce_lead_s,
     configure_logging,
     exit_code_of,
+    exit_process,
     periodic_summary_level,
     service_parser,
     stop_event_on_signals,
@@ -222,4 +223,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(exit_code_of(main))
+    exit_process(exit_code_of(main))

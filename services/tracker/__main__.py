@@ -20,6 +20,7 @@ from services.runtime import (
     ServiceRuntime,
     add_service_arguments,
     configure_logging,
+    exit_process,
     service_parser,
     stop_event_on_signals,
 )
@@ -78,4 +79,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    exit_process(main())
