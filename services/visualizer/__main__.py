@@ -34,6 +34,7 @@ from services.runtime import (
     ServiceRuntime,
     configure_logging,
     exit_code_of,
+    exit_process,
     service_parser,
     stop_event_on_signals,
 )
@@ -207,4 +208,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(exit_code_of(main))
+    exit_process(exit_code_of(main))
