@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.inference import OnnxDetector
+from common.inference import OnnxDetector, model_facts
 from common.model_spec import MODELS_DIR, SHIPPED_DIR, model_stem
 from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, dataset_samples, evaluate, fresh_samples
 
@@ -49,7 +49,7 @@ class ShippedModel:
         return {
             "people": self.gate.get("people", 0),
             "clutter": self.gate.get("clutter", 0),
-            "raster_yaw_deg": OnnxDetector(self.file("fp32")).raster_yaw_deg,
+            "raster_yaw_deg": model_facts(self.file("fp32")).raster_yaw_deg,
         }
 
 

@@ -13,7 +13,7 @@ import logging
 import math
 import os
 import platform
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -652,17 +652,24 @@ def _randomisation_flags(cfg: Mapping[str, Any]) -> str:
         flags.append(f"--clutter {cfg['clutter']}")
     if cfg.get("invalid", "sentinel") != "sentinel":
         flags.append(f"--invalid {cfg['invalid']}")
-    # Options the paper's set does not use: its summary.json records each only if it is set.
-    for key, flag in (
-        ("people", "--people"),
-        ("sensor", "--sensor"),
-        ("raster_yaw_deg", "--raster-yaw"),
-        ("open_space", "--open-space"),
-        ("door_watch", "--door-watch"),
-    ):
-        if cfg.get(key):
-            flags.append(f"{flag} {cfg[key]:g}" if isinstance(cfg[key], float) else f"{flag} {cfg[key]}")
+    flags += [_flag(flag, cfg[key]) for key, flag, _ in _SET_OPTIONS if cfg.get(key)]
     return "".join(f" {flag}" for flag in flags)
+
+
+def _flag(flag: str, value: Any) -> str:
+    """``flag value`` as a command line reads it: a float without trailing zeros (``180``, ``0.5``)."""
+    return f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}"
+
+
+# Data set options the paper's set does not use (its summary.json records each only if it is set):
+# the key, the ``triscan dataset`` flag and what the card's data line says of it (None: nothing).
+_SET_OPTIONS: tuple[tuple[str, str, Callable[[Any], str] | None], ...] = (
+    ("people", "--people", lambda _: "people walking and standing in each motion, labelled `person`"),
+    ("sensor", "--sensor", lambda _: "a LiDAR profile per scenario (`--sensor`)"),
+    ("raster_yaw_deg", "--raster-yaw", lambda yaw: f"the raster turned {yaw:g}°"),
+    ("open_space", "--open-space", lambda _: "a share of the rooms open spaces"),
+    ("door_watch", "--door-watch", None),
+)
 
 
 def _data_section(data: DatasetSummary) -> list[str]:
@@ -681,16 +688,7 @@ def _data_section(data: DatasetSummary) -> list[str]:
             if randomised
             else ""
         )
-        + "".join(
-            f"{what}, "
-            for key, what in (
-                ("people", "people walking and standing in each motion, labelled `person`"),
-                ("sensor", "a LiDAR profile per scenario (`--sensor`)"),
-                ("raster_yaw_deg", f"the raster turned {cfg.get('raster_yaw_deg', 0):g}°"),
-                ("open_space", "a share of the rooms open spaces"),
-            )
-            if cfg.get(key)
-        )
+        + "".join(f"{describe(cfg[key])}, " for key, _, describe in _SET_OPTIONS if describe and cfg.get(key))
         + f"padding **{cfg['padding']}**, "
         f"scenarios train/val/test {data.scenarios['train']}/{data.scenarios['val']}/"
         f"{data.scenarios['test']}, samples {data.samples['train']}/{data.samples['val']}/"
@@ -768,11 +766,8 @@ def _gate_section(card: ModelCard, gate_metrics: Evaluation) -> list[str]:
 
 def _worlds_flags(worlds: Mapping[str, Any]) -> str:
     """The ``triscan eval --fresh`` flags for what a grid's worlds hold besides the paper's room."""
-    return "".join(
-        f" --{key.replace('_', '-')} {worlds[key]:g}"
-        for key in ("clutter", "people", "open_space")
-        if worlds.get(key)
-    )
+    keys = ("clutter", "people", "open_space")
+    return "".join(f" {_flag('--' + key.replace('_', '-'), worlds[key])}" for key in keys if worlds.get(key))
 
 
 def _conditions_section(card: ModelCard, path: Path) -> list[str]:
