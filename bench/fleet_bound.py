@@ -233,6 +233,9 @@ def main(argv: list[str] | None = None) -> int:
         help="detector processes (default: the detector's own); 1/2/4 give the scaling table",
     )
     parser.add_argument(
+        "--gather-ms", type=float, default=None, help="detector --gather-ms (default: the detector's own)"
+    )
+    parser.add_argument(
         "--fractions", default=",".join(map(str, FRACTIONS)), help="ladder steps as shares of the bound"
     )
     parser.add_argument("--out", type=Path, default=Path("bench/results/fleet_bound.json"))
@@ -268,6 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                 *(("--encode-on-robots",) if args.encode_on_robots else ()),
                 *(("--from-scans",) if args.from_scans else ()),
                 *(("--detectors", str(args.detectors)) if args.detectors else ()),
+                *(("--gather-ms", str(args.gather_ms)) if args.gather_ms is not None else ()),
             ]
         )  # fmt: skip
         fleet = json.loads(fleet_json.read_text())

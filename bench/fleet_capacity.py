@@ -231,6 +231,7 @@ def _start_services(
         *tuning,
         *(("--detectors", str(args.detectors)) if args.detectors else ()),
         *(("--no-spin",) if args.no_spin else ()),
+        *(("--gather-ms", str(args.gather_ms)) if args.gather_ms is not None else ()),
         *(("--model", str(args.model)) if args.model else ()),
         *(("--from-scans",) if args.from_scans else ()),
     )
@@ -553,6 +554,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--no-spin", action="store_true", help="the detector's ONNX Runtime threads sleep instead of spinning"
+    )
+    parser.add_argument(
+        "--gather-ms", type=float, default=None, help="detector --gather-ms (default: the detector's own)"
     )
     parser.add_argument(
         "--from-scans",

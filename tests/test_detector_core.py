@@ -98,6 +98,59 @@ def test_mailbox_take_many_takes_what_is_ready_without_waiting_to_fill_the_batch
         box.take_many(0, 0)
 
 
+def served_once(box: LatestPerRobot[int], robots: str) -> None:
+    """Each of ``robots`` sends a frame that is taken and done: the mailbox has heard from them."""
+    for robot in robots:
+        box.put(robot, 1)
+    assert box.take_many(8, 0) == [(robot, 1) for robot in robots]  # every robot it knows is ready
+    for robot in robots:
+        box.release(robot)
+
+
+def test_mailbox_gathering_waits_for_the_robots_it_has_heard_from() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=30.0)
+    served_once(box, "abc")
+    box.put("a", 2)
+    result: list[object] = []
+    taker = threading.Thread(target=lambda: result.append(box.take_many(8, 30)))
+    taker.start()
+    # b and c come only once the taker holds a and waits for them: without gathering it would have
+    # returned a alone.
+    assert wait_for(lambda: box._cond._waiters, 5)  # type: ignore[attr-defined]
+    box.put("b", 2)
+    box.put("c", 2)
+    taker.join(10)  # long before the 30 s the oldest frame may wait
+    assert not taker.is_alive() and result == [[("a", 2), ("b", 2), ("c", 2)]]
+
+
+def test_mailbox_gathering_waits_no_longer_than_the_oldest_frame_may() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=0.2)
+    served_once(box, "ab")
+    box.put("a", 2)  # b stays silent
+    started = time.monotonic()
+    assert box.take_many(8, 5) == [("a", 2)]
+    assert time.monotonic() - started >= 0.15  # it waited for b, then served a alone
+
+
+def test_mailbox_gathering_never_holds_a_lone_robot_back() -> None:
+    now = [0.0]
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=30.0, clock=lambda: now[0])
+    served_once(box, "g")
+    now[0] = 5.0  # g has been silent for longer than a gathering worker waits for a robot
+    box.put("a", 1)
+    started = time.monotonic()
+    assert box.take_many(8, 30) == [("a", 1)]
+    assert time.monotonic() - started < 10  # far below the 30 s it would wait for g
+    with pytest.raises(ValueError, match="gather_s"):
+        LatestPerRobot(gather_s=-1.0)
+
+
+def test_mailbox_gathering_times_out_empty_when_its_robots_fall_silent() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=0.05)
+    served_once(box, "ab")
+    assert box.take_many(8, 0.05) == []  # heard from, nothing waiting: an idle worker's timeout
+
+
 def test_mailbox_close_wakes_a_waiting_taker() -> None:
     box: LatestPerRobot[int] = LatestPerRobot()
     result: list[object] = []
@@ -319,3 +372,15 @@ def test_a_model_with_a_raster_yaw_gets_tensors_turned_by_it_and_refuses_others(
     assert pipeline.core.counters.rejected == {"raster_yaw_mismatch": 1}
     ours = StackedTensor(**{**plain.model_dump(), "raster_yaw_deg": 180.0})
     assert pipeline.core.accept(ours) is ours
+
+
+@pytest.mark.parametrize("value", ["-1", "nan"])
+def test_detector_refuses_a_negative_gather_before_loading_anything(
+    value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from services.detector.__main__ import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--gather-ms", value, "--model", "no-such-model.onnx"])
+    assert exit_info.value.code == 2
+    assert f"--gather-ms must be >= 0, got {float(value)}" in capsys.readouterr().err

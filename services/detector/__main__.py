@@ -38,6 +38,7 @@ from services.detector.batch_cap import (
     timed_batch_cap,
 )
 from services.detector.core import (
+    DEFAULT_GATHER_MS,
     DetectorCore,
     InferencePipeline,
     default_intra_op_threads,
@@ -72,6 +73,7 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     batch: int = 1,
+    gather_ms: float = 0.0,
     siblings: Siblings | None = None,
     processes: int = 1,
 ) -> DetectorCore:
@@ -109,6 +111,7 @@ def run(
             from_scans=from_scans,
             forget_after_s=forget_after_s,
             owns=subscriptions.owns(shards.view) if from_scans else shards.owns,
+            gather_ms=gather_ms,
         )
 
         def housekeeping() -> dict[str, object]:
@@ -171,6 +174,12 @@ def main(argv: list[str] | None = None) -> int:
         f"whose call takes at most {AUTO_BATCH_CALL_BUDGET_MS:g} ms on this machine; 1 with a fixed model)",
     )
     parser.add_argument(
+        "--gather-ms",
+        type=float,
+        default=DEFAULT_GATHER_MS,
+        help="longest a tensor waits for other robots' to fill a batch (0: take what is ready)",
+    )
+    parser.add_argument(
         "--from-scans", action="store_true", help="encode scans here too (encoder + detector)"
     )
     parser.add_argument(
@@ -195,6 +204,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{flag} must be >= 1, got {value}")
     processes = args.detectors or default_processes()
     workers = args.workers or default_workers(processes=processes)
+    if not args.gather_ms >= 0:
+        parser.error(f"--gather-ms must be >= 0, got {args.gather_ms}")
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
     threads = args.threads or default_intra_op_threads(workers, args.from_scans, processes=processes)
@@ -240,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
             forget_after_s=args.forget_after,
             duration_s=args.duration,
             batch=batch,
+            gather_ms=args.gather_ms,
             siblings=siblings,
             processes=processes,
         )

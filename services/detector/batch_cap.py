@@ -1,7 +1,8 @@
 """How many robots' tensors the detector runs in one model call (``--batch``), and which model file.
 
-A worker never waits to fill a batch, so a lone robot is served at batch 1 (same outputs, same
-speed); several waiting robots share one model call, which on a CPU costs less per frame. Without
+A lone robot is served at batch 1 (same outputs, same speed); several waiting robots share one model
+call, which on a CPU costs less per frame, and a worker waits a few milliseconds for the robots it
+serves to fill its batch (``--gather-ms``, :class:`services.detector.core.LatestPerRobot`). Without
 ``--batch`` the detector picks its cap on the machine it runs on, by timing its model at start
 (:func:`timed_batch_cap`): a heavier network, or a slower computer, gets a smaller cap without a
 tuning table. The launcher and the benches resolve the model and cap the same way

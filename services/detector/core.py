@@ -57,6 +57,12 @@ class Pending(NamedTuple):
     arrival: Arrival
 
 
+DEFAULT_GATHER_MS = 10.0
+"""How long a tensor may wait for other robots' to fill its batch (``--gather-ms``). A model call on
+several frames costs less per frame, and on a many-core fleet server each process's lone inference
+thread is what its busiest shard runs out of first; 10 ms of the 100 ms scan period lets the batches
+fill (``bench.fleet_bound`` compares). A robot served alone never waits."""
+GATHER_WINDOW_S = 1.0  # robots heard from this recently may send a frame a gathering worker waits for
 TAKE_TIMEOUT_S = 0.5  # how often an idle inference thread looks at the stop flag
 # Inference threads are named <prefix><N> in the OS (``name_os_thread``), which the benches read.
 INFERENCE_THREAD_PREFIX = "inference-"
@@ -70,11 +76,17 @@ class LatestPerRobot(Generic[T]):
     inference workers one robot's detections still come out in order.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, gather_s: float = 0.0, clock: Callable[[], float] = time.monotonic) -> None:
+        if not gather_s >= 0:
+            raise ValueError(f"gather_s must be >= 0, got {gather_s}")
+        self.gather_s = gather_s
         self._slots: OrderedDict[str, T] = OrderedDict()
+        self._put_at: dict[str, float] = {}  # when each waiting item arrived (gathering's deadline)
+        self._heard_at: dict[str, float] = {}  # each robot's last put, for how many to gather
         self._busy: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
+        self._clock = clock
         self.dropped = 0
 
     def __len__(self) -> int:
@@ -83,12 +95,17 @@ class LatestPerRobot(Generic[T]):
 
     def put(self, robot_id: str, item: T) -> bool:
         """Store ``item`` as the robot's newest; True when it replaced one never taken (dropped)."""
+        now = self._clock()
         with self._cond:
             replaced = robot_id in self._slots
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
                 self.dropped += 1
-            self._cond.notify()
+            else:
+                self._put_at[robot_id] = now
+            if self.gather_s:
+                self._heard_at[robot_id] = now
+            self._cond.notify_all()  # a gathering worker waits for the batch's next item too
             return replaced
 
     def _first_ready(self) -> str | None:
@@ -102,9 +119,13 @@ class LatestPerRobot(Generic[T]):
         """Up to ``limit`` free robots' newest items, longest-waiting first; empty after ``timeout``
         or once closed.
 
-        Waits for the first item and takes whatever else is ready then: a batch is never held open
-        for more robots, so a lone robot's frame is never held back for others, and past a fleet's
-        knee the batches fill by themselves. Each robot stays busy until :meth:`release`.
+        Waits for the first item. With :attr:`gather_s` 0 it takes whatever else is ready then, so a
+        lone robot's frame is never held back and past a fleet's knee the batches fill by themselves.
+        With :attr:`gather_s` > 0 it waits, at most until the oldest waiting item is that old, for as
+        many items as robots it could still get (those heard from in the last
+        :data:`GATHER_WINDOW_S`, up to ``limit``): one model call then serves several robots for less
+        CPU per frame, and a robot alone is still served at once. Each robot stays busy until
+        :meth:`release`.
         """
         if limit < 1:
             raise ValueError(f"limit must be >= 1, got {limit}")
@@ -112,9 +133,30 @@ class LatestPerRobot(Generic[T]):
             self._cond.wait_for(lambda: self._closed or self._first_ready() is not None, timeout)
             if self._closed:
                 return []  # a timeout with nothing ready returns the empty list below
+            if self.gather_s and self._first_ready() is not None:
+                self._gather(limit, self.gather_s)
+                if self._closed:
+                    return []
             ready = self._ready()[:limit]
             self._busy.update(ready)
+            for robot_id in ready:
+                del self._put_at[robot_id]
             return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
+
+    def _gather(self, limit: int, gather_s: float) -> None:
+        """Wait (holding nothing but the condition) until ``limit`` items, or every robot that may
+        still send one, are ready, or the oldest ready item is ``gather_s`` old."""
+        now = self._clock()
+        for robot_id in [r for r, heard in self._heard_at.items() if now - heard > GATHER_WINDOW_S]:
+            del self._heard_at[robot_id]  # silent robots: no item to wait for
+        target = min(limit, len(self._heard_at) - len(self._busy))
+        ready = self._ready()
+        if len(ready) >= target:
+            return
+        deadline = min(self._put_at[robot_id] for robot_id in ready) + gather_s
+        self._cond.wait_for(
+            lambda: self._closed or len(self._ready()) >= target, max(0.0, deadline - self._clock())
+        )
 
     def release(self, robot_id: str) -> None:
         """The robot's last taken item is done: its next one may be taken."""
@@ -358,11 +400,12 @@ class InferencePipeline:
     One inference thread per detector in ``detectors`` (sessions of the same model): ONNX Runtime
     releases the GIL, so on a multi-core robot with many robots to serve, several single-threaded
     sessions in parallel beat one session spreading a batch-1 frame over all cores. Each thread takes
-    up to ``batch`` robots' waiting tensors per model call (a batch model is needed for more than 1);
-    it never waits to fill a batch, so a lone robot is served as fast as with ``batch`` 1. With
-    ``from_scans`` the samples are scans and an :class:`EncoderCore` in this process stacks them.
-    ``owns`` says whether this process serves a robot at the moment (:mod:`services.shards`): it is
-    asked when a sample arrives and again before its detections are published.
+    up to ``batch`` robots' waiting tensors per model call (a batch model is needed for more than 1),
+    waiting at most ``gather_ms`` for the robots it serves to fill it (:meth:`LatestPerRobot.take_many`;
+    a lone robot never waits). With ``from_scans`` the samples are scans and an :class:`EncoderCore`
+    in this process stacks them. ``owns`` says whether this process serves a robot at the moment
+    (:mod:`services.shards`): it is asked when a sample arrives and again before its detections are
+    published.
     """
 
     def __init__(
@@ -374,6 +417,7 @@ class InferencePipeline:
         from_scans: bool = False,
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
         owns: Callable[[str], bool] | None = None,
+        gather_ms: float = 0.0,
     ) -> None:
         if not detectors:
             raise ValueError("need at least one detector")
@@ -386,7 +430,7 @@ class InferencePipeline:
         self.batch = batch
         self._owns = owns or (lambda _robot_id: True)
         self._publish = publish
-        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot()
+        self._mailbox: LatestPerRobot[Pending] = LatestPerRobot(gather_s=gather_ms / 1000)
         self._stop = threading.Event()
         self._workers: list[threading.Thread] = []
 
