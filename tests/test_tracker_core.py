@@ -376,3 +376,60 @@ def test_a_person_who_stops_out_of_sight_keeps_their_id_while_their_track_slows(
     for bad in (-0.1, math.nan):
         with pytest.raises(ValueError, match="person coast decay must be >= 0 seconds"):
             TrackerConfig(person_coast_decay_s=bad)
+
+
+def lose_and_find(core: TrackerCore, unseen: range, back_at: tuple[float, float]) -> tuple[int, Tracks]:
+    """A person seen for 1 s at (2, 0), unseen over ``unseen``'s scans, then seen at ``back_at`` until
+    a new track is confirmed: their first id and the message that confirms the new track."""
+    for k in range(10):
+        out = core.update(message(k, [det(2.0, 0.0, "person")], pose(0, 0, 0)))
+    assert out is not None
+    (first_id,) = [t.track_id for t in out.tracks]
+    for k in unseen:
+        core.update(message(k, [], pose(0, 0, 0)))
+    k = unseen.stop
+    while True:
+        back = core.update(message(k, [det(*back_at, "person")], pose(0, 0, 0)))
+        assert back is not None
+        if any(t.state == "confirmed" for t in back.tracks):
+            return first_id, back
+        k += 1
+
+
+@pytest.mark.parametrize(
+    ("unseen", "back_at", "resumed"),
+    [
+        (range(10, 40), (2.5, 0.5), True),  # 3 s later, 0.7 m off: ended, its id taken back
+        (range(10, 16), (3.3, 0.0), True),  # 0.6 s later, 1.3 m off: still coasting, retired
+        (range(10, 40), (6.0, 0.0), False),  # 4 m off in 3 s: someone else
+        (range(10, 130), (2.0, 0.0), False),  # 12 s later: past person_resume_s
+    ],
+)
+def test_a_person_found_again_near_where_their_track_was_lost_gets_its_id_back(
+    unseen: range, back_at: tuple[float, float], resumed: bool
+) -> None:
+    core = TrackerCore()
+    first_id, back = lose_and_find(core, unseen, back_at)
+    ids = [t.track_id for t in back.tracks]
+    assert len(ids) == len(set(ids))  # a retired track is gone the scan its id is taken back
+    (confirmed,) = [t for t in back.tracks if t.state == "confirmed"]
+    assert (confirmed.track_id == first_id) is resumed
+    assert core.counters.tracks_resumed == int(resumed)
+    if resumed:  # the same track to a consumer: its age runs from the first sighting
+        assert confirmed.age_s > (unseen.stop - 1) * PERIOD_NS / 1e9
+
+
+def test_furniture_and_a_switched_off_rule_take_no_id_back() -> None:
+    first_id, back = lose_and_find(TrackerCore(TrackerConfig(person_resume_s=0.0)), range(10, 40), (2.2, 0.0))
+    assert [t.track_id for t in back.tracks if t.state == "confirmed"] != [first_id]
+    core = TrackerCore(TrackerConfig(delete_after_s=0.5, still_delete_after_s=0.5))
+    for k in range(10):
+        core.update(message(k, [det(2.0, 0.0, "chair")], pose(0, 0, 0)))
+    for k in range(10, 20):
+        core.update(message(k, [], pose(0, 0, 0)))
+    for k in range(20, 25):
+        out = core.update(message(k, [det(2.0, 0.0, "chair")], pose(0, 0, 0)))
+    assert out is not None and [t.track_id for t in out.tracks] == [2] and core.counters.tracks_resumed == 0
+    for bad in ({"person_resume_s": -1.0}, {"person_resume_speed_mps": math.nan}):
+        with pytest.raises(ValueError, match="person resume must be >= 0"):
+            TrackerConfig(**bad)  # type: ignore[arg-type]

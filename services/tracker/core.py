@@ -23,7 +23,12 @@ Method (docs/tracking.md has the reasoning and the scores):
   ``tentative_misses`` misses. With
   ``person_confirm_travel_m`` set, a person track also has to move that far to be confirmed. The class
   is the one with the most summed score over the track, the score a running mean.
-* **Ids** come from one counter per core, never reused: not for the robot, not for any robot.
+* **People found again.** A person track confirmed near where a person track was lost a moment
+  before takes that track's id back (``person_resume_s``, ``person_resume_speed_mps``): the
+  detector loses people for seconds behind furniture and each other, and to anyone following
+  someone a new id is a new person. A lost track still coasting is retired then.
+* **Ids** come from one counter per core and never pass to another object: not for the robot, not
+  for any robot.
 
 Bad input loses nothing else (counted by reason in :class:`TrackerCounters`):
 
@@ -136,6 +141,13 @@ class TrackerConfig:
     # cluster of points that looks like legs is more often a table leg or a broken-up wall than a
     # person, at the price of someone who stands the whole time they are seen.
     person_confirm_travel_m: float = 0.0
+    # A person track confirmed where a person track ended a moment before takes that track's id back: a
+    # detector loses people for seconds behind furniture and each other, and a new id each time is an
+    # id switch for every consumer that follows someone. It takes the nearest person track that ended
+    # (its last hit) within person_resume_s before the new track's first detection, no farther from
+    # the new track's start than gate_m plus person_resume_speed_mps for every second between. 0: off.
+    person_resume_s: float = 10.0
+    person_resume_speed_mps: float = 1.0
 
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
@@ -147,6 +159,11 @@ class TrackerConfig:
         travel = self.person_confirm_travel_m
         if not travel >= 0:  # NaN included
             raise ValueError(f"person confirm travel must be >= 0 metres, got {travel:g}")
+        if not (self.person_resume_s >= 0 and self.person_resume_speed_mps >= 0):
+            raise ValueError(
+                f"person resume must be >= 0 seconds and >= 0 m/s, got {self.person_resume_s:g} s and "
+                f"{self.person_resume_speed_mps:g} m/s"
+            )
 
 
 @dataclass
@@ -158,6 +175,7 @@ class TrackerCounters:
     tracks_created: int = 0
     tracks_deleted: int = 0
     tracks_forgotten: int = 0
+    tracks_resumed: int = 0  # new person tracks that took an ended one's id back (person_resume_s)
     forgotten_robots: int = 0
     duplicates: int = 0  # detections of an object a track already follows: no new track
     rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
@@ -172,6 +190,7 @@ class TrackerCounters:
             "tracks_created": self.tracks_created,
             "tracks_deleted": self.tracks_deleted,
             "tracks_forgotten": self.tracks_forgotten,
+            "tracks_resumed": self.tracks_resumed,
             "forgotten_robots": self.forgotten_robots,
             "duplicates": self.duplicates,
             "rejected": dict(self.rejected),
@@ -195,6 +214,7 @@ class _Track:
         "p_pp",
         "p_pv",
         "p_vv",
+        "retired",
         "score",
         "state",
         "track_id",
@@ -217,6 +237,7 @@ class _Track:
         self.hits, self.misses = 1, 0
         self.first_stamp_ns = self.last_hit_ns = stamp_ns
         self.state: TrackState = "tentative"
+        self.retired = False  # a new track took this one's id (``person_resume_s``): gone after this scan
 
     @property
     def class_id(self) -> int:
@@ -255,9 +276,21 @@ class _Track:
         self.last_hit_ns = stamp_ns
 
 
+@dataclass(frozen=True)
+class _Ended:
+    """A confirmed person track that ended: what a new track needs to take its id back."""
+
+    track_id: int
+    x: float
+    y: float
+    first_stamp_ns: int
+    last_hit_ns: int
+
+
 @dataclass
 class _Robot:
     tracks: list[_Track] = field(default_factory=list)
+    ended: list[_Ended] = field(default_factory=list)  # person tracks that ended lately, oldest first
     seq: int = -1
     scan_stamp_ns: int = -1
     frame: TrackFrame = "laser"
@@ -357,6 +390,7 @@ class TrackerCore:
         self.counters.tracks_deleted += len(robot.tracks)
         log.info("%s: tracks reset (%s)", robot_id, reason)
         robot.tracks = []
+        robot.ended = []  # their places are in the old frame
         robot.poses.clear()  # poses of the old odometry frame place nothing in the new one
 
     def _robot_of(self, robot_id: str) -> _Robot | None:
@@ -435,8 +469,10 @@ class TrackerCore:
         for ti, di in matches:
             track, det = robot.tracks[ti], message.detections[di]
             track.update(points[di][0], points[di][1], det, stamp, models[ti], smooth)
-            if track.state != "tentative" or self._confirms(track):
+            if track.state != "tentative":
                 track.state = "confirmed"
+            elif self._confirms(track):
+                self._confirm(robot, track)
         matched = {ti for ti, _ in matches}
         kept: list[_Track] = []
         for ti, track in enumerate(robot.tracks):
@@ -444,10 +480,13 @@ class TrackerCore:
                 track.misses += 1
                 if track.state == "confirmed":
                     track.state = "coasting"
-            if self._alive(track, stamp, models[ti] is STILL):
-                kept.append(track)
+            if track.retired or self._alive(track, stamp, models[ti] is STILL):
+                kept.append(track)  # a retired track leaves below, with those retired by new tracks
             else:
                 self.counters.tracks_deleted += 1
+                if track.state != "tentative" and CLASS_NAMES[track.class_id] == "person":
+                    robot.ended.append(_Ended(track.track_id, track.x, track.y, track.first_stamp_ns,
+                                              track.last_hit_ns))  # fmt: skip
         for di in unmatched:
             det = message.detections[di]
             if self._duplicate(points[di], det, kept):
@@ -458,7 +497,11 @@ class TrackerCore:
             self._next_id += 1
             self.counters.tracks_created += 1
             if self._confirms(kept[-1]):
-                kept[-1].state = "confirmed"
+                self._confirm(robot, kept[-1])
+        retired = [t for t in kept if t.retired]
+        if retired:
+            kept = [t for t in kept if not t.retired]
+            self.counters.tracks_deleted += len(retired)
         if len(kept) > MAX_TRACKS:  # only a flood of detections gets here: keep the established tracks
             kept.sort(key=lambda t: (t.state == "tentative", -t.hits))
             self.counters.tracks_deleted += len(kept) - MAX_TRACKS
@@ -466,6 +509,40 @@ class TrackerCore:
         robot.tracks = kept
         self.counters.published += 1
         return self._message(message, robot, pose)
+
+    def _confirm(self, robot: _Robot, track: _Track) -> None:
+        """Confirm a tentative track. A person takes back the id of the nearest person track lost a
+        moment before (``person_resume_s``): one that ended, which leaves the robot's list of ended
+        tracks, or one still coasting, which is retired: a track that coasted away from where its
+        person was found again would otherwise stand beside the new one."""
+        track.state = "confirmed"
+        horizon_ns = track.first_stamp_ns - self.config.person_resume_s * _NS_PER_S
+        robot.ended = [e for e in robot.ended if e.last_hit_ns >= horizon_ns]
+        if self.config.person_resume_s <= 0 or CLASS_NAMES[track.class_id] != "person":
+            return
+        coasting = [
+            t for t in robot.tracks
+            if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == "person"
+        ]  # fmt: skip
+        best: tuple[float, _Ended | _Track] | None = None
+        candidates: list[_Ended | _Track] = [*robot.ended, *coasting]
+        for lost in candidates:
+            gap_s = (track.first_stamp_ns - lost.last_hit_ns) / _NS_PER_S
+            if gap_s < 0:  # seen while the new track was: someone else
+                continue
+            distance = math.hypot(track.origin[0] - lost.x, track.origin[1] - lost.y)
+            reach = self.config.gate_m + self.config.person_resume_speed_mps * gap_s
+            if distance <= reach and (best is None or distance < best[0]):
+                best = (distance, lost)
+        if best is None:
+            return
+        lost = best[1]
+        if isinstance(lost, _Ended):
+            robot.ended.remove(lost)
+        else:
+            lost.retired = True
+        track.track_id, track.first_stamp_ns = lost.track_id, lost.first_stamp_ns
+        self.counters.tracks_resumed += 1
 
     def _confirms(self, track: _Track) -> bool:
         """Whether a tentative track has earned confirmation: enough hits, and a person enough travel."""
