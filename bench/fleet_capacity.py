@@ -635,6 +635,7 @@ def main(argv: list[str] | None = None) -> int:
         "batch": "detector default" if args.detector_defaults else args.batch,
         "threads": "detector default" if args.detector_defaults else args.threads,
         "detectors": args.detectors or "detector default",
+        "gather_ms": "detector default" if args.gather_ms is None else args.gather_ms,
         "from_scans": args.from_scans,
         "encode_on_robots": args.encode_on_robots,
         "model": detector_model(args).name,

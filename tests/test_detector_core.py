@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from pathlib import Path
@@ -108,7 +109,7 @@ def served_once(box: LatestPerRobot[int], robots: str) -> None:
 
 
 def test_mailbox_gathering_waits_for_the_robots_it_has_heard_from() -> None:
-    box: LatestPerRobot[int] = LatestPerRobot(gather_s=30.0)
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=30.0, clock=lambda: 0.0)  # no robot falls silent
     served_once(box, "abc")
     box.put("a", 2)
     result: list[object] = []
@@ -124,12 +125,13 @@ def test_mailbox_gathering_waits_for_the_robots_it_has_heard_from() -> None:
 
 
 def test_mailbox_gathering_waits_no_longer_than_the_oldest_frame_may() -> None:
-    box: LatestPerRobot[int] = LatestPerRobot(gather_s=0.2)
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=0.2, clock=lambda: 0.0)  # a arrives at 0 for ever
     served_once(box, "ab")
     box.put("a", 2)  # b stays silent
     started = time.monotonic()
     assert box.take_many(8, 5) == [("a", 2)]
-    assert time.monotonic() - started >= 0.15  # it waited for b, then served a alone
+    waited = time.monotonic() - started
+    assert 0.15 <= waited < 4  # it waited for b its 0.2 s, then served a alone, long before the timeout
 
 
 def test_mailbox_gathering_never_holds_a_lone_robot_back() -> None:
@@ -141,8 +143,40 @@ def test_mailbox_gathering_never_holds_a_lone_robot_back() -> None:
     started = time.monotonic()
     assert box.take_many(8, 30) == [("a", 1)]
     assert time.monotonic() - started < 10  # far below the 30 s it would wait for g
-    with pytest.raises(ValueError, match="gather_s"):
-        LatestPerRobot(gather_s=-1.0)
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="gather_s must be a finite number >= 0"):
+            LatestPerRobot(gather_s=bad)
+
+
+def test_mailbox_one_worker_gathers_and_the_others_take_what_it_leaves() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=30.0, clock=lambda: 0.0)
+    served_once(box, "abc")
+    box.put("a", 2)
+    results: dict[str, list[tuple[str, int]]] = {}
+    first = threading.Thread(target=lambda: results.setdefault("first", box.take_many(2, 30)))
+    first.start()
+    assert wait_for(lambda: box._gathering, 5)  # type: ignore[attr-defined]
+    second = threading.Thread(target=lambda: results.setdefault("second", box.take_many(2, 30)))
+    second.start()
+    assert wait_for(lambda: len(box._cond._waiters) == 2, 5)  # type: ignore[attr-defined]
+    box.put("b", 2)  # the gatherer's batch of 2 is full; c is left for the other worker
+    box.put("c", 2)
+    first.join(10)
+    second.join(10)
+    assert results == {"first": [("a", 2), ("b", 2)], "second": [("c", 2)]}
+
+
+def test_mailbox_close_ends_a_gathering_take() -> None:
+    box: LatestPerRobot[int] = LatestPerRobot(gather_s=30.0, clock=lambda: 0.0)
+    served_once(box, "ab")
+    box.put("a", 2)
+    result: list[object] = []
+    taker = threading.Thread(target=lambda: result.append(box.take_many(8, 30)))
+    taker.start()
+    assert wait_for(lambda: box._gathering, 5)  # type: ignore[attr-defined]
+    box.close()
+    taker.join(10)
+    assert not taker.is_alive() and result == [[]]
 
 
 def test_mailbox_gathering_times_out_empty_when_its_robots_fall_silent() -> None:
@@ -374,8 +408,8 @@ def test_a_model_with_a_raster_yaw_gets_tensors_turned_by_it_and_refuses_others(
     assert pipeline.core.accept(ours) is ours
 
 
-@pytest.mark.parametrize("value", ["-1", "nan"])
-def test_detector_refuses_a_negative_gather_before_loading_anything(
+@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+def test_detector_refuses_a_gather_that_is_no_finite_wait_before_loading_anything(
     value: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from services.detector.__main__ import main
@@ -383,4 +417,4 @@ def test_detector_refuses_a_negative_gather_before_loading_anything(
     with pytest.raises(SystemExit) as exit_info:
         main(["--gather-ms", value, "--model", "no-such-model.onnx"])
     assert exit_info.value.code == 2
-    assert f"--gather-ms must be >= 0, got {float(value)}" in capsys.readouterr().err
+    assert f"--gather-ms must be a finite number >= 0, got {float(value)}" in capsys.readouterr().err

@@ -18,6 +18,7 @@ robots that announce nothing (a user's driver, a bridge).
 from __future__ import annotations
 
 import logging
+import math
 import subprocess
 import sys
 import threading
@@ -73,7 +74,7 @@ def run(
     forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     duration_s: float = 0.0,
     batch: int = 1,
-    gather_ms: float = 0.0,
+    gather_ms: float = DEFAULT_GATHER_MS,
     siblings: Siblings | None = None,
     processes: int = 1,
 ) -> DetectorCore:
@@ -204,8 +205,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{flag} must be >= 1, got {value}")
     processes = args.detectors or default_processes()
     workers = args.workers or default_workers(processes=processes)
-    if not args.gather_ms >= 0:
-        parser.error(f"--gather-ms must be >= 0, got {args.gather_ms}")
+    if not (args.gather_ms >= 0 and math.isfinite(args.gather_ms)):
+        parser.error(f"--gather-ms must be a finite number >= 0, got {args.gather_ms}")
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")  # before loading any model
     threads = args.threads or default_intra_op_threads(workers, args.from_scans, processes=processes)

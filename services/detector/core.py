@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import math
 import os
 import sys
 import threading
@@ -77,8 +78,8 @@ class LatestPerRobot(Generic[T]):
     """
 
     def __init__(self, gather_s: float = 0.0, clock: Callable[[], float] = time.monotonic) -> None:
-        if not gather_s >= 0:
-            raise ValueError(f"gather_s must be >= 0, got {gather_s}")
+        if not (gather_s >= 0 and math.isfinite(gather_s)):
+            raise ValueError(f"gather_s must be a finite number >= 0, got {gather_s}")
         self.gather_s = gather_s
         self._slots: OrderedDict[str, T] = OrderedDict()
         self._put_at: dict[str, float] = {}  # when each waiting item arrived (gathering's deadline)
@@ -86,6 +87,7 @@ class LatestPerRobot(Generic[T]):
         self._busy: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
+        self._gathering = False  # one worker gathers at a time: two would wait for the same items
         self._clock = clock
         self.dropped = 0
 
@@ -95,8 +97,8 @@ class LatestPerRobot(Generic[T]):
 
     def put(self, robot_id: str, item: T) -> bool:
         """Store ``item`` as the robot's newest; True when it replaced one never taken (dropped)."""
-        now = self._clock()
         with self._cond:
+            now = self._clock()
             replaced = robot_id in self._slots
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
@@ -105,7 +107,9 @@ class LatestPerRobot(Generic[T]):
                 self._put_at[robot_id] = now
             if self.gather_s:
                 self._heard_at[robot_id] = now
-            self._cond.notify_all()  # a gathering worker waits for the batch's next item too
+                self._cond.notify_all()  # a gathering worker waits for the batch's next item too
+            else:
+                self._cond.notify()
             return replaced
 
     def _first_ready(self) -> str | None:
@@ -124,17 +128,26 @@ class LatestPerRobot(Generic[T]):
         With :attr:`gather_s` > 0 it waits, at most until the oldest waiting item is that old, for as
         many items as robots it could still get (those heard from in the last
         :data:`GATHER_WINDOW_S`, up to ``limit``): one model call then serves several robots for less
-        CPU per frame, and a robot alone is still served at once. Each robot stays busy until
-        :meth:`release`.
+        CPU per frame, and a robot alone is still served at once. A robot that has just gone silent
+        still counts for that window, so takes wait the full ``gather_s`` until it drops out. One
+        worker gathers at a time; the others wait until it has taken its batch. Each robot stays busy
+        until :meth:`release`.
         """
         if limit < 1:
             raise ValueError(f"limit must be >= 1, got {limit}")
         with self._cond:
-            self._cond.wait_for(lambda: self._closed or self._first_ready() is not None, timeout)
-            if self._closed:
-                return []  # a timeout with nothing ready returns the empty list below
-            if self.gather_s and self._first_ready() is not None:
-                self._gather(limit, self.gather_s)
+            self._cond.wait_for(
+                lambda: self._closed or (not self._gathering and self._first_ready() is not None), timeout
+            )
+            if self._closed or self._gathering or self._first_ready() is None:
+                return []  # closed, or the timeout passed with nothing this worker may take
+            if self.gather_s:
+                self._gathering = True
+                try:
+                    self._gather(limit, self.gather_s)
+                finally:
+                    self._gathering = False
+                    self._cond.notify_all()  # the other workers may take what is left
                 if self._closed:
                     return []
             ready = self._ready()[:limit]
@@ -144,8 +157,9 @@ class LatestPerRobot(Generic[T]):
             return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
 
     def _gather(self, limit: int, gather_s: float) -> None:
-        """Wait (holding nothing but the condition) until ``limit`` items, or every robot that may
-        still send one, are ready, or the oldest ready item is ``gather_s`` old."""
+        """Wait until ``limit`` items, or every robot that may still send one, are ready, or the
+        oldest ready item is ``gather_s`` old (the caller holds the condition's lock; waiting
+        releases it)."""
         now = self._clock()
         for robot_id in [r for r, heard in self._heard_at.items() if now - heard > GATHER_WINDOW_S]:
             del self._heard_at[robot_id]  # silent robots: no item to wait for
@@ -417,7 +431,7 @@ class InferencePipeline:
         from_scans: bool = False,
         forget_after_s: float = DEFAULT_FORGET_AFTER_S,
         owns: Callable[[str], bool] | None = None,
-        gather_ms: float = 0.0,
+        gather_ms: float = DEFAULT_GATHER_MS,
     ) -> None:
         if not detectors:
             raise ValueError("need at least one detector")
