@@ -66,6 +66,7 @@ from services.runtime import (
 )
 from services.simulator.defaults import ROBOTS, SIM_PEOPLE, SIM_SEED
 from services.simulator.sensors import DEFAULT_PROFILE, check_sensor
+from services.tracker import given_rules, rule_flags
 
 log = logging.getLogger(__name__)
 
@@ -97,8 +98,9 @@ class UpConfig:
     batch: int | None = None
     # The detector's --detectors (None: one process per core, services.detector.core.default_processes).
     detectors: int | None = None
-    # The tracker's --person-confirm-travel (None: its default, off; services.tracker.core).
+    # The tracker's --person-confirm-travel and --person-resume (None: its defaults, services.tracker.core).
     person_confirm_travel_m: float | None = None
+    person_resume_s: float | None = None
     seed: int = SIM_SEED
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
@@ -122,12 +124,19 @@ class UpConfig:
             raise ValueError(f"--max-restarts must be >= 0, got {self.max_restarts}")
         if self.batch is not None and self.batch < 1:
             raise ValueError(f"--batch must be >= 1, got {self.batch}")
-        if self.person_confirm_travel_m is not None:
+        if self.tracker_rules:
             from services.tracker.core import TrackerConfig
 
-            TrackerConfig(person_confirm_travel_m=self.person_confirm_travel_m)  # its ValueError names it
+            TrackerConfig(**self.tracker_rules)  # type: ignore[arg-type]  # its ValueError names the rule
         if self.snapshot_dir is not None and self.replay is not None:
             raise ValueError("--snapshot draws the simulator's worlds and truth: it cannot go with --replay")
+
+    @property
+    def tracker_rules(self) -> dict[str, float]:
+        """The tracker rules given (:func:`services.tracker.given_rules`)."""
+        return given_rules(
+            person_confirm_travel_m=self.person_confirm_travel_m, person_resume_s=self.person_resume_s
+        )
 
     @property
     def services(self) -> tuple[str, ...]:
@@ -214,11 +223,7 @@ def service_commands(
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
             *(("--detectors", str(config.detectors)) if config.detectors is not None else ()),
         ],
-        "tracker": (
-            ["--person-confirm-travel", repr(float(config.person_confirm_travel_m))]
-            if config.person_confirm_travel_m is not None
-            else []
-        ),
+        "tracker": rule_flags(config.tracker_rules),
         "visualizer": sink,
     }
     commands = {}

@@ -12,6 +12,7 @@ from bench.tracking import detection_at, main
 from common.keys import DETECTIONS, TRUTH
 from common.messages import Detections, GroundTruth, StageTimings, TruthObject, encode_message
 from common.model_spec import CLASS_NAMES
+from services.tracker.core import TrackerConfig
 
 PERSON = CLASS_NAMES.index("person")
 MS = 1_000_000
@@ -51,5 +52,8 @@ def test_offline_takes_the_trackers_travel_rule(tmp_path: Path) -> None:
     assert main(["offline", str(recorded), "--person-confirm-travel", "0.5", "--out", str(out)]) == 0
     travel = json.loads(out.read_text())
     assert travel["config"]["person_confirm_travel_m"] == 0.5
+    assert travel["config"]["person_resume_s"] == TrackerConfig().person_resume_s  # the other rule unset
+    assert main(["offline", str(recorded), "--person-resume", "0", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["config"]["person_resume_s"] == 0.0
     assert travel["people"]["total"]["matches"] == 0  # a person who never moves is never confirmed
     assert travel["people"]["total"]["misses"] == plain["people"]["total"]["targets"]

@@ -109,10 +109,15 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     assert flag_values(default, "--person-confirm-travel") == []  # the tracker's default: off
     travel = service_commands(UpConfig(viewer="none", person_confirm_travel_m=0.5), ports, None)["tracker"]
     assert flag_values(travel, "--person-confirm-travel") == ["0.5"]
+    assert flag_values(default, "--person-resume") == []  # the tracker's default
+    resume = service_commands(UpConfig(viewer="none", person_resume_s=0.0), ports, None)["tracker"]
+    assert flag_values(resume, "--person-resume") == ["0.0"]
     with pytest.raises(ValueError, match="person confirm travel must be >= 0 metres, got -1"):
         UpConfig(person_confirm_travel_m=-1.0)
     assert cli_main(["up", "--person-confirm-travel", "-1", "--duration", "1"]) == 2  # before any start
     assert "person confirm travel must be >= 0 metres, got -1" in caplog.text
+    assert cli_main(["up", "--person-resume", "nan", "--duration", "1"]) == 2
+    assert "person resume must be finite and >= 0" in caplog.text
 
 
 def test_a_replay_replaces_the_simulator_and_gets_its_flags(tmp_path: Path) -> None:

@@ -419,9 +419,17 @@ def test_a_person_found_again_near_where_their_track_was_lost_gets_its_id_back(
         assert confirmed.age_s > (unseen.stop - 1) * PERIOD_NS / 1e9
 
 
-def test_furniture_and_a_switched_off_rule_take_no_id_back() -> None:
+def test_a_person_seen_beside_the_lost_one_and_a_switched_off_rule_take_no_id_back() -> None:
     first_id, back = lose_and_find(TrackerCore(TrackerConfig(person_resume_s=0.0)), range(10, 40), (2.2, 0.0))
     assert [t.track_id for t in back.tracks if t.state == "confirmed"] != [first_id]
+    core = TrackerCore()  # A at (2, 0); in scan 10 someone else at (2.7, 0) too, then only they are seen
+    for k in range(10):
+        core.update(message(k, [det(2.0, 0.0, "person")], pose(0, 0, 0)))
+    core.update(message(10, [det(2.0, 0.0, "person"), det(2.7, 0.0, "person")], pose(0, 0, 0)))
+    for k in range(11, 14):
+        out = core.update(message(k, [det(2.7, 0.0, "person")], pose(0, 0, 0)))
+    assert out is not None and core.counters.tracks_resumed == 0
+    assert sorted(t.track_id for t in out.tracks) == [1, 2]  # A coasting beside the newcomer
     core = TrackerCore(TrackerConfig(delete_after_s=0.5, still_delete_after_s=0.5))
     for k in range(10):
         core.update(message(k, [det(2.0, 0.0, "chair")], pose(0, 0, 0)))
@@ -430,6 +438,35 @@ def test_furniture_and_a_switched_off_rule_take_no_id_back() -> None:
     for k in range(20, 25):
         out = core.update(message(k, [det(2.0, 0.0, "chair")], pose(0, 0, 0)))
     assert out is not None and [t.track_id for t in out.tracks] == [2] and core.counters.tracks_resumed == 0
-    for bad in ({"person_resume_s": -1.0}, {"person_resume_speed_mps": math.nan}):
-        with pytest.raises(ValueError, match="person resume must be >= 0"):
-            TrackerConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_furniture_found_where_a_person_was_lost_takes_no_id() -> None:
+    core = TrackerCore()
+    for k in range(10):
+        core.update(message(k, [det(2.0, 0.0, "person"), det(0.0, 2.0, "box")], pose(0, 0, 0)))
+    for k in range(10, 40):  # both gone for 3 s: the person's track ends, the box's is kept, hidden
+        core.update(message(k, [], pose(0, 0, 0)))
+    for k in range(40, 45):  # a box where the person was
+        out = core.update(message(k, [det(2.0, 0.0, "box")], pose(0, 0, 0)))
+    assert out is not None and core.counters.tracks_resumed == 0
+    assert [t.track_id for t in out.tracks] == [3]
+
+
+def test_with_one_hit_to_confirm_two_newcomers_never_share_a_lost_persons_id() -> None:
+    core = TrackerCore(TrackerConfig(confirm_hits=1, delete_after_s=0.5))
+    for k in range(10):
+        core.update(message(k, [det(2.0, 0.0, "person")], pose(0, 0, 0)))
+    for k in range(10, 15):
+        core.update(message(k, [], pose(0, 0, 0)))
+    out = core.update(message(15, [det(3.0, 0.0, "person"), det(2.0, 1.0, "person")], pose(0, 0, 0)))
+    assert out is not None
+    ids = [t.track_id for t in out.tracks]
+    assert len(ids) == 2 and len(set(ids)) == 2 and core.counters.tracks_resumed == 1
+
+
+@pytest.mark.parametrize(
+    "bad", [{"person_resume_s": -1.0}, {"person_resume_speed_mps": math.nan}, {"person_resume_s": math.inf}]
+)
+def test_a_person_resume_rule_that_is_no_finite_number_is_refused(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match="person resume must be finite and >= 0"):
+        TrackerConfig(**bad)  # type: ignore[arg-type]

@@ -151,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
         batch=args.batch,
         detectors=args.detectors,
         person_confirm_travel_m=args.person_confirm_travel,
+        person_resume_s=args.person_resume,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,

@@ -22,12 +22,38 @@ def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
         "still look-alikes (table legs, broken-up walls) and people who stand all the time they are seen "
         "(default: off; docs/tracking.md has both effects measured)",
     )  # fmt: skip
+    parser.add_argument(
+        "--person-resume", type=float, default=None, metavar="S",
+        help="a person found again within S seconds near where their track was lost takes its id back "
+        "(default: the tracker's, services.tracker.core.TrackerConfig; 0: off)",
+    )  # fmt: skip
+
+
+RULE_FLAGS: dict[str, str] = {
+    "person_confirm_travel_m": "--person-confirm-travel",
+    "person_resume_s": "--person-resume",
+}
+"""The :class:`~services.tracker.core.TrackerConfig` fields a user may set, and their flags."""
+
+
+def given_rules(**values: float | None) -> dict[str, float]:
+    """The rules of :data:`RULE_FLAGS` that were given (None: the tracker's default), by field."""
+    unknown = set(values) - set(RULE_FLAGS)
+    if unknown:
+        raise ValueError(f"not a tracker rule: {sorted(unknown)}")
+    return {field: value for field, value in values.items() if value is not None}
+
+
+def rule_flags(rules: dict[str, float]) -> list[str]:
+    """The tracker's command-line flags for ``rules`` (:func:`given_rules`)."""
+    return [arg for field, value in rules.items() for arg in (RULE_FLAGS[field], repr(float(value)))]
 
 
 def tracker_config(args: argparse.Namespace) -> TrackerConfig:
     """The tracker rules of the arguments :func:`add_tracker_arguments` added (unset: the defaults)."""
     from services.tracker.core import TrackerConfig
 
-    if args.person_confirm_travel is None:
-        return TrackerConfig()
-    return TrackerConfig(person_confirm_travel_m=args.person_confirm_travel)
+    rules = given_rules(
+        person_confirm_travel_m=args.person_confirm_travel, person_resume_s=args.person_resume
+    )
+    return TrackerConfig(**rules)  # type: ignore[arg-type]  # each rule is a float field

@@ -27,8 +27,8 @@ Method (docs/tracking.md has the reasoning and the scores):
   before takes that track's id back (``person_resume_s``, ``person_resume_speed_mps``): the
   detector loses people for seconds behind furniture and each other, and to anyone following
   someone a new id is a new person. A lost track still coasting is retired then.
-* **Ids** come from one counter per core and never pass to another object: not for the robot, not
-  for any robot.
+* **Ids** come from one counter per core. An id stays with the object it was given to (a person
+  found again may take theirs back), never another one: not of the robot, not of any robot.
 
 Bad input loses nothing else (counted by reason in :class:`TrackerCounters`):
 
@@ -141,11 +141,12 @@ class TrackerConfig:
     # cluster of points that looks like legs is more often a table leg or a broken-up wall than a
     # person, at the price of someone who stands the whole time they are seen.
     person_confirm_travel_m: float = 0.0
-    # A person track confirmed where a person track ended a moment before takes that track's id back: a
-    # detector loses people for seconds behind furniture and each other, and a new id each time is an
-    # id switch for every consumer that follows someone. It takes the nearest person track that ended
-    # (its last hit) within person_resume_s before the new track's first detection, no farther from
-    # the new track's start than gate_m plus person_resume_speed_mps for every second between. 0: off.
+    # A person track confirmed where a person track was lost a moment before takes that track's id
+    # back: a detector loses people for seconds behind furniture and each other, and a new id each time
+    # is an id switch for every consumer that follows someone. It takes the nearest person track last
+    # hit within person_resume_s before the new track's first detection, whose last filtered position
+    # is no farther from the new track's start than gate_m plus person_resume_speed_mps for every
+    # second between. 0: off.
     person_resume_s: float = 10.0
     person_resume_speed_mps: float = 1.0
 
@@ -159,10 +160,11 @@ class TrackerConfig:
         travel = self.person_confirm_travel_m
         if not travel >= 0:  # NaN included
             raise ValueError(f"person confirm travel must be >= 0 metres, got {travel:g}")
-        if not (self.person_resume_s >= 0 and self.person_resume_speed_mps >= 0):
+        resume = (self.person_resume_s, self.person_resume_speed_mps)
+        if not all(value >= 0 and math.isfinite(value) for value in resume):
             raise ValueError(
-                f"person resume must be >= 0 seconds and >= 0 m/s, got {self.person_resume_s:g} s and "
-                f"{self.person_resume_speed_mps:g} m/s"
+                f"person resume must be finite and >= 0 seconds and m/s, got {resume[0]:g} s and "
+                f"{resume[1]:g} m/s"
             )
 
 
@@ -415,7 +417,7 @@ class TrackerCore:
             return robot.odom if robot.frame == "odom" else None
         last = robot.odom
         if robot.frame == "laser":
-            if robot.tracks:
+            if robot.tracks or robot.ended:
                 self._reset(robot, robot_id, "frame_change")
         elif last is not None and last.frame_id != odom.frame_id:
             self._reset(robot, robot_id, "odom_reset")
@@ -472,8 +474,10 @@ class TrackerCore:
             if track.state != "tentative":
                 track.state = "confirmed"
             elif self._confirms(track):
-                self._confirm(robot, track)
+                self._confirm(robot, track, robot.tracks)
         matched = {ti for ti, _ in matches}
+        resume_ns = self.config.person_resume_s * _NS_PER_S
+        robot.ended = [e for e in robot.ended if stamp - e.last_hit_ns <= resume_ns]
         kept: list[_Track] = []
         for ti, track in enumerate(robot.tracks):
             if ti not in matched:
@@ -484,7 +488,7 @@ class TrackerCore:
                 kept.append(track)  # a retired track leaves below, with those retired by new tracks
             else:
                 self.counters.tracks_deleted += 1
-                if track.state != "tentative" and CLASS_NAMES[track.class_id] == "person":
+                if resume_ns > 0 and track.state != "tentative" and CLASS_NAMES[track.class_id] == "person":
                     robot.ended.append(_Ended(track.track_id, track.x, track.y, track.first_stamp_ns,
                                               track.last_hit_ns))  # fmt: skip
         for di in unmatched:
@@ -497,7 +501,7 @@ class TrackerCore:
             self._next_id += 1
             self.counters.tracks_created += 1
             if self._confirms(kept[-1]):
-                self._confirm(robot, kept[-1])
+                self._confirm(robot, kept[-1], kept)  # the tracks deleted this scan are in robot.ended
         retired = [t for t in kept if t.retired]
         if retired:
             kept = [t for t in kept if not t.retired]
@@ -510,25 +514,25 @@ class TrackerCore:
         self.counters.published += 1
         return self._message(message, robot, pose)
 
-    def _confirm(self, robot: _Robot, track: _Track) -> None:
+    def _confirm(self, robot: _Robot, track: _Track, live: list[_Track]) -> None:
         """Confirm a tentative track. A person takes back the id of the nearest person track lost a
         moment before (``person_resume_s``): one that ended, which leaves the robot's list of ended
         tracks, or one still coasting, which is retired: a track that coasted away from where its
-        person was found again would otherwise stand beside the new one."""
+        person was found again would otherwise stand beside the new one. A track hit in the scan of
+        the new track's first detection, or later, was seen beside it: someone else. ``live`` holds
+        the tracks that may still be coasting."""
         track.state = "confirmed"
-        horizon_ns = track.first_stamp_ns - self.config.person_resume_s * _NS_PER_S
-        robot.ended = [e for e in robot.ended if e.last_hit_ns >= horizon_ns]
-        if self.config.person_resume_s <= 0 or CLASS_NAMES[track.class_id] != "person":
+        resume_s = self.config.person_resume_s
+        if resume_s <= 0 or CLASS_NAMES[track.class_id] != "person":
             return
         coasting = [
-            t for t in robot.tracks
-            if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == "person"
-        ]  # fmt: skip
+            t for t in live if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == "person"
+        ]
         best: tuple[float, _Ended | _Track] | None = None
         candidates: list[_Ended | _Track] = [*robot.ended, *coasting]
         for lost in candidates:
             gap_s = (track.first_stamp_ns - lost.last_hit_ns) / _NS_PER_S
-            if gap_s < 0:  # seen while the new track was: someone else
+            if not 0 < gap_s <= resume_s:
                 continue
             distance = math.hypot(track.origin[0] - lost.x, track.origin[1] - lost.y)
             reach = self.config.gate_m + self.config.person_resume_speed_mps * gap_s
