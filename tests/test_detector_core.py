@@ -14,7 +14,7 @@ from common.inference import OnnxDetector
 from common.keys import tensor_key
 from common.messages import Detections, Odometry, StackedTensor, decode_message, encode_message
 from common.model_spec import SHIPPED_FP32_MODEL, batch_variant_path
-from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot
+from services.detector.core import DetectorCore, InferencePipeline, LatestPerRobot, Pending
 from services.encoder.core import EncoderCore
 from tests.support.scan_replay import replay_scans
 from tests.support.waiting import wait_for
@@ -347,6 +347,33 @@ def test_pipeline_serves_a_sample_on_named_inference_threads(
     (message,) = published
     assert message.robot_id == tensor.robot_id and message.seq == tensor.seq
     assert names is None or "inference-0" in names  # None: no /proc, not Linux
+
+
+def test_a_worker_outlives_a_failure_of_its_mailbox(
+    detector: OnnxDetector,
+    replayed_tensors: list[tuple[StackedTensor, list]],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    published: list[Detections] = []
+    pipeline = InferencePipeline([detector], published.append)
+    take_many = pipeline._mailbox.take_many
+    failures = [RuntimeError("a mailbox bug")]
+
+    def failing_once(limit: int, timeout: float | None = None) -> list[tuple[str, Pending]]:
+        if failures:
+            raise failures.pop()
+        return take_many(limit, timeout)
+
+    pipeline._mailbox.take_many = failing_once  # type: ignore[method-assign]
+    pipeline.start()
+    try:
+        assert wait_for(lambda: not failures, timeout=10.0)
+        tensor, _ = replayed_tensors[0]
+        pipeline.handle_sample(tensor_key(tensor.robot_id), encode_message(tensor))
+        assert wait_for(lambda: published, timeout=30.0)  # the same worker, still serving
+    finally:
+        pipeline.stop()
+    assert "taking tensors from the mailbox failed" in caplog.text and "a mailbox bug" in caplog.text
 
 
 def test_pipeline_answers_only_the_robots_it_owns_when_it_receives_and_when_it_publishes(

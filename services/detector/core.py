@@ -513,7 +513,12 @@ class InferencePipeline:
     def _serve(self, detector: OnnxDetector) -> None:
         name_os_thread(threading.current_thread().name)
         while not self._stop.is_set():
-            taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S)
+            try:
+                taken = self._mailbox.take_many(self.batch, TAKE_TIMEOUT_S)
+            except Exception:  # a thread that died here would leave its process alive and silent
+                log.exception("inference worker: taking tensors from the mailbox failed; going on")
+                self._stop.wait(TAKE_TIMEOUT_S)
+                continue
             if not taken:
                 continue
             try:
