@@ -401,7 +401,7 @@ def lose_and_find(core: TrackerCore, unseen: range, back_at: tuple[float, float]
     [
         (range(10, 40), (2.5, 0.5), True),  # 3 s later, 0.7 m off: ended, its id taken back
         (range(10, 16), (3.3, 0.0), True),  # 0.6 s later, 1.3 m off: still coasting, retired
-        (range(10, 40), (6.0, 0.0), False),  # 4 m off in 3 s: someone else
+        (range(10, 40), (8.0, 0.0), False),  # 6 m off in 3 s: someone else
         (range(10, 130), (2.0, 0.0), False),  # 12 s later: past person_resume_s
     ],
 )

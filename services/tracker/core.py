@@ -148,7 +148,7 @@ class TrackerConfig:
     # is no farther from the new track's start than gate_m plus person_resume_speed_mps for every
     # second between. 0: off.
     person_resume_s: float = 10.0
-    person_resume_speed_mps: float = 1.0
+    person_resume_speed_mps: float = 1.5  # a brisk walk: the simulator's people walk up to 1.6 m/s
 
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
