@@ -177,7 +177,7 @@ class TrackerCounters:
     tracks_created: int = 0
     tracks_deleted: int = 0
     tracks_forgotten: int = 0
-    tracks_resumed: int = 0  # new person tracks that took an ended one's id back (person_resume_s)
+    tracks_resumed: int = 0  # new person tracks that took a lost one's id back (person_resume_s)
     forgotten_robots: int = 0
     duplicates: int = 0  # detections of an object a track already follows: no new track
     rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
@@ -278,21 +278,10 @@ class _Track:
         self.last_hit_ns = stamp_ns
 
 
-@dataclass(frozen=True)
-class _Ended:
-    """A confirmed person track that ended: what a new track needs to take its id back."""
-
-    track_id: int
-    x: float
-    y: float
-    first_stamp_ns: int
-    last_hit_ns: int
-
-
 @dataclass
 class _Robot:
     tracks: list[_Track] = field(default_factory=list)
-    ended: list[_Ended] = field(default_factory=list)  # person tracks that ended lately, oldest first
+    ended: list[_Track] = field(default_factory=list)  # confirmed person tracks that ended lately
     seq: int = -1
     scan_stamp_ns: int = -1
     frame: TrackFrame = "laser"
@@ -489,8 +478,7 @@ class TrackerCore:
             else:
                 self.counters.tracks_deleted += 1
                 if resume_ns > 0 and track.state != "tentative" and CLASS_NAMES[track.class_id] == "person":
-                    robot.ended.append(_Ended(track.track_id, track.x, track.y, track.first_stamp_ns,
-                                              track.last_hit_ns))  # fmt: skip
+                    robot.ended.append(track)
         for di in unmatched:
             det = message.detections[di]
             if self._duplicate(points[di], det, kept):
@@ -528,9 +516,8 @@ class TrackerCore:
         coasting = [
             t for t in live if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == "person"
         ]
-        best: tuple[float, _Ended | _Track] | None = None
-        candidates: list[_Ended | _Track] = [*robot.ended, *coasting]
-        for lost in candidates:
+        best: tuple[float, _Track] | None = None
+        for lost in (*robot.ended, *coasting):
             gap_s = (track.first_stamp_ns - lost.last_hit_ns) / _NS_PER_S
             if not 0 < gap_s <= resume_s:
                 continue
@@ -541,7 +528,7 @@ class TrackerCore:
         if best is None:
             return
         lost = best[1]
-        if isinstance(lost, _Ended):
+        if lost in robot.ended:  # by identity: a track is no value
             robot.ended.remove(lost)
         else:
             lost.retired = True
