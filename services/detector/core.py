@@ -98,18 +98,18 @@ class LatestPerRobot(Generic[T]):
     def put(self, robot_id: str, item: T) -> bool:
         """Store ``item`` as the robot's newest; True when it replaced one never taken (dropped)."""
         with self._cond:
-            now = self._clock()
             replaced = robot_id in self._slots
             self._slots[robot_id] = item  # keeps the robot's place in the queue if it had one
             if replaced:
                 self.dropped += 1
-            else:
-                self._put_at[robot_id] = now
-            if self.gather_s:
-                self._heard_at[robot_id] = now
-                self._cond.notify_all()  # a gathering worker waits for the batch's next item too
-            else:
+            if not self.gather_s:
                 self._cond.notify()
+                return replaced
+            now = self._clock()
+            if not replaced:
+                self._put_at[robot_id] = now
+            self._heard_at[robot_id] = now
+            self._cond.notify_all()  # a gathering worker waits for the batch's next item too
             return replaced
 
     def _first_ready(self) -> str | None:
@@ -153,7 +153,7 @@ class LatestPerRobot(Generic[T]):
             ready = self._ready()[:limit]
             self._busy.update(ready)
             for robot_id in ready:
-                del self._put_at[robot_id]
+                self._put_at.pop(robot_id, None)  # kept only while gathering
             return [(robot_id, self._slots.pop(robot_id)) for robot_id in ready]
 
     def _gather(self, limit: int, gather_s: float) -> None:
