@@ -54,7 +54,7 @@ from common.messages import (
 from common.model_spec import CLASS_NAMES
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
-from services.tracker import add_tracker_arguments, tracker_config
+from services.tracker import add_tracker_arguments, rule_flags, rules_of, tracker_config
 from services.tracker.core import REPORTED_STATES, TrackerConfig, TrackerCore
 from services.tracker.mot import DEFAULT_GATE_M, GROUPS, ClearMot, group_of, hypotheses_of
 
@@ -123,12 +123,12 @@ def live(
     seed: int,
     record: Path | None = None,
     model: Path | None = None,
-    person_confirm_travel_m: float | None = None,
+    rules: dict[str, float] | None = None,
 ) -> dict[str, Any]:
-    travel_m = person_confirm_travel_m
-    # The service's rules, checked before the loop starts: a bad value fails here, not in a child.
-    config = TrackerConfig() if travel_m is None else TrackerConfig(person_confirm_travel_m=float(travel_m))
-    travel = () if travel_m is None else ("--person-confirm-travel", repr(float(travel_m)))
+    """``rules``: tracker rules by :class:`TrackerConfig` field (:func:`services.tracker.given_rules`),
+    passed to the loop's tracker; checked here first, so a bad value fails before anything starts."""
+    rules = rules or {}
+    config = TrackerConfig(**rules)  # type: ignore[arg-type]  # each rule is a float field
     (port,) = free_tcp_ports(1)
     truths: dict[str, dict[int, GroundTruth]] = defaultdict(dict)
     tracks: dict[str, list[Tracks]] = defaultdict(list)
@@ -158,7 +158,7 @@ def live(
         sys.executable, "-m", "services.cli", "up", "--viewer", "none", "--duration", str(seconds),
         "--robots", str(robots), "--seed", str(seed), "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast",
         *(("--model", str(model)) if model is not None else ()),
-        *travel,
+        *rule_flags(rules),
     ]  # fmt: skip
     with open_session(ZenohSettings.loopback(free_tcp_ports(1)[0], [port])) as session:
         up = subprocess.Popen(command)
@@ -306,8 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.mode == "live":
-        travel = args.person_confirm_travel
-        report = live(args.seconds, args.robots, args.seed, args.record, args.model, travel)
+        report = live(args.seconds, args.robots, args.seed, args.record, args.model, rules_of(args))
     elif args.mode == "offline":
         report = offline(args.recording, tracker_config(args))
     else:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import pytest
 
 from bench.tracking import detection_at, main
 from common.keys import DETECTIONS, TRUTH
@@ -57,3 +58,11 @@ def test_offline_takes_the_trackers_travel_rule(tmp_path: Path) -> None:
     assert json.loads(out.read_text())["config"]["person_resume_s"] == 0.0
     assert travel["people"]["total"]["matches"] == 0  # a person who never moves is never confirmed
     assert travel["people"]["total"]["misses"] == plain["people"]["total"]["targets"]
+
+
+@pytest.mark.parametrize(
+    ("flag", "message"), [("--person-resume", "person resume"), ("--person-confirm-travel", "travel")]
+)
+def test_live_refuses_a_bad_tracker_rule_before_starting_anything(flag: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        main(["live", "--seconds", "1", flag, "-1", "--out", "/nonexistent/never-written.json"])

@@ -49,11 +49,13 @@ def rule_flags(rules: dict[str, float]) -> list[str]:
     return [arg for field, value in rules.items() for arg in (RULE_FLAGS[field], repr(float(value)))]
 
 
+def rules_of(args: argparse.Namespace) -> dict[str, float]:
+    """The rules given by the arguments :func:`add_tracker_arguments` added (:func:`given_rules`)."""
+    return given_rules(person_confirm_travel_m=args.person_confirm_travel, person_resume_s=args.person_resume)
+
+
 def tracker_config(args: argparse.Namespace) -> TrackerConfig:
     """The tracker rules of the arguments :func:`add_tracker_arguments` added (unset: the defaults)."""
     from services.tracker.core import TrackerConfig
 
-    rules = given_rules(
-        person_confirm_travel_m=args.person_confirm_travel, person_resume_s=args.person_resume
-    )
-    return TrackerConfig(**rules)  # type: ignore[arg-type]  # each rule is a float field
+    return TrackerConfig(**rules_of(args))  # type: ignore[arg-type]  # each rule is a float field
