@@ -4,7 +4,8 @@ Subscribed to a wildcard, every process of a shard set would receive every robot
 and drop all but its own share: Zenoh transport work and a Python callback for each of them, in every
 process. Instead, whoever publishes a topic announces each robot with a liveliness token
 (:func:`services.runtime.announce_source`), and each process subscribes to the key of every announced
-robot that rendezvous hashing (:func:`services.shards.owner_of`) gives it among the live members.
+robot that :func:`services.shards.assign` gives it among the live members (an even share, worked out
+from the members and the announced robots alike by every process).
 
 Scans also come from code that announces nothing (a user's driver, an older build). Exactly one
 member serves those: the owner of the pseudo-robot :data:`UNANNOUNCED`, which moves on a join or a
@@ -35,7 +36,7 @@ from collections.abc import Callable, Collection, Iterable
 from typing import Any, Final
 
 from common.keys import parse_key, parse_source_key, topic_sources_key, wildcard_key
-from services.shards import SETTLE_S, ShardView, owner_of
+from services.shards import SETTLE_S, Rankings, ShardView, assign, owner_of
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +47,12 @@ UNANNOUNCED: Final[str] = "@unannounced"
 every robot id (:func:`common.keys.validate_robot_id` refuses it)."""
 
 
-def robots_to_subscribe(members: Iterable[str], sources: Iterable[str], me: str) -> frozenset[str]:
+def robots_to_subscribe(
+    members: Iterable[str], sources: Iterable[str], me: str, rankings: Rankings | None = None
+) -> frozenset[str]:
     """The announced robots (``sources``) whose owner among ``members`` (and ``me``) is ``me``."""
-    everyone = frozenset(members) | {me}
-    return frozenset(robot_id for robot_id in sources if owner_of(robot_id, everyone) == me)
+    owners = assign(sources, frozenset(members) | {me}, rankings=rankings)
+    return frozenset(robot_id for robot_id, owner in owners.items() if owner == me)
 
 
 def holds_wildcard(members: Iterable[str], me: str) -> bool:
@@ -61,16 +64,21 @@ class OwnedRobots:
     """Which robots one member subscribes to, kept up to date from member and source changes.
 
     Pure and thread-safe. A robot is announced while at least one source holds its token (two
-    encoders do during a handover). Owners are worked out again for every robot only when the members
-    change; a robot announced or gone costs one owner lookup, so a fleet coming up token by token
-    stays cheap. Every robot counts as just changed for ``settle_s`` after this member starts
-    watching the sources (:meth:`watching`), since its tokens arrive a little later than another
-    member's may have.
+    encoders do during a handover). The owners are worked out again whenever the members or the
+    announced robots change, since an even share moves with both; the weights are kept
+    (:class:`services.shards.Rankings`), so a fleet coming up token by token stays cheap. With a
+    ``view``, that view learns the announced robots too. Every robot counts as just changed for
+    ``settle_s`` after this member starts watching the sources (:meth:`watching`), since its tokens
+    arrive a little later than another member's may have.
     """
 
-    def __init__(self, me: str, *, settle_s: float = SETTLE_S, now: float | None = None) -> None:
+    def __init__(
+        self, me: str, *, settle_s: float = SETTLE_S, now: float | None = None, view: ShardView | None = None
+    ) -> None:
         self.me = me
         self.settle_s = settle_s
+        self.view = view
+        self._rankings = Rankings()
         self._started = time.monotonic() if now is None else now
         self._members: frozenset[str] = frozenset({me})
         self._sources: dict[str, set[str]] = {}  # robot id → the sources announcing it
@@ -85,7 +93,14 @@ class OwnedRobots:
             if current == self._members:
                 return
             self._members = current
-            self._owned = set(robots_to_subscribe(current, self._sources, self.me))
+            self._reassign()
+
+    def _reassign(self, now: float | None = None, gone: Iterable[str] = ()) -> None:
+        """Work out this member's robots again (the lock is held), and tell the view of the robots."""
+        self._owned = set(robots_to_subscribe(self._members, self._sources, self.me, self._rankings))
+        self._rankings.forget(gone)
+        if self.view is not None:
+            self.view.set_robots(self._sources, now)
 
     def watching(self, now: float | None = None) -> None:
         """This member starts watching the sources ``now``."""
@@ -103,11 +118,10 @@ class OwnedRobots:
         now = time.monotonic() if now is None else now
         with self._lock:
             sources = self._sources.setdefault(robot_id, set())
-            if not sources:
-                self._changed[robot_id] = now
-                if owner_of(robot_id, self._members) == self.me:
-                    self._owned.add(robot_id)
             sources.add(source)
+            if len(sources) == 1:
+                self._changed[robot_id] = now
+                self._reassign(now)
 
     def source_down(self, robot_id: str, source: str, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
@@ -118,8 +132,8 @@ class OwnedRobots:
             sources.discard(source)
             if not sources:
                 del self._sources[robot_id]
-                self._owned.discard(robot_id)
                 self._changed[robot_id] = now
+                self._reassign(now, gone=(robot_id,))
 
     def announced(self, robot_id: str) -> bool:
         """Whether a source holds ``robot_id``'s token (its scans reach its owner on its own key)."""
@@ -173,7 +187,8 @@ class OwnedSubscriptions:
     """The Zenoh side of :class:`OwnedRobots`: ``callback`` gets the samples of the robots this member
     owns, one subscriber on ``key_of(robot_id)`` each; with ``unannounced``, the member that serves
     the unannounced robots also holds a subscriber on ``topic``'s wildcard, and ``unannounced`` gets
-    its samples of robots that no source announces.
+    its samples of robots that no source announces. ``view`` (the service's
+    :class:`services.shards.ShardView`) learns the announced robots, which it shares evenly.
 
     :meth:`start` declares the liveliness watch on ``topic``'s sources (its history gives the robots
     already announced) and starts the thread that declares and undeclares subscribers;
@@ -190,9 +205,10 @@ class OwnedSubscriptions:
         callback: Callable[[Any], None],
         *,
         unannounced: Callable[[Any], None] | None = None,
+        view: ShardView | None = None,
     ) -> None:
         self.topic = topic
-        self.plan = OwnedRobots(me)
+        self.plan = OwnedRobots(me, view=view)
         self.skipped_announced = 0  # announced robots' samples the wildcard received and dropped
         self._session = session
         self._key_of = key_of

@@ -2,18 +2,29 @@
 
 Every process of a service (the detector, the encoder) holds a Zenoh liveliness token
 ``triscan/@shards/<service>/<member>`` (the member is its Zenoh id, unique across hosts) and watches the
-others'. Each computes the owner of a robot by rendezvous (highest-random-weight) hashing of the robot
-id over the live members it sees (:func:`owner_of`): every process that sees the same set picks the
-same owner, a robot moves only when its owner leaves or a newcomer outbids it (about 1/N of the
-robots when a member joins, only the leaver's when one leaves), and nothing has to be agreed on.
+others'. Each works out every robot's owner from what it sees, so every process that sees the same
+things picks the same owners and nothing has to be agreed on:
 
-Views of the set are not updated everywhere at the same instant, so :class:`ShardView` gives robots up
-at once and takes new ones only after ``settle_s``: a robot counts as this process's only if this
-process owned it in every view it held over the last ``settle_s``. Two processes then serve one
-robot at once only if one of them learns of a change more than ``settle_s`` after the other, and a
-joiner or a survivor takes a robot over ``settle_s`` after it learns of the change. A killed process's
-connections are closed by its OS, so its token vanishes within milliseconds; a host that vanishes
-from the network is noticed after Zenoh's transport lease instead.
+* **Announced robots** (their publisher holds a source token: :mod:`services.shard_subscriptions`) are
+  shared by bounded-load rendezvous hashing (:func:`assign`): each robot goes to the live member that
+  weighs it highest (:func:`weight`) unless that member already holds its share, ``ceil(robots /
+  members)`` plus :data:`BALANCE_SLACK`, and then to the next. Plain rendezvous hashing leaves the
+  busiest of 16 processes with half as many robots again as the mean, and a fleet server fails at its
+  busiest process; a bounded share keeps every process within a robot or two of the mean. The price
+  is that a robot coming or going can move a robot or two besides itself (a member's death moves
+  only a few of the survivors' robots besides the dead one's).
+* **Any other robot** (and :data:`services.shard_subscriptions.UNANNOUNCED`) goes to the member that
+  weighs it highest (:func:`owner_of`): about 1/N of the robots move when a member joins, only the
+  leaver's when one leaves.
+
+Views of the members and of the announced robots are not updated everywhere at the same instant, so
+:class:`ShardView` gives robots up at once and takes new ones only after ``settle_s``: a robot counts
+as this process's only if this process owned it in every view it held over the last ``settle_s``.
+Two processes then serve one robot at once only if one of them learns of a change more than
+``settle_s`` after the other, and a joiner or a survivor takes a robot over ``settle_s`` after it
+learns of the change. A killed process's connections are closed by its OS, so its token vanishes
+within milliseconds; a host that vanishes from the network is noticed after Zenoh's transport lease
+instead.
 
 :class:`ShardMembership` is the Zenoh side: it declares the token and feeds a view from a liveliness
 subscriber. :func:`sibling_commands` starts the other processes of a ``--detectors N`` (or
@@ -41,6 +52,11 @@ SETTLE_S: Final[float] = 0.5
 milliseconds a liveliness change takes to reach every peer of one network, far below the 2 s in which
 a dead process's robots must be served again."""
 
+BALANCE_SLACK: Final[int] = 1
+"""Robots a member may hold beyond an even share (:func:`assign`). With none, every member is within
+one robot of the others, but about two robots move whenever one joins a fleet of hundreds; with one,
+about one moves, and the busiest member holds at most two more than the least busy."""
+
 SIBLINGS_TIMEOUT_S: Final[float] = 60.0  # a launch's other processes load their models meanwhile
 MAX_LOGGED: Final[int] = 8  # robot ids named in one ownership-change log line
 
@@ -57,20 +73,115 @@ def owner_of(robot_id: str, members: Iterable[str]) -> str | None:
     return max(members, key=lambda member: (weight(member, robot_id), member), default=None)
 
 
-class ShardView:
-    """Which robots one member serves, from the live member sets it has seen over time.
+class Rankings:
+    """Each robot's members from highest weight to lowest, kept for the member sets in use.
 
-    Pure: the Zenoh side calls :meth:`set_members` on every change and the service asks :meth:`owns`
-    for each sample; ``now`` (``time.monotonic`` by default) is injectable for tests. Thread-safe.
+    :func:`assign` runs for every change of the members or the announced robots, hundreds of times
+    while a fleet comes up; the weights it ranks by never change, so they are hashed once per (member
+    set, robot). Not thread-safe: each owner guards its own.
+    """
+
+    KEPT_MEMBER_SETS: Final[int] = 4  # a view window rarely holds more than two
+
+    def __init__(self) -> None:
+        self._rankings: dict[frozenset[str], dict[str, tuple[str, ...]]] = {}
+        self._order: dict[str, tuple[int, str]] = {}
+
+    def ranking(self, robot_id: str, members: frozenset[str]) -> tuple[str, ...]:
+        """``members`` by :func:`owner_of`'s preference for ``robot_id``, its owner first."""
+        table = self._rankings.get(members)
+        if table is None:
+            if len(self._rankings) >= self.KEPT_MEMBER_SETS:
+                del self._rankings[next(iter(self._rankings))]
+            table = self._rankings[members] = {}
+        ranked = table.get(robot_id)
+        if ranked is None:
+            ranked = table[robot_id] = tuple(
+                sorted(members, key=lambda member: (weight(member, robot_id), member), reverse=True)
+            )
+        return ranked
+
+    def order(self, robot_id: str) -> tuple[int, str]:
+        """Where ``robot_id`` comes in :func:`assign`'s pass: a hash, so no id prefix goes first."""
+        key = self._order.get(robot_id)
+        if key is None:
+            key = self._order[robot_id] = (weight("", robot_id), robot_id)
+        return key
+
+    def forget(self, robots: Iterable[str]) -> None:
+        """Drop what is kept for robots gone from the fleet (a changing fleet does not leak)."""
+        for robot_id in robots:
+            self._order.pop(robot_id, None)
+            for table in self._rankings.values():
+                table.pop(robot_id, None)
+
+
+def assign(
+    robots: Iterable[str],
+    members: Iterable[str],
+    *,
+    slack: int = BALANCE_SLACK,
+    rankings: Rankings | None = None,
+) -> dict[str, str]:
+    """Every robot's owner among ``members`` by bounded-load rendezvous hashing (module docstring).
+
+    The robots are taken in the order of their hash; each goes to the highest-weighing member that
+    holds fewer than ``ceil(len(robots) / len(members)) + slack``. The result depends only on the two
+    sets, so every process that sees them computes it alike; empty if there are no members.
+    """
+    ranks = Rankings() if rankings is None else rankings
+    everyone = frozenset(members)
+    fleet = sorted(set(robots), key=ranks.order)
+    if not everyone:
+        return {}
+    share = -(-len(fleet) // len(everyone)) + slack
+    load = dict.fromkeys(everyone, 0)
+    owners: dict[str, str] = {}
+    for robot_id in fleet:
+        for member in ranks.ranking(robot_id, everyone):
+            if load[member] < share:
+                load[member] += 1
+                owners[robot_id] = member
+                break
+    return owners
+
+
+class _View:
+    """What one member saw from ``since``: the live members and the announced robots; the owners of
+    those robots are worked out on first use and kept while the view is."""
+
+    __slots__ = ("members", "owners", "robots", "since")
+
+    def __init__(self, since: float, members: frozenset[str], robots: frozenset[str]) -> None:
+        self.since = since
+        self.members = members
+        self.robots = robots
+        self.owners: dict[str, str] | None = None
+
+    def owner(self, robot_id: str, rankings: Rankings) -> str | None:
+        if robot_id not in self.robots:
+            return owner_of(robot_id, self.members)
+        if self.owners is None:
+            self.owners = assign(self.robots, self.members, rankings=rankings)
+        return self.owners.get(robot_id)
+
+
+class ShardView:
+    """Which robots one member serves, from the members and announced robots it has seen over time.
+
+    Pure: the Zenoh side calls :meth:`set_members` and :meth:`set_robots` on every change and the
+    service asks :meth:`owns` for each sample; ``now`` (``time.monotonic`` by default) is injectable
+    for tests. Thread-safe.
     """
 
     def __init__(self, me: str, *, settle_s: float = SETTLE_S, now: float | None = None) -> None:
         self.me = me
         self.settle_s = settle_s
         started = time.monotonic() if now is None else now
-        # (since, members) of every view that may still matter, oldest first. The first view lacks
-        # this member: a process that has just joined serves nothing until it has settled.
-        self._views: list[tuple[float, frozenset[str]]] = [(started, frozenset())]
+        # Every view that may still matter, oldest first. The first lacks this member: a process that
+        # has just joined serves nothing until it has settled.
+        self._views: list[_View] = [_View(started, frozenset(), frozenset())]
+        self._rankings = Rankings()
         self._owned_cache: dict[str, bool] = {}  # filled only while settled, emptied by a change
         self._seen: dict[str, float] = {}  # robot id → when last asked about
         self._logged: set[str] = set()  # robots owned at the last :meth:`changes`
@@ -80,22 +191,33 @@ class ShardView:
     @property
     def members(self) -> frozenset[str]:
         with self._lock:
-            return self._views[-1][1]
+            return self._views[-1].members
 
     def set_members(self, members: Iterable[str], now: float | None = None) -> None:
         """The live members as of ``now`` (this member is always among them while it runs)."""
-        now = time.monotonic() if now is None else now
         current = frozenset(members) | {self.me}
         with self._lock:
-            if current == self._views[-1][1]:
-                return
-            self._views.append((now, current))
-            self._owned_cache.clear()
+            self._add_view(now, current, self._views[-1].robots)
+
+    def set_robots(self, robots: Iterable[str], now: float | None = None) -> None:
+        """The announced robots as of ``now``: those are shared evenly (:func:`assign`)."""
+        current = frozenset(robots)
+        with self._lock:
+            gone = self._views[-1].robots - current
+            self._add_view(now, self._views[-1].members, current)
+            self._rankings.forget(gone)
+
+    def _add_view(self, now: float | None, members: frozenset[str], robots: frozenset[str]) -> None:
+        last = self._views[-1]
+        if members == last.members and robots == last.robots:
+            return
+        self._views.append(_View(time.monotonic() if now is None else now, members, robots))
+        self._owned_cache.clear()
 
     def _prune(self, now: float) -> None:
         """Drop views that ended more than ``settle_s`` ago (the one current then stays)."""
         horizon = now - self.settle_s
-        while len(self._views) > 1 and self._views[1][0] <= horizon:
+        while len(self._views) > 1 and self._views[1].since <= horizon:
             del self._views[0]
 
     def owns(self, robot_id: str, now: float | None = None) -> bool:
@@ -110,7 +232,7 @@ class ShardView:
         if cached is not None:
             return cached
         self._prune(now)
-        owned = all(owner_of(robot_id, members) == self.me for _, members in self._views)
+        owned = all(view.owner(robot_id, self._rankings) == self.me for view in self._views)
         if len(self._views) == 1:  # settled: the answer holds until the next change
             self._owned_cache[robot_id] = owned
         return owned
@@ -145,7 +267,8 @@ class ShardView:
     def snapshot(self) -> dict[str, object]:
         """For the service's counters: this member, how many it sees and how many robots it serves."""
         with self._lock:
-            return {"member": self.me, "members": len(self._views[-1][1]), "robots_served": len(self._logged)}
+            members = len(self._views[-1].members)
+            return {"member": self.me, "members": members, "robots_served": len(self._logged)}
 
 
 class ShardMembership:

@@ -22,7 +22,7 @@ from services.shard_subscriptions import (
     robots_to_subscribe,
     serves,
 )
-from services.shards import ShardView, owner_of
+from services.shards import ShardView, assign, owner_of
 from tests.support.waiting import wait_for
 
 ROBOTS = [f"robot{i:03d}" for i in range(60)]
@@ -35,7 +35,8 @@ def announced(plan: OwnedRobots, robots: list[str], source: str = "enc1") -> Non
 
 
 def owned_by(member: str, members: list[str], robots: list[str] = ROBOTS) -> set[str]:
-    return {robot_id for robot_id in robots if owner_of(robot_id, members) == member}
+    """The robots ``member`` serves when ``robots`` are announced: its even share."""
+    return {robot_id for robot_id, owner in assign(robots, members).items() if owner == member}
 
 
 def test_alone_a_member_subscribes_to_every_announced_robot_and_nothing_else() -> None:
@@ -70,16 +71,19 @@ def test_a_joiner_takes_its_robots_and_the_old_owner_gives_exactly_those_up() ->
     assert set(unsubscribe) == owned_by(OTHER, [ME, OTHER]) and unsubscribe
 
 
-def test_a_leaver_s_robots_come_back_and_nothing_else_moves() -> None:
+def test_a_leaver_s_robots_are_shared_out_and_few_others_move() -> None:
     plan = OwnedRobots(ME)
     plan.set_members([ME, OTHER, THIRD])
     announced(plan, ROBOTS)
     before = plan.wanted()
     plan.set_members([ME, OTHER])  # THIRD died
     subscribe, unsubscribe = plan.diff(before)
-    assert unsubscribe == []
-    assert set(subscribe) == owned_by(ME, [ME, OTHER]) - before
-    assert all(owner_of(robot_id, [ME, OTHER, THIRD]) == THIRD for robot_id in subscribe) and subscribe
+    assert set(subscribe) - set(unsubscribe) == owned_by(ME, [ME, OTHER]) - before
+    orphans = owned_by(THIRD, [ME, OTHER, THIRD])
+    taken = [robot_id for robot_id in subscribe if robot_id in orphans]
+    assert len(taken) >= len(orphans) // 2 - 2  # about half the orphans come here
+    others = [robot_id for robot_id in [*subscribe, *unsubscribe] if robot_id not in orphans]
+    assert len(others) <= 4, others  # a robot or two evens the shares out, not a reshuffle
 
 
 def test_a_robot_stays_subscribed_until_its_last_source_goes() -> None:
@@ -99,7 +103,7 @@ def test_a_robot_stays_subscribed_until_its_last_source_goes() -> None:
 def test_a_robot_announced_while_another_member_owns_it_is_not_subscribed_here() -> None:
     plan = OwnedRobots(ME)
     plan.set_members([ME, OTHER])
-    theirs = sorted(owned_by(OTHER, [ME, OTHER]))[0]
+    theirs = next(r for r in ROBOTS if owned_by(OTHER, [ME, OTHER], [r]))  # when it is the only robot
     plan.source_up(theirs, "enc1")
     assert plan.wanted() == frozenset()
     plan.set_members([ME])  # its owner left: the robot is still announced, so it is taken over
@@ -111,11 +115,12 @@ LONG_AGO = -10.0
 
 
 def member(me: str, members: list[str], now: float = LONG_AGO) -> tuple[OwnedRobots, ShardView]:
-    """A member's plan and view, both settled on ``members`` since ``now``."""
-    plan = OwnedRobots(me, settle_s=SETTLE_S, now=now)
-    plan.set_members(members)
+    """A member's plan and view, both settled on ``members`` since ``now``; the plan tells the view of
+    the announced robots, as the services wire them."""
     view = ShardView(me, settle_s=SETTLE_S, now=now)
     view.set_members(members, now=now)
+    plan = OwnedRobots(me, settle_s=SETTLE_S, now=now, view=view)
+    plan.set_members(members)
     return plan, view
 
 
@@ -175,7 +180,7 @@ def two_members() -> tuple[str, str, Members, str]:
     holder = owner_of(UNANNOUNCED, members)
     owner = next(m for m in members if m != holder)
     assert holder is not None
-    robot_id = next(r for r in ROBOTS if owner_of(r, members) == owner)
+    robot_id = next(r for r in ROBOTS if owned_by(owner, members, [r]))  # announced alone
     return holder, owner, {m: member(m, members) for m in members}, robot_id
 
 

@@ -1,15 +1,18 @@
-"""Rendezvous sharding of a fleet over live processes: balance, minimal movement, determinism, and the
-settle rule that keeps two processes from serving one robot at once."""
+"""Sharding a fleet over live processes: plain rendezvous hashing for robots nobody announces, an even
+share for the announced ones (bounded-load rendezvous), determinism, how few robots move on a change,
+and the settle rule that keeps two processes from serving one robot at once."""
 
 from __future__ import annotations
 
+import math
+import random
 import subprocess
 import sys
 from collections import Counter
 
 import pytest
 
-from services.shards import ShardView, owner_of, sibling_commands, weight
+from services.shards import BALANCE_SLACK, Rankings, ShardView, assign, owner_of, sibling_commands, weight
 
 ROBOTS = [f"robot{i:04d}" for i in range(3000)]
 MEMBERS = ["a1f3", "0be2", "9c77", "d401"]
@@ -113,6 +116,95 @@ def test_changes_log_gains_and_losses_and_silent_robots_are_forgotten() -> None:
     view.changes(now=8.0)  # logging the changes is not hearing from the robots
     assert view.forget_silent(5.0, now=10.0) == ROBOTS[:20]
     assert view.snapshot() == {"member": "a1f3", "members": 2, "robots_served": 0}
+
+
+SIXTEEN = [f"{random.Random(seed).getrandbits(64):016x}" for seed in range(16)]  # Zenoh ids
+
+
+@pytest.mark.parametrize("robots", [1, 15, 16, 17, 350, 700])
+def test_announced_robots_are_shared_evenly_whatever_the_order_they_are_seen_in(robots: int) -> None:
+    fleet = ROBOTS[:robots]
+    owners = assign(fleet, SIXTEEN)
+    assert sorted(owners) == sorted(fleet)
+    loads = Counter(owners.values())
+    assert max(loads.values()) <= math.ceil(robots / 16) + BALANCE_SLACK, loads
+    shuffled = list(fleet)
+    random.Random(1).shuffle(shuffled)
+    assert assign(shuffled, list(reversed(SIXTEEN)), rankings=Rankings()) == owners
+    assert assign(fleet, []) == {}
+
+
+def test_the_even_share_holds_the_busiest_process_well_below_plain_rendezvous() -> None:
+    """What the even share is for: a fleet server fails at its busiest process."""
+    fleet = ROBOTS[:350]
+    plain = Counter(owner_of(robot, SIXTEEN) for robot in fleet)
+    even = Counter(assign(fleet, SIXTEEN).values())
+    assert max(even.values()) <= 23 < max(plain.values())  # 350 / 16 is 21.9
+
+
+def test_with_room_to_spare_every_robot_goes_to_its_rendezvous_owner() -> None:
+    fleet = ROBOTS[:500]
+    assert assign(fleet, MEMBERS, slack=len(fleet)) == {robot: owner_of(robot, MEMBERS) for robot in fleet}
+
+
+def test_a_robot_joining_or_leaving_moves_about_one_other() -> None:
+    """Robots come and go one at a time; each move costs the moved robot up to ``settle_s`` unserved."""
+    rankings = Rankings()
+    before: dict[str, str] = {}
+    moved = 0
+    for count in range(1, 301):
+        after = assign(ROBOTS[:count], SIXTEEN, rankings=rankings)
+        moved += sum(1 for robot, owner in before.items() if after[robot] != owner)
+        before = after
+    assert moved <= 1.5 * 300, moved  # 1.2 a join when written
+    leaving = assign(ROBOTS[1:300], SIXTEEN, rankings=rankings)
+    assert sum(1 for robot, owner in leaving.items() if before[robot] != owner) <= 6
+
+
+def test_a_dead_member_s_robots_move_and_few_of_the_survivors_robots_do() -> None:
+    fleet = ROBOTS[:450]
+    before, after = assign(fleet, SIXTEEN), assign(fleet, SIXTEEN[1:])
+    survivors_moved = [r for r in fleet if before[r] != SIXTEEN[0] and after[r] != before[r]]
+    assert len(survivors_moved) <= 0.05 * len(fleet), len(survivors_moved)
+
+
+def test_the_view_shares_the_announced_robots_evenly_and_the_others_by_rendezvous() -> None:
+    view = ShardView("a1f3", settle_s=0.5, now=-10.0)
+    view.set_members(MEMBERS, now=-10.0)
+    announced = ROBOTS[:40]
+    view.set_robots(announced, now=-10.0)
+    mine = {robot for robot, owner in assign(announced, MEMBERS).items() if owner == "a1f3"}
+    assert {robot for robot in announced if view.owns(robot, now=0.0)} == mine
+    quiet = ROBOTS[40:200]
+    assert {r for r in quiet if view.owns(r, now=0.0)} == {r for r in quiet if owner_of(r, MEMBERS) == "a1f3"}
+
+
+@pytest.mark.parametrize("first", ["a1f3", "0be2"])
+def test_a_robot_coming_moves_others_without_serving_any_twice(first: str) -> None:
+    """A newly announced robot can move robots besides itself: the old owner gives them up at once,
+    the new one takes them after ``settle_s``, whichever member learns of it first."""
+    members = ["a1f3", "0be2"]
+    views = {m: ShardView(m, settle_s=0.5, now=-10.0) for m in members}
+    fleet = ROBOTS[:21]
+    for view in views.values():
+        view.set_members(members, now=-10.0)
+        view.set_robots(fleet, now=-10.0)
+    before = assign(fleet, members)
+
+    def pushes_others(robot: str) -> bool:
+        return any(assign([*fleet, robot], members)[r] != owner for r, owner in before.items())
+
+    newcomer = next(r for r in ROBOTS[21:] if pushes_others(r))
+    after = assign([*fleet, newcomer], members)
+    moving = [r for r in fleet if before[r] != after[r]]
+    second = next(m for m in members if m != first)
+    views[first].set_robots([*fleet, newcomer], now=0.0)
+    views[second].set_robots([*fleet, newcomer], now=0.05)
+    for t in (0.05, 0.3, 0.5, 0.54):
+        for robot in [*moving, newcomer]:
+            assert sum(view.owns(robot, now=t) for view in views.values()) <= 1, (robot, t)
+    for robot in [*fleet, newcomer]:
+        assert [m for m, view in views.items() if view.owns(robot, now=0.6)] == [after[robot]]
 
 
 def test_siblings_join_through_this_process_and_run_one_process_each() -> None:

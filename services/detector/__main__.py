@@ -80,7 +80,7 @@ def run(
 ) -> DetectorCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
-    The process serves the robots that rendezvous hashing gives it among the live detector processes
+    The process serves its share of the robots among the live detector processes
     (:mod:`services.shards`); ``siblings`` are the other processes of this launch, restarted if one dies.
     It serves, and declares its health token, once ``processes`` detectors are live and settled, so
     that a launch's token means all of its processes serve their shares. Samples are subscribed per
@@ -99,7 +99,7 @@ def run(
         topic, key_of = (SCAN, scan_key) if from_scans else (TENSOR, tensor_key)
         unannounced = on_sample if from_scans else None  # scans also come from code that announces none
         subscriptions = OwnedSubscriptions(
-            runtime.session, shards.me, topic, key_of, on_sample, unannounced=unannounced
+            runtime.session, shards.me, topic, key_of, on_sample, unannounced=unannounced, view=shards.view
         )
 
         def publish(detections: Detections) -> None:

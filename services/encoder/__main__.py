@@ -58,8 +58,8 @@ def run(
 ) -> EncoderCore:
     """Serve until ``stop`` is set (or ``duration_s`` passes); returns the core with its counters.
 
-    Like the detector, the process stacks the scans of the robots that rendezvous hashing gives it
-    among the live encoder processes (:mod:`services.shards`); a robot that moves here starts a fresh
+    Like the detector, the process stacks the scans of its share of the robots among the live
+    encoder processes (:mod:`services.shards`); a robot that moves here starts a fresh
     FIFO, so its first tensor comes three scans later and none is sent twice. As the detector's, it
     serves once ``processes`` encoders are live and settled.
     """
@@ -91,7 +91,9 @@ def run(
             if tensor is not None:
                 tensors.put(tensor.robot_id, encode_message(tensor))
 
-        scans = OwnedSubscriptions(runtime.session, shards.me, SCAN, scan_key, on_scan, unannounced=on_scan)
+        scans = OwnedSubscriptions(
+            runtime.session, shards.me, SCAN, scan_key, on_scan, unannounced=on_scan, view=shards.view
+        )
         owns = scans.owns(shards.view)
 
         def housekeeping() -> dict[str, object]:
