@@ -85,6 +85,15 @@ _MAX_ARRAY_LEN: Final[int] = 1024
 _MAX_MAP_LEN: Final[int] = 64
 
 _TWO_PI: Final[float] = 2.0 * math.pi
+
+ODOM_JUMP_M: Final[float] = 1.0
+ODOM_JUMP_RAD: Final[float] = math.radians(30.0)
+"""Farther or more turned than this between two scans, the odometry jumped (a relocalisation, a robot
+moved by hand, a simulated robot put into a new world): a robot at 10 Hz would need 10 m/s or 300°/s
+to move that much. What a jump breaks: the encoder's three-scan stack, which would show motion that
+never happened, and the tracker's tracks, which no longer stand where their objects are."""
+
+OdometryBreak = Literal["odom_reset", "odom_jump"]
 # encode_message's serialisation context: fields with a compact wire form (the tensor) write it only then.
 _WIRE: Final[dict[str, bool]] = {"wire": True}
 
@@ -451,6 +460,19 @@ class Odometry(WireModel):
     @property
     def finite(self) -> bool:
         return math.isfinite(self.x_m) and math.isfinite(self.y_m) and math.isfinite(self.yaw_rad)
+
+    def break_from(
+        self, last: Odometry, jump_m: float = ODOM_JUMP_M, jump_rad: float = ODOM_JUMP_RAD
+    ) -> OdometryBreak | None:
+        """How this pose breaks with ``last``, the pose of the scan before: ``"odom_reset"`` (another
+        odometry frame), ``"odom_jump"`` (moved more than ``jump_m`` or turned more than ``jump_rad``)
+        or None (one motion)."""
+        if last.frame_id != self.frame_id:
+            return "odom_reset"
+        turned = abs((self.yaw_rad - last.yaw_rad + math.pi) % _TWO_PI - math.pi)
+        if math.hypot(self.x_m - last.x_m, self.y_m - last.y_m) > jump_m or turned > jump_rad:
+            return "odom_jump"
+        return None
 
 
 class Message(WireModel):

@@ -262,6 +262,45 @@ def test_odometry_of_the_newest_scan_travels_into_the_tensor_and_a_nan_pose_is_r
     assert without is not None and without.odom is None
 
 
+@pytest.mark.parametrize(
+    ("jump", "frame"),
+    [((1.5, 0.0, 0.0), "odom"), ((0.0, 0.0, math.radians(45.0)), "odom"), ((0.0, 0.0, 0.0), "map")],
+    ids=["moved", "turned", "other_frame"],
+)
+def test_an_odometry_jump_restarts_the_fifo_so_no_tensor_shows_two_places(
+    jump: tuple[float, float, float], frame: str
+) -> None:
+    """A robot put somewhere else between two scans: a tensor of scans from both places would show
+    motion that never happened, so the stack starts over at the jump."""
+    core = EncoderCore("zero")
+    dx, dy, dyaw = jump
+
+    def pose(i: int, after: bool) -> Odometry:
+        moved = (dx, dy, dyaw, frame) if after else (0.0, 0.0, 0.0, "odom")
+        return Odometry(
+            x_m=0.1 * i + moved[0], y_m=moved[1], yaw_rad=0.05 * i + moved[2], frame_id=moved[3], stamp_ns=i
+        )
+
+    out = [core.push(with_odom(scan("r1", i), pose(i, after=i >= 4))) for i in range(8)]
+    assert [t is not None for t in out] == [False, False, True, True, False, False, True, True]
+    assert core.counters.odom_jumps == 1 and core.counters.gaps == 0 and core.counters.restarts == 0
+    tensor = out[6]
+    assert tensor is not None and tensor.scan_seqs == (4, 5, 6) and tensor.odom == pose(6, after=True)
+
+
+def test_steady_motion_a_missing_pose_or_a_nan_one_is_no_jump() -> None:
+    """0.1 m and 0.05 rad a scan is a robot driving; a scan without a pose, or with a refused one, is
+    compared with nothing, and the next pose is compared with the last good one."""
+    core = EncoderCore("zero")
+    poses = [Odometry(x_m=0.1 * i, y_m=0.0, yaw_rad=0.05 * i, stamp_ns=i) for i in range(8)]
+    nan_pose = Odometry(x_m=float("nan"), y_m=0.0, yaw_rad=0.0, stamp_ns=5)
+    scans = [with_odom(scan("r1", i), poses[i]) for i in range(8)]
+    scans[3] = scan("r1", 3)
+    scans[5] = with_odom(scan("r1", 5), nan_pose)
+    out = [core.push(s) for s in scans]
+    assert all(t is not None for t in out[2:]) and core.counters.odom_jumps == 0
+
+
 def test_tensors_travel_as_their_lit_pixels_and_decode_to_the_dense_raster() -> None:
     """What the encoder process publishes (``encode_message`` of the core's tensor) for simulated scans."""
     core = EncoderCore("zero")

@@ -177,6 +177,42 @@ def test_boxes_are_placed_with_the_pose_of_the_middle_scan_they_are_of() -> None
         assert (track.x_m, track.y_m) == pytest.approx(in_laser((2.0, 1.0), turning[k]), abs=1e-9)
 
 
+def turning_message(k: int, turning: list[Odometry]) -> Detections:
+    """Scan k's detections of a still chair at (2, 1): the boxes of scan k-1, the odometry of scan k."""
+    detections = message(k, [det(*in_laser((2.0, 1.0), turning[k - 1]))], turning[k])
+    return detections.model_copy(update={"pose_stamp_ns": T0_NS + (k - 1) * PERIOD_NS})
+
+
+def test_a_middle_scan_whose_tensor_was_skipped_is_placed_with_an_interpolated_pose() -> None:
+    """The detector drops a stale tensor now and then, and with it the pose of the scan that the
+    next message's boxes belong to: it lies between the poses of the scans around it."""
+    core = TrackerCore()
+    turning = [pose(0.05 * k, 0.02 * k, 0.2 * k) for k in range(10)]  # steady: exact between scans
+    core.update(message(0, [], turning[0]))
+    for k in (1, 2, 3, 5, 6, 8, 9):  # tensors 4 and 7 were skipped
+        out = core.update(turning_message(k, turning))
+        assert out is not None
+        (track,) = out.tracks
+        assert (track.odom_x_m, track.odom_y_m) == pytest.approx((2.0, 1.0), abs=1e-9), k
+    assert not core.counters.dropped
+
+
+def test_boxes_with_no_pose_known_from_before_their_scan_open_no_track() -> None:
+    """After a reset (or at start) the middle scan's pose is unknown, and the newest scan's would put
+    the boxes where the robot's turn moved them: a track there would stand off its object."""
+    core = TrackerCore()
+    turning = [pose(0.05 * k, 0.0, 0.3 * k) for k in range(6)]
+    first = core.update(turning_message(1, turning))
+    assert first is not None and first.tracks == [] and first.frame == "odom"
+    assert core.counters.dropped == {"unplaced": 1}
+    for k in range(2, 6):
+        out = core.update(turning_message(k, turning))
+        assert out is not None
+    (track,) = out.tracks
+    assert (track.odom_x_m, track.odom_y_m) == pytest.approx((2.0, 1.0), abs=1e-9)
+    assert track.hits == 4
+
+
 def test_a_second_detection_of_a_tracked_object_opens_no_track() -> None:
     core = TrackerCore(TrackerConfig(duplicate_m=0.4))
     for k in range(4):

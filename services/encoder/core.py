@@ -16,6 +16,11 @@ happened. So, per robot (robots never share a FIFO):
 * **Odometry**: a scan's ``odom`` (the robot's pose) goes into the tensor of which it is the newest
   scan; a non-finite pose is refused and counted (``odom_not_finite``) and the scan goes on without
   it, so a diverged odometry filter never costs a detection.
+* **Odometry jump** (the pose moved more than :data:`common.messages.ODOM_JUMP_M` or turned more
+  than :data:`common.messages.ODOM_JUMP_RAD` since the last stacked scan, or its frame changed: a
+  relocalisation, a robot carried off, a simulated robot put into a new world): the FIFO restarts
+  (``odom_jumps``), since scans on both sides show two places, not one motion, and the network reads
+  them as things that moved.
 * **Silence**: a robot not heard from for ``forget_after_s`` is forgotten (its FIFO freed), so a fleet
   that changes over time does not leak memory; if it speaks again it starts a fresh stream.
 * **Stacking period**: a model is trained on scans a set time apart (``stack_period_s``, from its
@@ -41,7 +46,7 @@ from typing import Any, Protocol
 
 from common.encoding import InvalidRule, Padding, ReadsScans, ScanError, ScanStacker
 from common.keys import parse_key
-from common.messages import LIT_PIXELS_VERSION, MessageError, Scan, StackedTensor, decode_message
+from common.messages import LIT_PIXELS_VERSION, MessageError, Odometry, Scan, StackedTensor, decode_message
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +66,7 @@ class EncoderCounters:
     between_stacked: int = 0  # scans of a faster sensor left out to stack at the model's period
     forgotten_robots: int = 0
     odom_not_finite: int = 0
+    odom_jumps: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # reason → count
 
     def to_dict(self) -> dict[str, object]:
@@ -73,6 +79,7 @@ class EncoderCounters:
             "between_stacked": self.between_stacked,
             "forgotten_robots": self.forgotten_robots,
             "odom_not_finite": self.odom_not_finite,
+            "odom_jumps": self.odom_jumps,
             "rejected": dict(self.rejected),
         }
 
@@ -97,11 +104,13 @@ class _Stream:
     last_stamp_ns: int | None = None  # of the last scan received, stacked or not
     intervals_ns: deque[int] = field(default_factory=lambda: deque(maxlen=INTERVALS_KEPT))
     slow_sensor_logged: bool = False
+    odom: Odometry | None = None  # the last finite pose of a stacked scan
 
     def restart(self) -> None:
         self.stacker.reset()
         self.seqs.clear()
         self.stamps_ns.clear()
+        self.odom = None
 
     def stride(self, stamp_ns: int, period_s: float | None) -> int:
         """Every how many scans of this robot's sensor to stack, learning its interval from ``stamp_ns``."""
@@ -287,6 +296,17 @@ class EncoderCore:
                 self.counters.gaps += 1
                 log.debug("%s: gap, seq %d after %d: FIFO restarted", scan.robot_id, scan.seq, last_seq)
                 stream.restart()
+        odom = scan.odom
+        if odom is not None and not odom.finite:
+            self.counters.odom_not_finite += 1
+            log.warning("%s seq %d: non-finite odometry refused, scan kept", scan.robot_id, scan.seq)
+            odom = None
+        if odom is not None and stream.odom is not None and stream.seqs:
+            broken = odom.break_from(stream.odom)
+            if broken is not None:
+                self.counters.odom_jumps += 1
+                log.info("%s seq %d: %s, FIFO restarted", scan.robot_id, scan.seq, broken.replace("_", " "))
+                stream.restart()
         self._log_slow_sensor(stream, scan.robot_id)
         try:
             tensor = stream.stacker.push_scan(
@@ -299,14 +319,11 @@ class EncoderCore:
         stream.last_seen_s = self.clock()
         stream.seqs = [*stream.seqs[-2:], scan.seq]
         stream.stamps_ns = [*stream.stamps_ns[-2:], scan.stamp_ns]
+        if odom is not None:
+            stream.odom = odom
         if tensor is None:
             self.counters.warming_up += 1
             return None
-        odom = scan.odom
-        if odom is not None and not odom.finite:
-            self.counters.odom_not_finite += 1
-            log.warning("%s seq %d: non-finite odometry refused, scan kept", scan.robot_id, scan.seq)
-            odom = None
         self.counters.published += 1
         tensor.flags.writeable = False  # no one else holds it: the message keeps it without a copy
         return StackedTensor(
