@@ -213,6 +213,27 @@ def test_boxes_with_no_pose_known_from_before_their_scan_open_no_track() -> None
     assert track.hits == 4
 
 
+def test_one_desk_followed_by_two_tracks_keeps_the_older_and_close_people_stay_apart() -> None:
+    """A big desk seen in part gives two boxes with their own centres; the second opens a track while
+    the first is still tentative. Once both are established the younger is retired. Two chairs
+    further apart than the duplicate radius, and two people walking side by side, stay two."""
+    core = TrackerCore()
+    still = pose(0.0, 0.0, 0.0)
+    first = core.update(message(0, [det(2.0, 1.0, "desk")], still))
+    assert first is not None
+    (desk_id,) = [t.track_id for t in first.tracks]
+    for k in range(1, 6):
+        dets = [det(2.0, 1.0, "desk"), det(2.0, 0.5, "desk"), det(0.0, 2.0, "chair"), det(0.7, 2.0, "chair")]
+        people = [det(1.0, -1.0 + 0.1 * k, "person"), det(1.5, -1.0 + 0.1 * k, "person")]
+        out = core.update(message(k, dets + people, still))
+        assert out is not None
+    confirmed = [t for t in out.tracks if t.state == "confirmed"]
+    assert [t.track_id for t in confirmed if t.class_name == "desk"] == [desk_id]
+    assert len([t for t in confirmed if t.class_name == "chair"]) == 2
+    assert len([t for t in confirmed if t.class_name == "person"]) == 2
+    assert core.counters.tracks_merged == 1
+
+
 def test_a_second_detection_of_a_tracked_object_opens_no_track() -> None:
     core = TrackerCore(TrackerConfig(duplicate_m=0.4))
     for k in range(4):

@@ -20,7 +20,8 @@ Method (docs/tracking.md has the reasoning and the scores):
   confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
   without a hit; a coasting person's velocity decays (``person_coast_decay_s``), since people stop
   and turn, and a track that kept walking would leave them; a tentative track is deleted after
-  ``tentative_misses`` misses. With
+  ``tentative_misses`` misses. In the odometry frame, of two established tracks of one furniture
+  class closer than ``duplicate_m``, the younger is retired: one object followed twice. With
   ``person_confirm_travel_m`` set, a person track also has to move that far to be confirmed. The class
   is the one with the most summed score over the track, the score a running mean.
 * **People found again.** A person track confirmed near where a person track was lost a moment
@@ -180,6 +181,7 @@ class TrackerCounters:
     tracks_deleted: int = 0
     tracks_forgotten: int = 0
     tracks_resumed: int = 0  # new person tracks that took a lost one's id back (person_resume_s)
+    tracks_merged: int = 0  # furniture tracks retired as a second track of an object (duplicate_m)
     forgotten_robots: int = 0
     duplicates: int = 0  # detections of an object a track already follows: no new track
     rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
@@ -195,6 +197,7 @@ class TrackerCounters:
             "tracks_deleted": self.tracks_deleted,
             "tracks_forgotten": self.tracks_forgotten,
             "tracks_resumed": self.tracks_resumed,
+            "tracks_merged": self.tracks_merged,
             "forgotten_robots": self.forgotten_robots,
             "duplicates": self.duplicates,
             "rejected": dict(self.rejected),
@@ -241,7 +244,9 @@ class _Track:
         self.hits, self.misses = 1, 0
         self.first_stamp_ns = self.last_hit_ns = stamp_ns
         self.state: TrackState = "tentative"
-        self.retired = False  # a new track took this one's id (``person_resume_s``): gone after this scan
+        # A new track took this one's id (``person_resume_s``), or an older one follows its object
+        # (``_merge_furniture``): gone after this scan.
+        self.retired = False
 
     @property
     def class_id(self) -> int:
@@ -486,6 +491,8 @@ class TrackerCore:
             self.counters.tracks_created += 1
             if self._confirms(kept[-1]):
                 self._confirm(robot, kept[-1], kept)  # the tracks deleted this scan are in robot.ended
+        if not laser:
+            self._merge_furniture(kept)
         retired = [t for t in kept if t.retired]
         if retired:
             kept = [t for t in kept if not t.retired]
@@ -530,6 +537,34 @@ class TrackerCore:
             lost.retired = True
         track.track_id, track.first_stamp_ns = lost.track_id, lost.first_stamp_ns
         self.counters.tracks_resumed += 1
+
+    def _merge_furniture(self, tracks: list[_Track]) -> None:
+        """Retire the younger of two established tracks of one furniture class closer than
+        ``duplicate_m``: one object followed twice (a big desk seen in part from close by, where each
+        part's box has its own centre, starts a second track before the first is confirmed, and the
+        duplicate rule guards only against confirmed ones). The older keeps its id; a consumer that
+        counts chairs sees one chair. Only in the odometry frame, where furniture stands still: in the
+        laser frame every track moves with the robot, and there the rule cost the real recordings
+        person tracks (a detection the retired track would have taken opened a new one)."""
+        established = sorted(
+            (
+                t
+                for t in tracks
+                if t.state != "tentative" and not t.retired and CLASS_NAMES[t.class_id] in FURNITURE_CLASSES
+            ),
+            key=lambda t: (t.first_stamp_ns, t.track_id),
+        )
+        for i, older in enumerate(established):
+            if older.retired:
+                continue
+            for younger in established[i + 1 :]:
+                if (
+                    not younger.retired
+                    and younger.class_id == older.class_id
+                    and math.hypot(younger.x - older.x, younger.y - older.y) < self.config.duplicate_m
+                ):
+                    younger.retired = True
+                    self.counters.tracks_merged += 1
 
     def _confirms(self, track: _Track) -> bool:
         """Whether a tentative track has earned confirmation: enough hits, and a person enough travel."""
