@@ -42,6 +42,11 @@ log = logging.getLogger(__name__)
 
 REFRESH_S: Final[float] = 1.0  # the thread also compares wanted and declared this often, unprompted
 
+GONE_TOLERATED: Final[float] = 0.1
+"""Robots whose tokens went stay in the even share (:class:`OwnedRobots`) until the next robot is
+announced or member changes, or until more than one, and more than this share of those shared, are
+gone: a fleet that only shrinks is shared out again too."""
+
 UNANNOUNCED: Final[str] = "@unannounced"
 """The pseudo-robot whose owner serves every robot with no source token: ``@`` keeps it apart from
 every robot id (:func:`common.keys.validate_robot_id` refuses it)."""
@@ -64,12 +69,16 @@ class OwnedRobots:
     """Which robots one member subscribes to, kept up to date from member and source changes.
 
     Pure and thread-safe. A robot is announced while at least one source holds its token (two
-    encoders do during a handover). The owners are worked out again whenever the members or the
-    announced robots change, since an even share moves with both; the weights are kept
-    (:class:`services.shards.Rankings`), so a fleet coming up token by token stays cheap. With a
-    ``view``, that view learns the announced robots too. Every robot counts as just changed for
-    ``settle_s`` after this member starts watching the sources (:meth:`watching`), since its tokens
-    arrive a little later than another member's may have.
+    encoders do during a handover). The robots shared out (:meth:`shared`; with a ``view``, that
+    view is told of them) are the announced ones as of the last change that moves robots: a member
+    joining or leaving, a robot announced, or more robots gone than :data:`GONE_TOLERATED` allows.
+    A robot whose token goes moves nobody else by itself, so a token that flaps (a publisher in a
+    crash loop) cannot keep another robot in transit, unserved, for as long as it flaps; every member
+    sees the same token events in the same order, so every member shares out the same set. The
+    owners are worked out only when asked for after a change, and the weights are kept
+    (:class:`services.shards.Rankings`), so a fleet coming up token by token stays cheap. Every
+    robot counts as just changed for ``settle_s`` after this member starts watching the sources
+    (:meth:`watching`), since its tokens arrive a little later than another member's may have.
     """
 
     def __init__(
@@ -82,7 +91,8 @@ class OwnedRobots:
         self._started = time.monotonic() if now is None else now
         self._members: frozenset[str] = frozenset({me})
         self._sources: dict[str, set[str]] = {}  # robot id → the sources announcing it
-        self._owned: set[str] = set()  # announced robots this member owns
+        self._shared: frozenset[str] = frozenset()  # the robots the owners are worked out for
+        self._owned: frozenset[str] | None = frozenset()  # of those, this member's; None: to work out
         self._changed: dict[str, float] = {}  # robot id → when it was last announced or unannounced
         self._lock = threading.Lock()
 
@@ -93,14 +103,22 @@ class OwnedRobots:
             if current == self._members:
                 return
             self._members = current
-            self._reassign()
+            self._owned = None
+            self._share(None)
 
-    def _reassign(self, now: float | None = None, gone: Iterable[str] = ()) -> None:
-        """Work out this member's robots again (the lock is held), and tell the view of the robots."""
-        self._owned = set(robots_to_subscribe(self._members, self._sources, self.me, self._rankings))
-        self._rankings.forget(gone)
+    def _share(self, now: float | None) -> None:
+        """Share out the robots announced now (the lock is held), and tell the view."""
+        announced = frozenset(self._sources)
+        if announced != self._shared:
+            self._shared = announced
+            self._owned = None
         if self.view is not None:
-            self.view.set_robots(self._sources, now)
+            self.view.set_robots(self._shared, now)
+
+    def shared(self) -> frozenset[str]:
+        """The robots shared out among the members now (see the class docstring)."""
+        with self._lock:
+            return self._shared
 
     def watching(self, now: float | None = None) -> None:
         """This member starts watching the sources ``now``."""
@@ -121,7 +139,7 @@ class OwnedRobots:
             sources.add(source)
             if len(sources) == 1:
                 self._changed[robot_id] = now
-                self._reassign(now)
+                self._share(now)
 
     def source_down(self, robot_id: str, source: str, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
@@ -133,7 +151,9 @@ class OwnedRobots:
             if not sources:
                 del self._sources[robot_id]
                 self._changed[robot_id] = now
-                self._reassign(now, gone=(robot_id,))
+                gone = len(self._shared) - sum(1 for r in self._shared if r in self._sources)
+                if gone > max(1, int(GONE_TOLERATED * len(self._shared))):
+                    self._share(now)
 
     def announced(self, robot_id: str) -> bool:
         """Whether a source holds ``robot_id``'s token (its scans reach its owner on its own key)."""
@@ -158,9 +178,12 @@ class OwnedRobots:
             return (robot_id,) if robot_id in self._sources else (UNANNOUNCED,)
 
     def wanted(self) -> frozenset[str]:
-        """The robots to subscribe to now."""
+        """The robots to subscribe to now: those this member owns that are still announced."""
         with self._lock:
-            return frozenset(self._owned)
+            if self._owned is None:
+                self._owned = robots_to_subscribe(self._members, self._shared, self.me, self._rankings)
+                self._rankings.retain(self._shared)
+            return frozenset(r for r in self._owned if r in self._sources)
 
     def diff(self, subscribed: Collection[str], now: float | None = None) -> tuple[list[str], list[str]]:
         """(subscribe, unsubscribe): what to change to get from the robots ``subscribed`` now to

@@ -57,6 +57,14 @@ BALANCE_SLACK: Final[int] = 1
 one robot of the others, but about two robots move whenever one joins a fleet of hundreds; with one,
 about one moves, and the busiest member holds at most two more than the least busy."""
 
+COALESCE_S: Final[float] = 0.05
+"""A view changed again within this of its start is changed in place rather than followed by a new
+one: a fleet's tokens arrive in bursts (a start, an encoder restart), and a view a token makes
+costs an assignment and a look on every sample until it has settled. A state that lasted less than
+this never grants a robot anyway (``settle_s`` is ten times longer); what it costs is that this
+process takes the burst's last state as begun up to this much earlier, well inside the margin
+``settle_s`` keeps for peers that learn of a change later."""
+
 SIBLINGS_TIMEOUT_S: Final[float] = 60.0  # a launch's other processes load their models meanwhile
 MAX_LOGGED: Final[int] = 8  # robot ids named in one ownership-change log line
 
@@ -108,12 +116,13 @@ class Rankings:
             key = self._order[robot_id] = (weight("", robot_id), robot_id)
         return key
 
-    def forget(self, robots: Iterable[str]) -> None:
-        """Drop what is kept for robots gone from the fleet (a changing fleet does not leak)."""
-        for robot_id in robots:
-            self._order.pop(robot_id, None)
-            for table in self._rankings.values():
-                table.pop(robot_id, None)
+    def retain(self, robots: frozenset[str]) -> None:
+        """Keep only what is kept for ``robots`` (a changing fleet does not leak)."""
+        for robot_id in [r for r in self._order if r not in robots]:
+            del self._order[robot_id]
+        for table in self._rankings.values():
+            for robot_id in [r for r in table if r not in robots]:
+                del table[robot_id]
 
 
 def assign(
@@ -200,25 +209,34 @@ class ShardView:
             self._add_view(now, current, self._views[-1].robots)
 
     def set_robots(self, robots: Iterable[str], now: float | None = None) -> None:
-        """The announced robots as of ``now``: those are shared evenly (:func:`assign`)."""
+        """The robots to share evenly as of ``now`` (:func:`assign`; :class:`OwnedRobots
+        <services.shard_subscriptions.OwnedRobots>` says which)."""
         current = frozenset(robots)
         with self._lock:
-            gone = self._views[-1].robots - current
             self._add_view(now, self._views[-1].members, current)
-            self._rankings.forget(gone)
 
     def _add_view(self, now: float | None, members: frozenset[str], robots: frozenset[str]) -> None:
         last = self._views[-1]
         if members == last.members and robots == last.robots:
             return
-        self._views.append(_View(time.monotonic() if now is None else now, members, robots))
+        now = time.monotonic() if now is None else now
+        if len(self._views) > 1 and now - last.since < COALESCE_S:  # a burst (COALESCE_S)
+            self._views[-1] = _View(last.since, members, robots)
+        else:
+            self._views.append(_View(now, members, robots))
         self._owned_cache.clear()
+        self._prune(now)
 
     def _prune(self, now: float) -> None:
-        """Drop views that ended more than ``settle_s`` ago (the one current then stays)."""
+        """Drop views that ended more than ``settle_s`` ago (the one current then stays), and what
+        was kept for robots none of the others holds."""
         horizon = now - self.settle_s
+        dropped = False
         while len(self._views) > 1 and self._views[1].since <= horizon:
             del self._views[0]
+            dropped = True
+        if dropped:
+            self._rankings.retain(frozenset().union(*(view.robots for view in self._views)))
 
     def owns(self, robot_id: str, now: float | None = None) -> bool:
         """Whether this member serves ``robot_id`` now: its owner in every view of the last ``settle_s``."""
@@ -232,7 +250,14 @@ class ShardView:
         if cached is not None:
             return cached
         self._prune(now)
-        owned = all(view.owner(robot_id, self._rankings) == self.me for view in self._views)
+        views = self._views
+        if robot_id in views[-1].robots:
+            # Shared out: the views from before it was are no constraint. Until a member sees its
+            # token it subscribes to no sample of it, and the member that serves unannounced robots
+            # hands it over only after settle_s (services.shard_subscriptions.serves): so it is
+            # served from the moment its owner sees it, not settle_s later.
+            views = [view for view in views if robot_id in view.robots]
+        owned = all(view.owner(robot_id, self._rankings) == self.me for view in views)
         if len(self._views) == 1:  # settled: the answer holds until the next change
             self._owned_cache[robot_id] = owned
         return owned

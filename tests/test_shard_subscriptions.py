@@ -124,6 +124,78 @@ def member(me: str, members: list[str], now: float = LONG_AGO) -> tuple[OwnedRob
     return plan, view
 
 
+def pushes_another(fleet: list[str], members: list[str]) -> tuple[str, list[str]]:
+    """A robot whose arrival moves robots of ``fleet`` between ``members``, and those robots."""
+    before = assign(fleet, members)
+    for i in range(1000):
+        newcomer = f"flaky{i}"
+        after = assign([*fleet, newcomer], members)
+        moved = [r for r in fleet if after[r] != before[r]]
+        if moved:
+            return newcomer, moved
+    raise AssertionError("no robot moves another")
+
+
+def test_a_token_that_flaps_moves_no_other_robot_and_leaves_none_unserved() -> None:
+    """A publisher in a crash loop announces and withdraws its robot every 0.3 s. Were every change
+    shared out at once, a robot its arrival moves would change owner faster than ``settle_s`` and be
+    served by nobody for as long as it flaps."""
+    members = [ME, OTHER]
+    fleet = ROBOTS[:21]
+    flaky, moved = pushes_another(fleet, members)
+    everyone = {m: member(m, members) for m in members}
+    for plan, _ in everyone.values():
+        for robot_id in fleet:
+            plan.source_up(robot_id, "sim", now=LONG_AGO)
+    owners = assign([*fleet, flaky], members)  # its first arrival moves them, once
+    up = False
+    for tick in range(100):  # ten seconds: up 0.3 s, down 0.3 s
+        t = 0.1 * tick
+        if tick % 3 == 0:
+            up = not up
+            for k, (plan, _) in enumerate(everyone.values()):
+                change = plan.source_up if up else plan.source_down
+                change(flaky, "crashing", now=t + 0.005 * k)
+        if t >= 0.6:  # the first arrival has settled
+            for robot_id in moved:
+                assert served_by(everyone, robot_id, now=t + 0.01) == [owners[robot_id]], (t, robot_id)
+
+
+def test_a_fleet_that_shrinks_is_shared_out_again_and_forgets_its_robots() -> None:
+    """Robots that go move nobody one by one, but once more than a tenth of the shared ones are gone
+    the rest are shared out evenly again; what was kept for the gone ones is dropped."""
+    members = [ME, OTHER, THIRD]
+    plan, view = member(ME, members)
+    for robot_id in ROBOTS:
+        plan.source_up(robot_id, "sim", now=0.0)
+    assert plan.shared() == frozenset(ROBOTS)
+    plan.source_down(ROBOTS[0], "sim", now=1.0)
+    assert plan.shared() == frozenset(ROBOTS)  # one gone: nothing moves
+    for robot_id in ROBOTS[1:30]:
+        plan.source_down(robot_id, "sim", now=1.0)
+    remaining = ROBOTS[30:]
+    shared = plan.shared()
+    assert shared >= frozenset(remaining) and len(shared - set(remaining)) <= max(1, len(shared) // 10)
+    mine = owned_by(ME, members, sorted(shared))
+    assert plan.wanted() == mine & set(remaining)
+    assert {r for r in remaining if view.owns(r, now=5.0)} == mine & set(remaining)
+    assert set(view._rankings._order) <= shared  # the gone robots' weights are dropped
+
+
+def test_a_burst_of_tokens_makes_few_views() -> None:
+    """A thousand robots announced within a fifth of a second (a start, an encoder restart): views
+    changed again within ``COALESCE_S`` are changed in place, so a sample looks at a handful of
+    views, not a thousand, and the view settles half a second after the burst."""
+    plan, view = member(ME, [ME, OTHER])
+    robots = [f"robot{i:04d}" for i in range(1000)]
+    for i, robot_id in enumerate(robots):
+        plan.source_up(robot_id, "sim", now=0.0002 * i)
+    assert len(view._views) <= 6, len(view._views)
+    assert not view.settled(now=0.3) and view.settled(now=0.75)
+    mine = owned_by(ME, [ME, OTHER], robots)
+    assert {r for r in robots if view.owns(r, now=0.75)} == mine
+
+
 def test_exactly_one_member_holds_the_wildcard_and_another_takes_it_when_it_goes() -> None:
     members = [ME, OTHER, THIRD]
     holders = [m for m in members if holds_wildcard(members, m)]

@@ -199,7 +199,13 @@ def test_a_robot_coming_moves_others_without_serving_any_twice(first: str) -> No
     moving = [r for r in fleet if before[r] != after[r]]
     second = next(m for m in members if m != first)
     views[first].set_robots([*fleet, newcomer], now=0.0)
+    for robot in moving:  # the other member has not heard of the newcomer yet
+        assert sum(view.owns(robot, now=0.02) for view in views.values()) <= 1, robot
+    # The newcomer's owner serves it at once: no member subscribed to it before it was announced.
+    if after[newcomer] == first:
+        assert views[first].owns(newcomer, now=0.02)
     views[second].set_robots([*fleet, newcomer], now=0.05)
+    assert views[after[newcomer]].owns(newcomer, now=0.05)
     for t in (0.05, 0.3, 0.5, 0.54):
         for robot in [*moving, newcomer]:
             assert sum(view.owns(robot, now=t) for view in views.values()) <= 1, (robot, t)

@@ -211,6 +211,7 @@ def test_boxes_with_no_pose_known_from_before_their_scan_open_no_track() -> None
     (track,) = out.tracks
     assert (track.odom_x_m, track.odom_y_m) == pytest.approx((2.0, 1.0), abs=1e-9)
     assert track.hits == 4
+    assert core.counters.published == core.counters.received == 5  # the unplaced one went out too
 
 
 def test_one_desk_followed_by_two_tracks_keeps_the_older_and_close_people_stay_apart() -> None:

@@ -17,7 +17,7 @@ happened. So, per robot (robots never share a FIFO):
   scan; a non-finite pose is refused and counted (``odom_not_finite``) and the scan goes on without
   it, so a diverged odometry filter never costs a detection.
 * **Odometry jump** (the pose moved more than :data:`common.messages.ODOM_JUMP_M` or turned more
-  than :data:`common.messages.ODOM_JUMP_RAD` since the last stacked scan, or its frame changed: a
+  than :data:`common.messages.ODOM_JUMP_RAD` since the last stacked scan's, or its frame changed: a
   relocalisation, a robot carried off, a simulated robot put into a new world): the FIFO restarts
   (``odom_jumps``), since scans on both sides show two places, not one motion, and the network reads
   them as things that moved.
@@ -104,7 +104,7 @@ class _Stream:
     last_stamp_ns: int | None = None  # of the last scan received, stacked or not
     intervals_ns: deque[int] = field(default_factory=lambda: deque(maxlen=INTERVALS_KEPT))
     slow_sensor_logged: bool = False
-    odom: Odometry | None = None  # the last finite pose of a stacked scan
+    odom: Odometry | None = None  # the pose of the last stacked scan, if it had a finite one
 
     def restart(self) -> None:
         self.stacker.reset()
@@ -319,8 +319,7 @@ class EncoderCore:
         stream.last_seen_s = self.clock()
         stream.seqs = [*stream.seqs[-2:], scan.seq]
         stream.stamps_ns = [*stream.stamps_ns[-2:], scan.stamp_ns]
-        if odom is not None:
-            stream.odom = odom
+        stream.odom = odom  # a jump is judged between consecutive stacked scans, or not at all
         if tensor is None:
             self.counters.warming_up += 1
             return None

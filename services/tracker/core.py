@@ -446,7 +446,7 @@ class TrackerCore:
                 keep = math.exp(-dt / decay)
                 track.vx, track.vy = track.vx * keep, track.vy * keep
             track.predict(dt, model)
-        if pose is not None:
+        if pose is not None and pose is message.odom:  # a stand-in pose is no pose of this scan
             robot.poses[stamp] = pose
             while len(robot.poses) > POSES_KEPT:
                 robot.poses.popitem(last=False)
@@ -454,6 +454,7 @@ class TrackerCore:
         placing = pose if message.pose_stamp_ns is None or pose is None else self._middle_pose(robot, message)
         if pose is not None and placing is None:
             self.counters.dropped["unplaced"] += 1
+            self.counters.published += 1
             return self._message(message, robot, pose)  # nothing updated: no track misses this scan
         points = self._placed(message.detections, placing)
         matches, unmatched = self._assign(robot.tracks, message.detections, points)
