@@ -11,8 +11,9 @@ things picks the same owners and nothing has to be agreed on:
   members)`` plus :data:`BALANCE_SLACK`, and then to the next. Plain rendezvous hashing leaves the
   busiest of 16 processes with half as many robots again as the mean, and a fleet server fails at its
   busiest process; a bounded share keeps every process within a robot or two of the mean. The price
-  is that a robot coming or going can move a robot or two besides itself (a member's death moves
-  only a few of the survivors' robots besides the dead one's).
+  is that a robot coming can move a robot or so besides itself, and a member's death a few of the
+  survivors' robots besides the dead one's (a robot going moves nobody by itself:
+  :class:`services.shard_subscriptions.OwnedRobots` says which robots are shared out).
 * **Any other robot** (and :data:`services.shard_subscriptions.UNANNOUNCED`) goes to the member that
   weighs it highest (:func:`owner_of`): about 1/N of the robots move when a member joins, only the
   leaver's when one leaves.
@@ -22,7 +23,9 @@ Views of the members and of the announced robots are not updated everywhere at t
 as this process's only if this process owned it in every view it held over the last ``settle_s``.
 Two processes then serve one robot at once only if one of them learns of a change more than
 ``settle_s`` after the other, and a joiner or a survivor takes a robot over ``settle_s`` after it
-learns of the change. A killed process's connections are closed by its OS, so its token vanishes
+learns of the change. A robot newly shared out is the exception: the views from before it was are
+no constraint on it, since no member subscribed to its samples then. A killed process's connections
+are closed by its OS, so its token vanishes
 within milliseconds; a host that vanishes from the network is noticed after Zenoh's transport lease
 instead.
 
