@@ -598,8 +598,8 @@ class TrackerCore:
         its detections came, else interpolated between the poses of the scans around it (the
         detector skipped a tensor); None when no pose is known from before it (the first message
         after a reset or a start), since the newest scan's pose would misplace every box by what the
-        robot moved in one scan, 0.25 m at 1.5 rad/s and 1.6 m away, enough to start a second track
-        on one desk."""
+        robot moved in one scan, in a fast turn enough to start a second track on one desk
+        (docs/tracking.md, "Placement")."""
         middle = message.pose_stamp_ns
         assert middle is not None
         known = robot.poses.get(middle)
