@@ -339,6 +339,11 @@ def pixel_y_to_range_m(y_px: np.ndarray | float) -> np.ndarray:
     return np.asarray(y_px, dtype=np.float64) / ROW_SCALE
 
 
+def wrap_angle(angle: float) -> float:
+    """Radians in [-π, π): a heading, or the turn between two."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def wrap_bearing_deg(bearing_deg: np.ndarray | float) -> np.ndarray:
     """Normalise degrees to (−180, 180], the range ROS users expect for a bearing."""
     wrapped = np.mod(np.asarray(bearing_deg, dtype=np.float64) + 180.0, 360.0) - 180.0

@@ -55,7 +55,7 @@ from pydantic import (
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import core_schema
 
-from common.encoding import HIT
+from common.encoding import HIT, wrap_angle
 from common.keys import validate_robot_id
 from common.model_spec import CLASS_NAMES, MAX_DETECTIONS, TENSOR_SHAPE
 
@@ -469,7 +469,7 @@ class Odometry(WireModel):
         or None (one motion)."""
         if last.frame_id != self.frame_id:
             return "odom_reset"
-        turned = abs((self.yaw_rad - last.yaw_rad + math.pi) % _TWO_PI - math.pi)
+        turned = abs(wrap_angle(self.yaw_rad - last.yaw_rad))
         if math.hypot(self.x_m - last.x_m, self.y_m - last.y_m) > jump_m or turned > jump_rad:
             return "odom_jump"
         return None

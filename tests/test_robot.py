@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
+from common.encoding import wrap_angle
 from services.simulator.robot import (
     DiffDriveLimits,
     follow_waypoints,
     integrate,
-    wrap_angle,
 )
 
 LIMITS = DiffDriveLimits()

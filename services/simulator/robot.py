@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.encoding import wrap_angle
+
 log = logging.getLogger(__name__)
 
 Pose = tuple[float, float, float]  # (x m, y m, yaw rad)
@@ -41,11 +43,6 @@ class DiffDriveLimits:
         produce a trajectory a real Burger could not drive."""
         v_max, w_max = self.max_linear_mps, self.max_angular_radps
         return min(max(v, -v_max), v_max), min(max(w, -w_max), w_max)
-
-
-def wrap_angle(angle: float) -> float:
-    """Angle in [-π, π)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def integrate(pose: Pose, v: float, w: float, dt: float) -> Pose:

@@ -59,6 +59,7 @@ from typing import Final
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from common.encoding import wrap_angle
 from common.keys import parse_key
 from common.messages import (
     MAX_TRACKS,
@@ -611,7 +612,7 @@ class TrackerCore:
             return None
         a, b = robot.poses[before], robot.poses[after]
         f = (middle - before) / (after - before)
-        turn = (b.yaw_rad - a.yaw_rad + math.pi) % (2.0 * math.pi) - math.pi
+        turn = wrap_angle(b.yaw_rad - a.yaw_rad)
         return Odometry(
             x_m=a.x_m + f * (b.x_m - a.x_m),
             y_m=a.y_m + f * (b.y_m - a.y_m),
