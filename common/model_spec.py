@@ -19,6 +19,7 @@ CLASS_NAMES: Final[tuple[str, ...]] = ("chair", "box", "desk", "doorframe", "per
 NUM_CLASSES: Final[int] = len(CLASS_NAMES)
 # The paper's classes: a data set without people, and the models trained on one, hold these only.
 FURNITURE_CLASSES: Final[tuple[str, ...]] = CLASS_NAMES[:4]
+PERSON: Final[str] = CLASS_NAMES[4]  # the class the paper left to future work
 
 Rgb = tuple[int, int, int]
 # One palette for the viewer and the pictures. It avoids the pure and mixed channel colours (red,

@@ -40,14 +40,13 @@ import numpy as np
 
 from common.inference import OnnxDetector
 from common.messages import Detections, Odometry
-from common.model_spec import CLASS_NAMES
+from common.model_spec import CLASS_NAMES, PERSON
 from services.simulator.lidar import LidarSpec
 from services.tracker.core import REPORTED_STATES, TrackerConfig, TrackerCore
 from services.tracker.mot import DEFAULT_GATE_M, GROUPS, ClearMot, MotScore, hypotheses_of
 
 log = logging.getLogger(__name__)
 
-PERSON = "person"
 PASS_GAP_S = 1.0  # a person track starting this soon after another ended continues the same pass
 GOALS: dict[str, float] = {"furniture": 0.90, "people": 0.85}  # MOTA, issue goals on fresh worlds
 

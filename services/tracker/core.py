@@ -75,7 +75,7 @@ from common.messages import (
     TrackState,
     decode_message,
 )
-from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES
+from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES, PERSON
 
 log = logging.getLogger(__name__)
 
@@ -443,7 +443,7 @@ class TrackerCore:
         models = [FREE if laser else MOTION_MODELS[CLASS_NAMES[t.class_id]] for t in robot.tracks]
         decay = self.config.person_coast_decay_s
         for track, model in zip(robot.tracks, models, strict=True):
-            if decay > 0.0 and track.misses and CLASS_NAMES[track.class_id] == "person":
+            if decay > 0.0 and track.misses and CLASS_NAMES[track.class_id] == PERSON:
                 keep = math.exp(-dt / decay)
                 track.vx, track.vy = track.vx * keep, track.vy * keep
             track.predict(dt, model)
@@ -480,7 +480,7 @@ class TrackerCore:
                 kept.append(track)  # a retired track leaves below, with those retired by new tracks
             else:
                 self.counters.tracks_deleted += 1
-                if resume_ns > 0 and track.state != "tentative" and CLASS_NAMES[track.class_id] == "person":
+                if resume_ns > 0 and track.state != "tentative" and CLASS_NAMES[track.class_id] == PERSON:
                     robot.ended.append(track)
         for di in unmatched:
             det = message.detections[di]
@@ -519,7 +519,7 @@ class TrackerCore:
         if resume_s <= 0 or CLASS_NAMES[track.class_id] != "person":
             return
         coasting = [
-            t for t in live if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == "person"
+            t for t in live if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == PERSON
         ]
         best: tuple[float, _Track] | None = None
         for lost in (*robot.ended, *coasting):
@@ -578,11 +578,11 @@ class TrackerCore:
     def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
         """A second detection of an object a track already follows: within ``duplicate_m`` of a
         confirmed track of the same group (furniture or person) that a detection of this scan updated."""
-        person = det.class_name == "person"
+        person = det.class_name == PERSON
         return any(
             t.state == "confirmed"
             and t.misses == 0
-            and (CLASS_NAMES[t.class_id] == "person") == person
+            and (CLASS_NAMES[t.class_id] == PERSON) == person
             and math.hypot(t.x - point[0], t.y - point[1]) < self.config.duplicate_m
             for t in tracks
         )

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from common.messages import Tracks
+from common.model_spec import PERSON
 from services.tracker.core import REPORTED_STATES
 
 DEFAULT_GATE_M: Final[float] = 0.75
@@ -36,7 +37,7 @@ predict furniture only."""
 
 
 def group_of(class_name: str) -> str:
-    return "people" if class_name == "person" else "furniture"
+    return "people" if class_name == PERSON else "furniture"
 
 
 def hypotheses_of(tracks: Tracks) -> dict[str, dict[int, tuple[float, float]]]:
