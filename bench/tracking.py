@@ -52,6 +52,7 @@ from common.messages import (
     encode_message,
 )
 from common.model_spec import CLASS_NAMES
+from common.moving_people import add_motion_argument
 from common.transport import ZenohSettings, open_session, payload_bytes
 from services.launcher import free_tcp_ports
 from services.tracker import add_tracker_arguments, rule_flags, rules_of, tracker_config
@@ -124,9 +125,11 @@ def live(
     record: Path | None = None,
     model: Path | None = None,
     rules: dict[str, float] | None = None,
+    motion_confirm: bool = True,
 ) -> dict[str, Any]:
     """``rules``: tracker rules by :class:`TrackerConfig` field (:func:`services.tracker.given_rules`),
-    passed to the loop's tracker; checked here first, so a bad value fails before anything starts."""
+    passed to the loop's tracker; checked here first, so a bad value fails before anything starts.
+    ``motion_confirm`` False runs the detector with ``--no-motion-confirm``."""
     rules = rules or {}
     config = TrackerConfig(**rules)  # type: ignore[arg-type]  # each rule is a float field
     (port,) = free_tcp_ports(1)
@@ -158,6 +161,7 @@ def live(
         sys.executable, "-m", "services.cli", "up", "--viewer", "none", "--duration", str(seconds),
         "--robots", str(robots), "--seed", str(seed), "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast",
         *(("--model", str(model)) if model is not None else ()),
+        *(() if motion_confirm else ("--no-motion-confirm",)),
         *rule_flags(rules),
     ]  # fmt: skip
     with open_session(ZenohSettings.loopback(free_tcp_ports(1)[0], [port])) as session:
@@ -294,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     live_p.add_argument("--out", type=Path, default=Path("bench/results/tracking_live.json"))
     live_p.add_argument("--record", type=Path, default=None, help="keep the detections and truth here")
     live_p.add_argument("--model", type=Path, default=None, help="detector model (default: shipped)")
+    add_motion_argument(live_p)
     add_tracker_arguments(live_p)
     offline_p = sub.add_parser("offline", help="a fresh tracker over a --record'ed run, scored the same way")
     offline_p.add_argument("recording", type=Path)
@@ -306,7 +311,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.mode == "live":
-        report = live(args.seconds, args.robots, args.seed, args.record, args.model, rules_of(args))
+        report = live(
+            args.seconds, args.robots, args.seed, args.record, args.model, rules_of(args), args.motion_confirm
+        )
     elif args.mode == "offline":
         report = offline(args.recording, tracker_config(args))
     else:

@@ -52,9 +52,11 @@ from common.model_spec import (
     INPUT_SHAPE,
     MAX_DETECTIONS,
     NUM_ANCHORS,
+    PERSON,
     BoxGrid,
     file_model_id,
 )
+from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm, confirm_people
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, PostprocessSettings, detections_many
 
 log = logging.getLogger(__name__)
@@ -158,11 +160,14 @@ class OnnxDetector:
         providers: list[str] | None = None,
         spin_wait: bool = True,
         box_grid: BoxGrid | None = None,
+        motion_confirm: MotionConfirm | None = DEFAULT_MOTION_CONFIRM,
     ) -> None:
         """``padding`` defaults to the model's own ``triscan.padding`` metadata (``zero`` if absent);
         asking for the other one than the model was trained with is refused. ``box_grid`` defaults to
         the model's ``triscan.box_grid`` (``none`` if absent); either value may be asked for, as it
-        changes only the post-processing. ``spin_wait``: see :func:`session_options`."""
+        changes only the post-processing. ``spin_wait``: see :func:`session_options`.
+        ``motion_confirm``: a model with a person class reports the person candidates below the
+        threshold that a still sensor sees walk (:mod:`common.moving_people`); None turns it off."""
         path = Path(model_path)
         if not 0.0 <= conf_threshold <= 1.0:
             raise ValueError(f"conf_threshold must lie in [0, 1], got {conf_threshold}")
@@ -200,6 +205,11 @@ class OnnxDetector:
             num_classes,
             box_grid or declared_box_grid(self._session, path),
         )
+        # Motion confirmation needs a person class; the class it keeps candidates of below the threshold.
+        self.motion_confirm = motion_confirm if PERSON in self.class_names else None
+        self._low_class: tuple[int, float] | None = None
+        if self.motion_confirm is not None and self.motion_confirm.floor < conf_threshold:
+            self._low_class = (self.class_names.index(PERSON), self.motion_confirm.floor)
         log.info(
             "loaded %s (%d classes, %d anchors, %s) on %s, padding=%s raster yaw=%g box grid=%s conf=%.3g "
             "iou=%.3g",
@@ -298,13 +308,15 @@ class OnnxDetector:
         return output, (time.perf_counter_ns() - started) / _NS_PER_MS
 
     def _boxes_many(
-        self, tensors: Sequence[np.ndarray]
+        self, tensors: Sequence[np.ndarray], still: Sequence[bool | None] | None = None
     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, FrameTimings]]:
         """The one frame pipeline behind every ``detect*`` method: convert, run, post-process.
 
         Every tensor is converted (and so checked) before anything runs. A batch model runs several
         frames in one ``session.run``, whose whole time each of them reports as ``inference_ms``; their
-        frames are converted straight into one batch array, not concatenated afterwards.
+        frames are converted straight into one batch array, not concatenated afterwards. ``still``
+        says per tensor what odometry knows of the sensor's motion over its scans, for motion
+        confirmation (:func:`common.moving_people.confirm_people`; None: nothing).
         """
         if not tensors:
             return []
@@ -327,7 +339,13 @@ class OnnxDetector:
             outputs = np.concatenate([output for output, _ in runs]) if len(runs) > 1 else runs[0][0]
             inference = [ms for _, ms in runs]
         started = time.perf_counter_ns()
-        finals = self.postprocessing.postprocess_many(outputs)
+        finals = self.postprocessing.postprocess_many(outputs, self._low_class)
+        if self.motion_confirm is not None:
+            stills = still if still is not None else [None] * len(tensors)
+            finals = [
+                self._confirmed(tensor, *final, still=frame_still)
+                for tensor, final, frame_still in zip(tensors, finals, stills, strict=True)
+            ]
         nms_ms = (time.perf_counter_ns() - started) / _NS_PER_MS / len(inputs)  # each frame's share
         return [
             (boxes, scores, class_ids, FrameTimings(frame_encode_ms, frame_inference_ms, nms_ms))
@@ -336,19 +354,42 @@ class OnnxDetector:
             )
         ]
 
-    def detect_boxes(self, tensor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, FrameTimings]:
+    def _confirmed(
+        self,
+        tensor: np.ndarray,
+        boxes: np.ndarray,
+        scores: np.ndarray,
+        class_ids: np.ndarray,
+        *,
+        still: bool | None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One frame's boxes after motion confirmation: the person candidates below the threshold that
+        it confirmed are kept with their raised score, the others dropped; highest score first."""
+        assert self.motion_confirm is not None
+        person_id = self.class_names.index(PERSON)
+        scores = confirm_people(tensor, boxes, scores, class_ids, person_id, self.motion_confirm, still)
+        keep = scores > np.float32(self.postprocessing.conf_threshold)
+        order = np.flatnonzero(keep)[np.argsort(-scores[keep], kind="stable")]
+        return boxes[order], scores[order], class_ids[order]
+
+    def detect_boxes(
+        self, tensor: np.ndarray, still: bool | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, FrameTimings]:
         """Final boxes (xyxy pixels), scores and class ids, highest score first, and stage timings.
 
         ``encode_ms`` is only the uint8 → float32 conversion done here (the service adds its raster
-        time); ``nms_ms`` covers decode, NMS, clipping and seam merging.
+        time); ``nms_ms`` covers decode, NMS, clipping, seam merging and motion confirmation, for which
+        ``still`` is what odometry says of the sensor over the tensor's scans (None: nothing).
         """
-        return self._boxes_many([tensor])[0]
+        return self._boxes_many([tensor], [still])[0]
 
     def detect(self, tensor: np.ndarray) -> tuple[list[Detection], StageTimings]:
         """Wire detections and timings for one tensor; ``nms_ms`` includes building the detections."""
         return self.detect_many([tensor])[0]
 
-    def detect_many(self, tensors: Sequence[np.ndarray]) -> list[tuple[list[Detection], StageTimings]]:
+    def detect_many(
+        self, tensors: Sequence[np.ndarray], still: Sequence[bool | None] | None = None
+    ) -> list[tuple[list[Detection], StageTimings]]:
         """:meth:`detect` for several robots' tensors, in one ``session.run`` when the model allows.
 
         With a batch model (:attr:`batched`, the ``-batch`` files) the frames share one call, which
@@ -359,9 +400,10 @@ class OnnxDetector:
         post-processing, which runs for every frame at once.
 
         Every tensor is checked before anything runs, so one bad tensor raises a ``ValueError`` that
-        names its index instead of failing the batch half-way.
+        names its index instead of failing the batch half-way. ``still``: as for :meth:`detect_boxes`,
+        one per tensor.
         """
-        frames = self._boxes_many(tensors)
+        frames = self._boxes_many(tensors, still)
         if not frames:
             return []
         started = time.perf_counter_ns()

@@ -442,17 +442,24 @@ class PostprocessSettings:
         """:func:`postprocess` with these settings."""
         return self.postprocess_many(_single_frame(output))[0]
 
-    def postprocess_many(self, outputs: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def postprocess_many(
+        self, outputs: np.ndarray, low_class: tuple[int, float] | None = None
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """:func:`postprocess` for each frame of a batch's output ``[B, 4 + nc, A]``: per frame the very
         boxes, scores and classes it gives that frame alone.
 
         Decoding, clipping and snapping work on every frame's boxes at once, NMS and the seam merge
         frame by frame: a batch costs a few numpy calls more than one frame, not a few per frame.
+        ``low_class`` ``(class id, floor)`` also keeps that class's candidates scoring above ``floor``
+        though below the threshold, for a later step that may confirm them
+        (:mod:`common.moving_people`); the NMS is per class, so the other classes' boxes stay the same.
         """
+        threshold = self.conf_threshold if low_class is None else min(self.conf_threshold, low_class[1])
         kept = []
-        for boxes, scores, class_ids in decode_yolov8_many(
-            outputs, self.conf_threshold, num_classes=self.num_classes
-        ):
+        for boxes, scores, class_ids in decode_yolov8_many(outputs, threshold, num_classes=self.num_classes):
+            if threshold < self.conf_threshold and low_class is not None:
+                wanted = (scores > np.float32(self.conf_threshold)) | (class_ids == low_class[0])
+                boxes, scores, class_ids = boxes[wanted], scores[wanted], class_ids[wanted]
             keep = nms(boxes, scores, class_ids, self.iou_threshold, self.max_detections)
             kept.append((boxes[keep], scores[keep], class_ids[keep]))
         placed = _clip_and_snap(np.concatenate([boxes for boxes, _, _ in kept]), self.box_grid)

@@ -98,6 +98,7 @@ class UpConfig:
     batch: int | None = None
     # The detector's --detectors (None: one process per core, services.detector.core.default_processes).
     detectors: int | None = None
+    motion_confirm: bool = True  # the detector's motion confirmation (--no-motion-confirm: off)
     # The tracker's --person-confirm-travel and --person-resume (None: its defaults, services.tracker.core).
     person_confirm_travel_m: float | None = None
     person_resume_s: float | None = None
@@ -222,6 +223,7 @@ def service_commands(
             *(("--model", str(config.model)) if config.model else ()),
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
             *(("--detectors", str(config.detectors)) if config.detectors is not None else ()),
+            *(() if config.motion_confirm else ("--no-motion-confirm",)),
         ],
         "tracker": rule_flags(config.tracker_rules),
         "visualizer": sink,

@@ -430,3 +430,24 @@ def test_a_real_extracted_recording_scores_its_leg_clusters() -> None:
         assert report.legs["precision"] is None
     else:
         assert 0.0 <= report.legs["recall"] <= 1.0
+
+
+@pytest.mark.slow
+def test_motion_confirmation_finds_more_of_a_real_walkers_legs() -> None:
+    """On a real recording of a still sensor, the people preview finds far more of the walker's legs
+    with motion confirmation than without, and nearly all of its in-window people stay on legs."""
+    if not (REAL / "training_scans_res=0.33").is_dir():
+        pytest.skip(f"the leg_tracker development set is not at {REAL} (../shared beside the checkout)")
+    pytest.importorskip("rosbags")
+    model = SHIPPED_MODEL.parents[1] / "yolov8p-relu-dfl12" / "triscan-yolov8p-relu-dfl12-zero-int8.onnx"
+    scans = REAL / "training_scans_res=0.33"
+    config = BagEvalConfig(
+        scans / "positive_2_extracted.bag",
+        legs_topic="/leg_cluster_positions",
+        stream_bag=scans / "positive_not_extracted" / "positive_2.bag",
+    )
+    on = evaluate_bag(detector_for(model), config).legs
+    off = evaluate_bag(detector_for(model, motion_confirm=None), config).legs
+    assert on is not None and off is not None
+    assert on["recall"] >= off["recall"] + 0.3, (on, off)
+    assert on["precision"] >= 0.9

@@ -40,13 +40,13 @@ from scipy.optimize import linear_sum_assignment
 from common.encoding import R_MAX_M, ScanError, ScanStacker
 from common.inference import OnnxDetector
 from common.messages import Detection, Scan
-from common.model_spec import CLASS_NAMES
+from common.model_spec import CLASS_NAMES, PERSON
+from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, detections_from_boxes
 from training.evaluate import VAL_CONF
 
 log = logging.getLogger(__name__)
 
-PERSON: Final[str] = "person"
 PERSON_ID: Final[int] = CLASS_NAMES.index(PERSON)
 CENTRE_RADII_M: Final[tuple[float, ...]] = (0.3, 0.5)  # DR-SPAAM's association radii
 # A leg cluster is the mean point of one leg's near surface, a person's centre lies between the two
@@ -644,7 +644,15 @@ def write_reports(reports: Sequence[BagReport], out_dir: Path) -> Path:
     return path
 
 
-def detector_for(model: Path, threads: int | None = None) -> OnnxDetector:
+def detector_for(
+    model: Path, threads: int | None = None, motion_confirm: MotionConfirm | None = DEFAULT_MOTION_CONFIRM
+) -> OnnxDetector:
     """The robot's detector settings, with the validation protocol's confidence floor (as ``triscan
     eval`` on simulated worlds), so the precision-recall curve reaches low confidences."""
-    return OnnxDetector(model, conf_threshold=VAL_CONF, iou_threshold=DEFAULT_IOU, intra_op_threads=threads)
+    return OnnxDetector(
+        model,
+        conf_threshold=VAL_CONF,
+        iou_threshold=DEFAULT_IOU,
+        intra_op_threads=threads,
+        motion_confirm=motion_confirm,
+    )

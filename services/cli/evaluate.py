@@ -15,6 +15,7 @@ from pathlib import Path
 
 from common.encoding import PADDINGS
 from common.model_spec import BOX_GRIDS
+from common.moving_people import add_motion_argument, motion_confirm_of
 from services.cli.command import Command, add_recipe_argument
 from services.simulator.sensors import PROFILES
 from services.tracker import add_tracker_arguments, tracker_config
@@ -97,6 +98,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "motions instead of the detections; with --bag: its confirmed tracks and person passes",
     )  # fmt: skip
     add_tracker_arguments(p)
+    add_motion_argument(p)
     p.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
     p.add_argument("--out", type=Path, default=Path("eval"), help="directory for metrics.json and plots")
 
@@ -148,14 +150,17 @@ def _run_bag(args: argparse.Namespace) -> int:
         from training.track_eval import format_bag_tracks, track_bag
 
         rules = tracker_config(args)
-        tracked = [track_bag(detector_for(model, args.threads), config, rules) for model in args.model]
+        motion = motion_confirm_of(args)
+        detectors = [detector_for(model, args.threads, motion) for model in args.model]
+        tracked = [track_bag(detector, config, rules) for detector in detectors]
         print("\n".join(format_bag_tracks(report) for report in tracked))
         args.out.mkdir(parents=True, exist_ok=True)
         out = args.out / "bag_tracks.json"
         out.write_text(json.dumps([dataclasses.asdict(r) for r in tracked], indent=2) + "\n")
         print(f"written to {out}")
         return 0
-    reports = [evaluate_bag(detector_for(model, args.threads), config) for model in args.model]
+    motion = motion_confirm_of(args)
+    reports = [evaluate_bag(detector_for(model, args.threads, motion), config) for model in args.model]
     print(format_reports(reports))
     print(f"written to {write_reports(reports, args.out)}")
     return 0
@@ -233,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
             padding=args.padding,
             intra_op_threads=args.threads,
             box_grid=args.box_grid,
+            motion_confirm=motion_confirm_of(args),
         )
         for model in args.model
     ]

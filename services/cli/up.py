@@ -11,6 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from common.moving_people import add_motion_argument
 from common.transport import add_zenoh_arguments
 from services.cli.command import Command
 from services.runtime import default_of
@@ -82,6 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="detector processes sharing the robots (default: one per core)",
     )
+    add_motion_argument(p)
     add_tracker_arguments(p)
     p.add_argument(
         "--seed", type=int, default=None, help=f"simulator seed (default {up('seed')}; training used 0)"
@@ -150,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         batch=args.batch,
         detectors=args.detectors,
+        motion_confirm=args.motion_confirm,
         person_confirm_travel_m=args.person_confirm_travel,
         person_resume_s=args.person_resume,
         max_restarts=args.max_restarts,

@@ -30,6 +30,7 @@ from common.inference import OnnxDetector
 from common.keys import SCAN, TENSOR, detections_key, scan_key, tensor_key
 from common.messages import Detections, encode_message
 from common.model_spec import BOX_GRIDS, MODEL_ENV, SHIPPED_BATCH_MODEL, SHIPPED_MODEL
+from common.moving_people import add_motion_argument, motion_confirm_of
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
 from common.transport import ZenohSettings, payload_bytes, settings_from_args
 from services.detector.batch_cap import (
@@ -195,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_false",
         help="ONNX Runtime threads sleep instead of spinning between frames (frees the cores they spin on)",
     )
+    add_motion_argument(parser)
     add_processes_argument(parser, PROCESSES_FLAG, "one per core")
     add_service_arguments(parser, forget_after_s=DEFAULT_FORGET_AFTER_S)
     argv = sys.argv[1:] if argv is None else argv
@@ -220,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
                 intra_op_threads=threads,
                 spin_wait=args.spin_wait,
                 box_grid=args.box_grid,
+                motion_confirm=motion_confirm_of(args),
             )
             for _ in range(workers)
         ]

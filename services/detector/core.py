@@ -32,10 +32,12 @@ from common.messages import (
     Detection,
     Detections,
     MessageError,
+    Odometry,
     StackedTensor,
     StageTimings,
     decode_message,
 )
+from common.moving_people import DEFAULT_MOTION_CONFIRM, still_by_odometry
 from services.detector.batch_cap import check_batch
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 
@@ -211,6 +213,7 @@ class DetectorCounters:
 
 
 LATENCY_WINDOW = 1000  # most frames a stats period's latency percentiles are taken over
+POSE_HISTORY = 8  # newest scans' poses kept per robot: a tensor asks for its two older scans'
 
 
 class DetectorCore:
@@ -221,6 +224,11 @@ class DetectorCore:
         self.counters = DetectorCounters()
         self._lock = threading.Lock()  # counters are bumped from Zenoh and inference threads
         self._latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        # Each robot's newest scans' odometry poses by scan seq, and when it was last heard from: a
+        # tensor carries only its newest scan's pose, and motion confirmation asks whether the robot
+        # stood still over all three (common.moving_people).
+        self._poses: dict[str, OrderedDict[int, Odometry]] = {}
+        self._heard_at: dict[str, float] = {}
 
     def take_latency(self) -> dict[str, float] | None:
         """Scan-to-detection latency (the newest scan's stamp to publication, wall clock) of the frames
@@ -257,6 +265,33 @@ class DetectorCore:
         with self._lock:
             self.counters.received += 1
 
+    def _remember_pose(self, tensor: StackedTensor) -> None:
+        if tensor.odom is None or self.detector.motion_confirm is None:  # nothing will ask
+            return
+        with self._lock:
+            poses = self._poses.setdefault(tensor.robot_id, OrderedDict())
+            poses[tensor.scan_seqs[2]] = tensor.odom
+            poses.move_to_end(tensor.scan_seqs[2])
+            while len(poses) > POSE_HISTORY:
+                poses.popitem(last=False)
+            self._heard_at[tensor.robot_id] = time.monotonic()
+
+    def sensor_still(self, tensor: StackedTensor) -> bool | None:
+        """Whether the robot stood still over the tensor's three scans by odometry; None when a pose is
+        unknown (no odometry, or an older scan's tensor never came)."""
+        with self._lock:
+            poses = self._poses.get(tensor.robot_id)
+            older = [None if poses is None else poses.get(seq) for seq in tensor.scan_seqs[:2]]
+        config = self.detector.motion_confirm or DEFAULT_MOTION_CONFIRM
+        return still_by_odometry([*older, tensor.odom], config)
+
+    def forget_poses(self, older_than_s: float) -> None:
+        """Drop the poses of robots not heard from for ``older_than_s``: fleets change."""
+        cutoff = time.monotonic() - older_than_s
+        with self._lock:
+            for robot_id in [r for r, heard in self._heard_at.items() if heard < cutoff]:
+                del self._heard_at[robot_id], self._poses[robot_id]
+
     def _checked(self, tensor: StackedTensor, key_robot_id: str | None) -> StackedTensor | None:
         """Checks that need the model or the key: robot id, and the encoding the model was trained on."""
         if key_robot_id is not None and tensor.robot_id != key_robot_id:
@@ -278,6 +313,7 @@ class DetectorCore:
                 f"{self.detector.model_id} expects {self.detector.raster_yaw_deg:g} deg",
             )
             return None
+        self._remember_pose(tensor)
         return tensor
 
     def note_dropped(self) -> None:
@@ -307,7 +343,8 @@ class DetectorCore:
             return []
         started_ns = time.perf_counter_ns()
         model = detector or self.detector
-        results = model.detect_many([tensor.tensor for tensor in tensors])
+        still = [self.sensor_still(tensor) for tensor in tensors] if model.motion_confirm else None
+        results = model.detect_many([tensor.tensor for tensor in tensors], still)
         with self._lock:
             self.counters.processed += len(results)
             self.counters.inference_calls += 1 if model.batched else len(results)
@@ -442,6 +479,7 @@ class InferencePipeline:
             EncoderCore.for_model(self.core.detector, forget_after_s=forget_after_s) if from_scans else None
         )
         self.batch = batch
+        self._forget_after_s = forget_after_s
         self._owns = owns or (lambda _robot_id: True)
         self._publish = publish
         self._mailbox: LatestPerRobot[Pending] = LatestPerRobot(gather_s=gather_ms / 1000)
@@ -505,6 +543,7 @@ class InferencePipeline:
         return the counters for the stats, with the latency of the frames since the last call."""
         counters: dict[str, object] = self.core.counters.to_dict()
         counters["latency_ms"] = self.core.take_latency()
+        self.core.forget_poses(self._forget_after_s)
         if self.encoder is not None:
             self.encoder.forget_silent()
             counters["encoder"] = self.encoder.snapshot()
