@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from common.inference import OnnxDetector
 from common.model_spec import CLASS_NAMES, META_CLASSES, SHIPPED_MODEL
 from services.cli import main as cli_main
 from training.real_eval import (
@@ -220,9 +221,15 @@ def person_model(path: Path, raster_yaw_deg: float = 0.0) -> Path:
 
 
 def write_bag(
-    path: Path, people: list[list[tuple[float, float]]], *, beams: int = 360, fov: float = 2 * math.pi
+    path: Path,
+    people: list[list[tuple[float, float]]],
+    *,
+    beams: int = 360,
+    fov: float = 2 * math.pi,
+    odom_x: list[float] | None = None,
 ) -> Path:
-    """A ROS 1 bag: len(people) scans on /scan, PERIOD_NS apart, and a stamped /people PoseArray each."""
+    """A ROS 1 bag: len(people) scans on /scan, PERIOD_NS apart, and a stamped /people PoseArray each;
+    with ``odom_x``, an /odom pose at that x just before each scan."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -243,7 +250,30 @@ def write_bag(
     with Writer(path) as writer:
         scan_conn = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
         people_conn = writer.add_connection("/people", "geometry_msgs/msg/PoseArray", typestore=store)
+        odom_conn = (
+            writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store) if odom_x else None
+        )
         for k, persons in enumerate(people):
+            if odom_conn is not None and odom_x is not None:
+                odometry = t["nav_msgs/msg/Odometry"](
+                    header=header(k),
+                    child_frame_id="base_link",
+                    pose=t["geometry_msgs/msg/PoseWithCovariance"](
+                        pose=pose(odom_x[k], 0.0), covariance=np.zeros(36)
+                    ),
+                    twist=t["geometry_msgs/msg/TwistWithCovariance"](
+                        twist=t["geometry_msgs/msg/Twist"](
+                            linear=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                            angular=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                        ),
+                        covariance=np.zeros(36),
+                    ),
+                )
+                writer.write(
+                    odom_conn,
+                    T0_NS + k * PERIOD_NS - 1,
+                    store.serialize_ros1(odometry, "nav_msgs/msg/Odometry"),
+                )
             increment = fov / beams
             scan = t["sensor_msgs/msg/LaserScan"](
                 header=header(k),
@@ -295,6 +325,25 @@ def test_a_bag_is_scored_on_each_tensors_middle_scan(tmp_path: Path) -> None:
         ),
     )
     assert behind.detections["person"] == 0 and behind.false_people_per_minute == 0.0
+
+
+def test_a_bags_odometry_tells_the_detector_whether_the_robot_stood(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    asked: list[bool | None] = []
+
+    class Recording(OnnxDetector):
+        def detect_boxes(self, tensor: np.ndarray, still: bool | None = None) -> Any:
+            asked.append(still)
+            return super().detect_boxes(tensor, still)
+
+    detector = Recording(person_model(tmp_path / "person.onnx"), conf_threshold=0.001)
+    # Scans 0-2 and 1-3 stand; the robot moves 10 cm before scan 4; a bag without odometry says nothing.
+    bag = write_bag(tmp_path / "odom.bag", [[]] * 5, odom_x=[1.0, 1.0, 1.0, 1.0, 1.1])
+    evaluate_bag(detector, BagEvalConfig(bag, people_topic="/people"))
+    assert asked == [True, True, False]
+    asked.clear()
+    evaluate_bag(detector, BagEvalConfig(write_bag(tmp_path / "plain.bag", [[]] * 4), people_topic="/people"))
+    assert asked == [None, None]
 
 
 def test_a_model_with_a_raster_yaw_scores_the_same_people_in_the_laser_frame(tmp_path: Path) -> None:

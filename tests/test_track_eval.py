@@ -34,6 +34,7 @@ class TruthDetector:
     model_id = "truth"
     padding = "zero"
     invalid = "sentinel"
+    motion_confirm = None
 
     def __init__(self, frames: list[MotionFrame], class_names: tuple[str, ...]) -> None:
         self.frames = frames
@@ -45,6 +46,11 @@ class TruthDetector:
         if "person" in self.class_names:
             found += [detection_at(x, y, PERSON_ID) for x, y in frame.targets["people"].values()]
         return found, StageTimings(encode_ms=0.0, inference_ms=0.0, nms_ms=0.0)
+
+    def detect_many(
+        self, tensors: list[np.ndarray], still: list[bool | None] | None = None
+    ) -> list[tuple[list[Detection], StageTimings]]:
+        return [self.detect(tensor) for tensor in tensors]
 
 
 def _motion(frames: int) -> list[MotionFrame]:

@@ -39,9 +39,9 @@ from scipy.optimize import linear_sum_assignment
 
 from common.encoding import R_MAX_M, ScanError, ScanStacker
 from common.inference import OnnxDetector
-from common.messages import Detection, Scan
+from common.messages import Detection, Odometry, Scan
 from common.model_spec import CLASS_NAMES, PERSON
-from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm
+from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm, still_by_odometry
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, detections_from_boxes
 from training.evaluate import VAL_CONF
 
@@ -308,14 +308,25 @@ def _scan_connection(reader: Any, bag: Path, topic: str | None) -> Any:
 
 
 def read_scans(reader: Any, connection: Any, rejected: Counter[str]) -> list[Scan]:
-    """The topic's scans in bag order, validated as the ROS bridge does; refused ones counted by reason."""
-    from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
+    """The topic's scans in bag order, validated as the ROS bridge does; refused ones counted by reason.
 
+    Each carries the robot's pose where the bag holds odometry (``/odom``, else ``/tf``), paired as
+    ``triscan replay`` pairs it: the detector's motion confirmation asks it whether the robot stood.
+    """
+    from services.bag_replay import ODOM_AUTO, _update_odometry, odom_connection
+    from services.ros2_bridge.laser_scan import ScanRejectedError, fields_of_message, to_triscan_scan
+    from services.ros2_bridge.odometry import OdometryPairing
+
+    odom = odom_connection(reader, ODOM_AUTO)
+    pairing = OdometryPairing()
     scans: list[Scan] = []
-    for _, _, raw in reader.messages(connections=[connection]):
-        message = reader.deserialize(raw, connection.msgtype)
+    for topic_connection, _, raw in reader.messages(connections=[connection, *([odom] if odom else [])]):
+        message = reader.deserialize(raw, topic_connection.msgtype)
+        if odom is not None and topic_connection.topic == odom.topic:
+            _update_odometry(pairing, message, 0)
+            continue
         try:
-            scans.append(to_triscan_scan(fields_of_message(message), "eval", len(scans)))
+            scans.append(pairing.attach(to_triscan_scan(fields_of_message(message), "eval", len(scans))))
         except ScanRejectedError as exc:
             rejected[exc.reason] += 1
     return scans
@@ -362,6 +373,7 @@ def middle_scan_detections(
     ``conf``, and person detections down to the detector's own threshold (for the curve)."""
     stacker = ScanStacker.for_model(detector)
     stamps: deque[int] = deque(maxlen=3)
+    poses: deque[Odometry | None] = deque(maxlen=3)
     for scan in scans:
         try:
             tensor = stacker.push_scan(
@@ -371,9 +383,11 @@ def middle_scan_detections(
             rejected["bad_scan"] += 1  # the FIFO is unchanged: the robot's encoder drops it the same way
             continue
         stamps.append(scan.stamp_ns)
+        poses.append(scan.odom)
         if tensor is None:
             continue
-        boxes, scores, class_ids, _ = detector.detect_boxes(tensor)
+        still = still_by_odometry(list(poses), detector.motion_confirm) if detector.motion_confirm else None
+        boxes, scores, class_ids, _ = detector.detect_boxes(tensor, still)
         keep = (class_ids == PERSON_ID) | (scores > np.float32(conf))
         yield (
             stamps[1],

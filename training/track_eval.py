@@ -41,6 +41,7 @@ import numpy as np
 from common.inference import OnnxDetector
 from common.messages import Detections, Odometry
 from common.model_spec import CLASS_NAMES, PERSON
+from common.moving_people import still_by_odometry
 from services.simulator.lidar import LidarSpec
 from services.tracker.core import REPORTED_STATES, TrackerConfig, TrackerCore
 from services.tracker.mot import DEFAULT_GATE_M, GROUPS, ClearMot, MotScore, hypotheses_of
@@ -124,8 +125,17 @@ def score_motion(
 ) -> dict[str, MotScore]:
     """Track one motion's detections and score every frame; the core's robot ``name`` is this motion."""
     accumulators = {group: ClearMot(DEFAULT_GATE_M) for group in GROUPS}
+    # Each tensor's scans t-2, t-1, t are the middle scans of this frame and its neighbours: their
+    # poses are the odometry a robot's detector has for motion confirmation (common.moving_people).
+    poses: list[Odometry | None] = [None]  # before the first frame's oldest scan: unknown
+    for f in frames:
+        x, y, yaw = f.lidar_pose
+        poses.append(Odometry(x_m=x, y_m=y, yaw_rad=yaw, stamp_ns=f.stamp_ns))
+    poses.append(None)  # after the last one's newest
     for seq, frame in enumerate(frames):
-        detections, timings = detector.detect(frame.tensor)
+        around = poses[seq : seq + 3]
+        still = still_by_odometry(around, detector.motion_confirm) if detector.motion_confirm else None
+        ((detections, timings),) = detector.detect_many([frame.tensor], [still])
         x, y, yaw = frame.lidar_pose
         message = Detections(
             robot_id=name, seq=seq, stamp_ns=frame.stamp_ns, detections=detections, timings=timings,
