@@ -235,9 +235,18 @@ def confirm_people(
     """
     scores = np.asarray(scores)
     candidates = np.flatnonzero((class_ids == person_id) & (scores >= config.floor))
-    if still is False or not (scores[candidates] < config.score).any():
+    low = candidates[scores[candidates] < config.score]
+    if still is False or not low.size:
         return scores
     pixels = _Pixels(tensor)
+    # A cluster's centre lies within half its widest extent (and the 5 cm push) of each of its moving
+    # pixels: with no moving pixel that near a low candidate none can be confirmed, and the clusters,
+    # the costly part, are never formed.
+    moving = ~(pixels.matched[0] & pixels.matched[1])
+    reach = config.match_m + config.max_extent_m / 2.0 + 0.05
+    moving_xy = _points_m(pixels.rows[moving], pixels.columns[moving])
+    if not len(moving_xy) or cdist(moving_xy, box_centres_m(boxes[low])).min() > reach:
+        return scores
     centres = _moving_people(pixels, config)
     if not len(centres) or (still is None and _still_share(pixels, centres, config) < config.still_share):
         return scores
