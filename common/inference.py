@@ -34,7 +34,7 @@ from common.encoding import (
     Padding,
     to_model_input,
 )
-from common.messages import Detection, StageTimings
+from common.messages import Detection, Odometry, StageTimings
 from common.model_meta import (
     ModelFacts,
     declared_box_grid,
@@ -56,7 +56,7 @@ from common.model_spec import (
     BoxGrid,
     file_model_id,
 )
-from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm, confirm_people
+from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm, confirm_people, still_by_odometry
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, PostprocessSettings, detections_many
 
 log = logging.getLogger(__name__)
@@ -207,9 +207,10 @@ class OnnxDetector:
         )
         # Motion confirmation needs a person class; the class it keeps candidates of below the threshold.
         self.motion_confirm = motion_confirm if PERSON in self.class_names else None
+        self._person_id = self.class_names.index(PERSON) if self.motion_confirm is not None else -1
         self._low_class: tuple[int, float] | None = None
         if self.motion_confirm is not None and self.motion_confirm.floor < conf_threshold:
-            self._low_class = (self.class_names.index(PERSON), self.motion_confirm.floor)
+            self._low_class = (self._person_id, self.motion_confirm.floor)
         log.info(
             "loaded %s (%d classes, %d anchors, %s) on %s, padding=%s raster yaw=%g box grid=%s conf=%.3g "
             "iou=%.3g",
@@ -366,11 +367,16 @@ class OnnxDetector:
         """One frame's boxes after motion confirmation: the person candidates below the threshold that
         it confirmed are kept with their raised score, the others dropped; highest score first."""
         assert self.motion_confirm is not None
-        person_id = self.class_names.index(PERSON)
-        scores = confirm_people(tensor, boxes, scores, class_ids, person_id, self.motion_confirm, still)
+        scores = confirm_people(tensor, boxes, scores, class_ids, self._person_id, self.motion_confirm, still)
         keep = scores > np.float32(self.postprocessing.conf_threshold)
         order = np.flatnonzero(keep)[np.argsort(-scores[keep], kind="stable")]
         return boxes[order], scores[order], class_ids[order]
+
+    def still_by_odometry(self, poses: Sequence[Odometry | None]) -> bool | None:
+        """What the odometry poses of a tensor's scans (oldest first) tell motion confirmation
+        (:func:`common.moving_people.still_by_odometry`): the ``still`` of :meth:`detect_boxes`; None
+        when this detector confirms nothing."""
+        return None if self.motion_confirm is None else still_by_odometry(poses, self.motion_confirm)
 
     def detect_boxes(
         self, tensor: np.ndarray, still: bool | None = None

@@ -13,8 +13,10 @@ from the moving clusters has a lit pixel within one pixel in the scans before an
 move only their own pixels (and those they hide or reveal right beside them), a moving robot the
 walls' and the furniture's as well.
 
-Everything works in the raster's own frame (rows are range, columns are degrees, see
-:mod:`common.encoding`), so it needs neither the model's raster yaw nor odometry.
+Where the robot's odometry is known it decides instead (:func:`still_by_odometry`): it tells a
+robot creeping along, whose scans barely move, from one that stands. Everything else works in the
+raster's own frame (rows are range, columns are degrees, see :mod:`common.encoding`), so the model's
+raster yaw does not matter.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import argparse
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Final
 
 import numpy as np
@@ -100,6 +103,12 @@ class _Pixels:
         self.rows, self.columns = padded_rows - 1, padded_columns - 1
         neighbourhood = centre[None, :] + _NEIGHBOUR_OFFSETS[:, None]
         self.matched = [plane.ravel()[neighbourhood].any(axis=0) for plane in (older, newer)]
+        self.moving = ~(self.matched[0] & self.matched[1])  # unmatched in the older or the newer scan
+
+    @cached_property
+    def xy(self) -> np.ndarray:
+        """Raster-frame positions (metres) of the pixels."""
+        return _points_m(self.rows, self.columns)
 
     @staticmethod
     def _padded(tensor: np.ndarray, channel: int, wrap: bool = True) -> np.ndarray:
@@ -115,10 +124,9 @@ class _Pixels:
 
 
 def _still_share(pixels: _Pixels, centres: np.ndarray, config: MotionConfirm) -> float:
-    matched = pixels.matched[0] & pixels.matched[1]
+    matched = ~pixels.moving
     if len(centres):
-        background = cdist(_points_m(pixels.rows, pixels.columns), centres).min(axis=1) >= config.background_m
-        matched = matched[background]
+        matched = matched[cdist(pixels.xy, centres).min(axis=1) >= config.background_m]
     if len(matched) < config.background_min_pixels:
         return 1.0
     return float(matched.mean())
@@ -164,11 +172,9 @@ def moving_people(tensor: np.ndarray, config: MotionConfirm = DEFAULT_MOTION_CON
 
 
 def _moving_people(pixels: _Pixels, config: MotionConfirm) -> np.ndarray:
-    moving = ~(pixels.matched[0] & pixels.matched[1])
-    if moving.sum() < config.min_moving_pixels:
+    if pixels.moving.sum() < config.min_moving_pixels:
         return np.zeros((0, 2))
-    moving_xy = _points_m(pixels.rows[moving], pixels.columns[moving])
-    still_xy = _points_m(pixels.rows[~moving], pixels.columns[~moving])
+    moving_xy, still_xy = pixels.xy[pixels.moving], pixels.xy[~pixels.moving]
     labels = _groups(moving_xy, config.link_m)
     near_still = cdist(still_xy, moving_xy) < config.stance_m  # [still, moving]
     centres: list[tuple[int, np.ndarray]] = []
@@ -198,13 +204,12 @@ def still_by_odometry(
     """Whether the robot stood still over a tensor's scans, by their odometry poses (oldest first):
     None when a pose is unknown, False when one lies in another frame or more than the tolerance from
     the newest."""
-    newest = poses[-1]
-    if newest is None or any(pose is None for pose in poses):
+    newest, older = poses[-1], [pose for pose in poses[:-1] if pose is not None]
+    if newest is None or len(older) < len(poses) - 1:
         return None
     return all(
         newest.break_from(pose, jump_m=config.odom_still_m, jump_rad=config.odom_still_rad) is None
-        for pose in poses[:-1]
-        if pose is not None
+        for pose in older
     )
 
 
@@ -242,9 +247,8 @@ def confirm_people(
     # A cluster's centre lies within half its widest extent (and the 5 cm push) of each of its moving
     # pixels: with no moving pixel that near a low candidate none can be confirmed, and the clusters,
     # the costly part, are never formed.
-    moving = ~(pixels.matched[0] & pixels.matched[1])
     reach = config.match_m + config.max_extent_m / 2.0 + 0.05
-    moving_xy = _points_m(pixels.rows[moving], pixels.columns[moving])
+    moving_xy = pixels.xy[pixels.moving]
     if not len(moving_xy) or cdist(moving_xy, box_centres_m(boxes[low])).min() > reach:
         return scores
     centres = _moving_people(pixels, config)

@@ -34,7 +34,6 @@ class TruthDetector:
     model_id = "truth"
     padding = "zero"
     invalid = "sentinel"
-    motion_confirm = None
 
     def __init__(self, frames: list[MotionFrame], class_names: tuple[str, ...]) -> None:
         self.frames = frames
@@ -51,6 +50,9 @@ class TruthDetector:
         self, tensors: list[np.ndarray], still: list[bool | None] | None = None
     ) -> list[tuple[list[Detection], StageTimings]]:
         return [self.detect(tensor) for tensor in tensors]
+
+    def still_by_odometry(self, poses: object) -> None:
+        return None  # confirms nothing by motion
 
 
 def _motion(frames: int) -> list[MotionFrame]:

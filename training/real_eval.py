@@ -41,7 +41,7 @@ from common.encoding import R_MAX_M, ScanError, ScanStacker
 from common.inference import OnnxDetector
 from common.messages import Detection, Odometry, Scan
 from common.model_spec import CLASS_NAMES, PERSON
-from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm, still_by_odometry
+from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, detections_from_boxes
 from training.evaluate import VAL_CONF
 
@@ -386,8 +386,7 @@ def middle_scan_detections(
         poses.append(scan.odom)
         if tensor is None:
             continue
-        still = still_by_odometry(list(poses), detector.motion_confirm) if detector.motion_confirm else None
-        boxes, scores, class_ids, _ = detector.detect_boxes(tensor, still)
+        boxes, scores, class_ids, _ = detector.detect_boxes(tensor, detector.still_by_odometry(list(poses)))
         keep = (class_ids == PERSON_ID) | (scores > np.float32(conf))
         yield (
             stamps[1],

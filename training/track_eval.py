@@ -41,7 +41,6 @@ import numpy as np
 from common.inference import OnnxDetector
 from common.messages import Detections, Odometry
 from common.model_spec import CLASS_NAMES, PERSON
-from common.moving_people import still_by_odometry
 from services.simulator.lidar import LidarSpec
 from services.tracker.core import REPORTED_STATES, TrackerConfig, TrackerCore
 from services.tracker.mot import DEFAULT_GATE_M, GROUPS, ClearMot, MotScore, hypotheses_of
@@ -133,14 +132,11 @@ def score_motion(
         poses.append(Odometry(x_m=x, y_m=y, yaw_rad=yaw, stamp_ns=f.stamp_ns))
     poses.append(None)  # after the last one's newest
     for seq, frame in enumerate(frames):
-        around = poses[seq : seq + 3]
-        still = still_by_odometry(around, detector.motion_confirm) if detector.motion_confirm else None
+        still = detector.still_by_odometry(poses[seq : seq + 3])
         ((detections, timings),) = detector.detect_many([frame.tensor], [still])
-        x, y, yaw = frame.lidar_pose
         message = Detections(
             robot_id=name, seq=seq, stamp_ns=frame.stamp_ns, detections=detections, timings=timings,
-            model_id=detector.model_id, scan_stamp_ns=frame.stamp_ns,
-            odom=Odometry(x_m=x, y_m=y, yaw_rad=yaw, stamp_ns=frame.stamp_ns),
+            model_id=detector.model_id, scan_stamp_ns=frame.stamp_ns, odom=poses[seq + 1],
         )  # fmt: skip
         tracks = core.update(message)
         if tracks is None:

@@ -37,7 +37,6 @@ from common.messages import (
     StageTimings,
     decode_message,
 )
-from common.moving_people import DEFAULT_MOTION_CONFIRM, still_by_odometry
 from services.detector.batch_cap import check_batch
 from services.encoder.core import DEFAULT_FORGET_AFTER_S, EncoderCore
 
@@ -282,8 +281,7 @@ class DetectorCore:
         with self._lock:
             poses = self._poses.get(tensor.robot_id)
             older = [None if poses is None else poses.get(seq) for seq in tensor.scan_seqs[:2]]
-        config = self.detector.motion_confirm or DEFAULT_MOTION_CONFIRM
-        return still_by_odometry([*older, tensor.odom], config)
+        return self.detector.still_by_odometry([*older, tensor.odom])
 
     def forget_poses(self, older_than_s: float) -> None:
         """Drop the poses of robots not heard from for ``older_than_s``: fleets change."""
