@@ -67,6 +67,7 @@ from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
 from common.inference import OnnxDetector
 from common.model_spec import PAPER_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
+from common.moving_people import DEFAULT_MOTION_CONFIRM, add_motion_argument
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
 
 ROOT: Final[Path] = Path(__file__).resolve().parents[1]
@@ -139,6 +140,10 @@ class BenchConfig:
     skip_grid: bool = False
     # 1: each pipeline's long run in one go, one pipeline after the other; N: in N rounds taking turns
     rounds: int = 1
+    # The detector's motion confirmation of people (a model with a person class; common.moving_people),
+    # part of its post-processing. The scans carry no odometry, so every frame asks the tensor whether
+    # the robot stood still: the cost of a robot without odometry.
+    motion_confirm: bool = True
 
     @property
     def scans_needed(self) -> int:
@@ -212,9 +217,14 @@ def _stacked(stacker: ScanStacker, scan: ScanArgs) -> np.ndarray:
 class TriscanPipeline:
     """ScanStacker + OnnxDetector: the detector service's per-frame path."""
 
-    def __init__(self, model_path: Path, threads: int) -> None:
+    def __init__(self, model_path: Path, threads: int, motion_confirm: bool = True) -> None:
         self.stacker = ScanStacker()
-        self.detector = OnnxDetector(model_path, intra_op_threads=threads, providers=["CPUExecutionProvider"])
+        self.detector = OnnxDetector(
+            model_path,
+            intra_op_threads=threads,
+            providers=["CPUExecutionProvider"],
+            motion_confirm=DEFAULT_MOTION_CONFIRM if motion_confirm else None,
+        )
 
     def prime(self, scan: ScanArgs) -> None:
         self.stacker.push_scan(*scan)
@@ -463,11 +473,12 @@ def _shown(path: Path) -> str:
 
 
 def _factories(config: BenchConfig, grid_model: Path | None) -> list[tuple[str, Callable[[int], Pipeline]]]:
+    motion = config.motion_confirm
     factories: list[tuple[str, Callable[[int], Pipeline]]] = [
-        (TRISCAN_FP32, lambda t: TriscanPipeline(config.fp32_model, t))
+        (TRISCAN_FP32, lambda t: TriscanPipeline(config.fp32_model, t, motion))
     ]
     if not config.skip_int8:
-        factories.append((TRISCAN_INT8, lambda t: TriscanPipeline(config.int8_model, t)))
+        factories.append((TRISCAN_INT8, lambda t: TriscanPipeline(config.int8_model, t, motion)))
     if not config.skip_ultralytics:
         factories.append((ULTRALYTICS, lambda t: UltralyticsPipeline(config.pt_model, t)))
         same = config.same_network_pt
@@ -637,6 +648,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         help="split each pipeline's --frames into this many rounds, the pipelines taking turns (1: one "
         "after the other); ratios then hold when the machine's speed drifts during the run",
     )  # fmt: skip
+    add_motion_argument(parser)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON report path")
     args = parser.parse_args(argv)
     config = BenchConfig(
@@ -656,6 +668,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         skip_ultralytics=args.skip_ultralytics,
         skip_grid=args.skip_grid,
         rounds=args.rounds,
+        motion_confirm=args.motion_confirm,
     )
     return config, args.out
 

@@ -365,9 +365,15 @@ class OnnxDetector:
         still: bool | None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One frame's boxes after motion confirmation: the person candidates below the threshold that
-        it confirmed are kept with their raised score, the others dropped; highest score first."""
+        it confirmed are kept with their raised score, the others dropped, and the people it added
+        appended; highest score first."""
         assert self.motion_confirm is not None
-        scores = confirm_people(tensor, boxes, scores, class_ids, self._person_id, self.motion_confirm, still)
+        config = self.motion_confirm
+        scores, added = confirm_people(tensor, boxes, scores, class_ids, self._person_id, config, still)
+        if len(added) and config.add_score is not None:
+            boxes = np.concatenate([boxes, added.astype(boxes.dtype)])
+            scores = np.concatenate([scores, np.full(len(added), config.add_score, scores.dtype)])
+            class_ids = np.concatenate([class_ids, np.full(len(added), self._person_id, class_ids.dtype)])
         keep = scores > np.float32(self.postprocessing.conf_threshold)
         order = np.flatnonzero(keep)[np.argsort(-scores[keep], kind="stable")]
         return boxes[order], scores[order], class_ids[order]

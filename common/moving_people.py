@@ -5,7 +5,9 @@ shows almost nothing else that does. On real recordings the network often sees a
 score (a real leg looks unlike a simulated one), while the false people it reports sit on walls and
 furniture, which do not move. So a person candidate below the detector's threshold is confirmed when a
 cluster of moving pixels lies where it stands: its score is raised to :attr:`MotionConfirm.score`.
-Nothing is added where the network proposed nothing, and confident boxes are left as they are.
+Where the network proposed nothing at all (a walker seen through a gap in a near wall, whose legs
+look like no simulated person), a person box about the cluster is added at
+:attr:`MotionConfirm.add_score`, below every confirmed candidate. Confident boxes are left as they are.
 
 The rule holds only while the sensor stands still: a turning or driving robot moves every return. The
 tensor itself says whether it did (:func:`still_share`): nearly every pixel of the middle scan away
@@ -33,6 +35,7 @@ from scipy.spatial.distance import cdist
 
 from common.encoding import ANGLE_COLUMNS, R_MAX_M, RANGE_ROWS, ROW_SCALE, SENTINEL_ROW
 from common.messages import Odometry
+from common.model_spec import PERSON_FOOTPRINT_RADIUS_M
 
 _PADDED_WIDTH: Final[int] = ANGLE_COLUMNS + 2
 _NEIGHBOUR_OFFSETS: Final = np.array([dr * _PADDED_WIDTH + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
@@ -66,6 +69,10 @@ class MotionConfirm:
     min_moving_pixels: int = 2
     merge_m: float = 0.5  # clusters closer than this are one person (two legs found apart)
     match_m: float = 0.35  # a candidate whose box centre lies this close to a cluster is confirmed
+    # A cluster with no person candidate within ``match_m`` becomes a person box (the footprint disc
+    # of the labels about its centre) scoring this: just above the detector's default threshold, so
+    # it is reported and ranks after every box the network proposed. None adds nothing.
+    add_score: float | None = 0.26
 
 
 DEFAULT_MOTION_CONFIRM: Final = MotionConfirm()
@@ -93,34 +100,60 @@ class _Pixels:
     the cost of a few gathers over a few hundred pixels."""
 
     def __init__(self, tensor: np.ndarray) -> None:
-        older, newer = self._padded(tensor, 0), self._padded(tensor, 2)
-        middle = self._padded(tensor, 1, wrap=False)
-        # Flat indices of the middle scan's pixels in a plane padded by one pixel all round, and of
-        # each one's 3×3 neighbourhood (a bool plane's flat indices are far quicker to find than rows
-        # and columns of the uint8 tensor).
-        centre = np.flatnonzero(middle)
-        padded_rows, padded_columns = np.divmod(centre, _PADDED_WIDTH)
-        self.rows, self.columns = padded_rows - 1, padded_columns - 1
-        neighbourhood = centre[None, :] + _NEIGHBOUR_OFFSETS[:, None]
-        self.matched = [plane.ravel()[neighbourhood].any(axis=0) for plane in (older, newer)]
-        self.moving = ~(self.matched[0] & self.matched[1])  # unmatched in the older or the newer scan
+        # The three scans' lit pixels over the bearing columns, sentinel row left out, padded by one
+        # pixel all round, channels last as in the tensor; the older and the newer scan's side columns
+        # repeat the opposite edge, since bearings wrap (359° lies beside 0°).
+        lit = np.zeros((RANGE_ROWS + 1, _PADDED_WIDTH, 3), dtype=bool)
+        np.greater(tensor[:SENTINEL_ROW, :ANGLE_COLUMNS], 0, out=lit[1 : SENTINEL_ROW + 1, 1:-1])
+        lit[:, 0, ::2] = lit[:, -2, ::2]
+        lit[:, -1, ::2] = lit[:, 1, ::2]
+        # Flat indices (of one channel) of the middle scan's pixels, and of each one's 3×3
+        # neighbourhood: a bool array's flat indices are far quicker to find than rows and columns of
+        # the uint8 tensor.
+        flat = lit.ravel()
+        centre = np.flatnonzero(flat[1::3])
+        padded_rows, self._padded_columns = np.divmod(centre, _PADDED_WIDTH)
+        self.rows, self.columns = padded_rows - 1, self._padded_columns - 1
+        neighbourhood = 3 * (centre[None, :] + _NEIGHBOUR_OFFSETS[:, None])
+        self._around = (lit[..., 0], lit[..., 2])
+        self._unmatched = [~flat[neighbourhood + channel].any(axis=0) for channel in (0, 2)]
+        self.moving = self._unmatched[0] | self._unmatched[1]  # unmatched in the older or the newer scan
+        self._groups: np.ndarray | None = None
 
     @cached_property
     def xy(self) -> np.ndarray:
         """Raster-frame positions (metres) of the pixels."""
         return _points_m(self.rows, self.columns)
 
+    @cached_property
+    def moving_xy(self) -> np.ndarray:
+        return _points_m(self.rows[self.moving], self.columns[self.moving])
+
+    @cached_property
+    def unhidden(self) -> np.ndarray:
+        """The moving pixels that moved where the scan that missed them saw their bearing no nearer: a
+        wall pixel that a walker in front hides in one scan and not the next is their shadow, with no
+        motion of its own."""
+        unhidden = np.zeros(len(self.moving), dtype=bool)
+        for plane, missing in zip(self._around, self._unmatched, strict=True):
+            unhidden |= missing & (self._nearest_rows(plane)[self._padded_columns] >= self.rows - 1)
+        return unhidden
+
+    def moving_groups(self, link_m: float) -> np.ndarray:
+        """:func:`_groups` of the moving pixels, worked out once per frame."""
+        if self._groups is None:
+            self._groups = _groups(self.moving_xy, link_m)
+        return self._groups
+
     @staticmethod
-    def _padded(tensor: np.ndarray, channel: int, wrap: bool = True) -> np.ndarray:
-        """One scan's lit pixels over the bearing columns, sentinel row left out, padded by one pixel
-        all round; with ``wrap`` the side columns repeat the opposite edge, since bearings wrap (359°
-        lies beside 0°)."""
-        padded = np.zeros((RANGE_ROWS + 1, _PADDED_WIDTH), dtype=bool)
-        np.greater(tensor[:SENTINEL_ROW, :ANGLE_COLUMNS, channel], 0, out=padded[1 : SENTINEL_ROW + 1, 1:-1])
-        if wrap:
-            padded[:, 0] = padded[:, -2]
-            padded[:, -1] = padded[:, 1]
-        return padded
+    def _nearest_rows(plane: np.ndarray) -> np.ndarray:
+        """Per padded column, the nearest lit row of a padded plane within one column either side
+        (``RANGE_ROWS`` where none is lit)."""
+        nearest = np.where(plane.any(axis=0), plane.argmax(axis=0) - 1, RANGE_ROWS)
+        widened = nearest.copy()
+        np.minimum(widened[1:], nearest[:-1], out=widened[1:])
+        np.minimum(widened[:-1], nearest[1:], out=widened[:-1])
+        return widened
 
 
 def _still_share(pixels: _Pixels, centres: np.ndarray, config: MotionConfirm) -> float:
@@ -148,14 +181,50 @@ def _points_m(rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
 
 
 def _groups(points: np.ndarray, link_m: float) -> np.ndarray:
-    """Single-linkage group label of each point (points closer than ``link_m`` share one)."""
-    linked = cdist(points, points) < link_m
+    """Single-linkage group label of each point (points closer than ``link_m`` share one): the smallest
+    index in its group."""
+    # Each point's neighbours (itself included) as one run of a flat list, point by point.
+    points_at, neighbours = np.nonzero(cdist(points, points) < link_m)
+    runs = np.flatnonzero(np.diff(points_at, prepend=-1))
     labels = np.arange(len(points))
     while True:  # each pass gives every point its smallest neighbour's label; a few passes for legs
-        spread = np.where(linked, labels[None, :], len(points)).min(axis=1)
+        spread = np.minimum.reduceat(labels[neighbours], runs)
+        while True:  # and follows labels to their own labels, so a moving wall's chain takes a few too
+            jumped = spread[spread]
+            if np.array_equal(jumped, spread):
+                break
+            spread = jumped
         if np.array_equal(spread, labels):
             return labels
         labels = spread
+
+
+def _surely_moved(pixels: _Pixels, config: MotionConfirm) -> bool:
+    """Whether :func:`still_share` must come out below ``config.still_share``, told without forming
+    clusters: the frames of a moving sensor, the costly ones, are turned away cheaply.
+
+    Every cluster centre lies within half the widest extent (and the 5 cm push) of the moving pixels of
+    one group small enough to be a cluster, so a moving pixel farther than that plus ``background_m``
+    from every such group is surely background, and surely unmatched. When those alone exceed the
+    share of all pixels the rule allows, the still test fails whatever the clusters turn out to be.
+    """
+    moving_xy, labels = pixels.moving_xy, pixels.moving_groups(config.link_m)
+    allowed = (1.0 - config.still_share) * len(pixels.moving)
+    if len(moving_xy) <= max(allowed, config.background_min_pixels):
+        return False
+    low = np.full((len(moving_xy), 2), np.inf)
+    high = np.full((len(moving_xy), 2), -np.inf)
+    np.minimum.at(low, labels, moving_xy)
+    np.maximum.at(high, labels, moving_xy)
+    sizes = np.bincount(labels, minlength=len(moving_xy))
+    small = (sizes >= config.min_moving_pixels) & (np.hypot(*(high - low).T) <= config.max_extent_m)
+    in_small = small[labels]
+    reach = config.background_m + config.max_extent_m / 2.0 + 0.05
+    far = ~in_small
+    if in_small.any() and far.any():
+        far[far] = cdist(moving_xy[far], moving_xy[in_small]).min(axis=1) > reach
+    surely = int(far.sum())
+    return surely >= config.background_min_pixels and surely > allowed
 
 
 def moving_people(tensor: np.ndarray, config: MotionConfirm = DEFAULT_MOTION_CONFIRM) -> np.ndarray:
@@ -174,8 +243,8 @@ def moving_people(tensor: np.ndarray, config: MotionConfirm = DEFAULT_MOTION_CON
 def _moving_people(pixels: _Pixels, config: MotionConfirm) -> np.ndarray:
     if pixels.moving.sum() < config.min_moving_pixels:
         return np.zeros((0, 2))
-    moving_xy, still_xy = pixels.xy[pixels.moving], pixels.xy[~pixels.moving]
-    labels = _groups(moving_xy, config.link_m)
+    moving_xy, still_xy = pixels.moving_xy, pixels.xy[~pixels.moving]
+    labels = pixels.moving_groups(config.link_m)
     near_still = cdist(still_xy, moving_xy) < config.stance_m  # [still, moving]
     centres: list[tuple[int, np.ndarray]] = []
     sizes = np.bincount(labels)
@@ -221,6 +290,31 @@ def box_centres_m(boxes: np.ndarray) -> np.ndarray:
     return np.stack([ranges * np.cos(bearings), ranges * np.sin(bearings)], axis=1)
 
 
+def _moves_itself(pixels: _Pixels, centre: np.ndarray, config: MotionConfirm) -> bool:
+    """Whether the cluster about ``centre`` is more than a shadow: at least ``min_moving_pixels`` of
+    the moving pixels within half the widest extent of it moved where nothing nearer hid them."""
+    unhidden = pixels.xy[pixels.unhidden]
+    near = np.hypot(*(unhidden - centre).T) <= config.max_extent_m / 2.0 + 0.05
+    return int(near.sum()) >= config.min_moving_pixels
+
+
+def footprint_box(centre: np.ndarray) -> np.ndarray:
+    """The raster box (xyxy pixels) of a person standing at ``centre`` (raster-frame metres): the
+    labels' footprint disc about it, snapped outward to whole pixels as labels are and kept within the
+    bearing columns."""
+    distance = math.hypot(*centre)
+    if distance <= PERSON_FOOTPRINT_RADIUS_M:  # the sensor stands inside it: every bearing
+        x1, x2 = 0, ANGLE_COLUMNS
+    else:
+        bearing = math.degrees(math.atan2(centre[1], centre[0])) % 360.0
+        half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M / distance))
+        x1 = max(math.floor(bearing - half + 0.5), 0)
+        x2 = min(math.floor(bearing + half + 0.5) + 1, ANGLE_COLUMNS)
+    y1 = min(math.floor(max(distance - PERSON_FOOTPRINT_RADIUS_M, 0.0) * ROW_SCALE), RANGE_ROWS - 1)
+    y2 = min(math.floor((distance + PERSON_FOOTPRINT_RADIUS_M) * ROW_SCALE) + 1, RANGE_ROWS)
+    return np.array([x1, y1, x2, y2], dtype=np.float32)
+
+
 def confirm_people(
     tensor: np.ndarray,
     boxes: np.ndarray,
@@ -229,36 +323,48 @@ def confirm_people(
     person_id: int,
     config: MotionConfirm = DEFAULT_MOTION_CONFIRM,
     still: bool | None = None,
-) -> np.ndarray:
-    """``scores`` with each moving cluster's best person candidate raised to at least ``config.score``.
+) -> tuple[np.ndarray, np.ndarray]:
+    """``scores`` with each moving cluster's best person candidate raised to at least ``config.score``,
+    and the person boxes ``float32[K, 4]`` added for clusters with no candidate.
 
     Candidates are the person boxes scoring at least ``config.floor`` whose centre lies within
-    ``match_m`` of a cluster; a cluster confirms one candidate, its highest-scoring. The scores come
-    back unchanged when no candidate lies below ``config.score`` or the sensor moved. ``still`` is
-    what odometry says of the tensor's three scans (:func:`still_by_odometry`); None, when it says
-    nothing, leaves it to the tensor (:func:`still_share`).
+    ``match_m`` of a cluster; a cluster confirms one candidate, its highest-scoring, and a cluster
+    with none gets a :func:`footprint_box` (when ``config.add_score`` is set). Nothing changes when the
+    sensor moved. ``still`` is what odometry says of the tensor's three scans
+    (:func:`still_by_odometry`); None, when it says nothing, leaves it to the tensor
+    (:func:`still_share`).
     """
     scores = np.asarray(scores)
+    unchanged = scores, np.zeros((0, 4), dtype=np.float32)
     candidates = np.flatnonzero((class_ids == person_id) & (scores >= config.floor))
     low = candidates[scores[candidates] < config.score]
-    if still is False or not low.size:
-        return scores
+    adding = config.add_score is not None
+    if still is False or not (low.size or adding):
+        return unchanged
     pixels = _Pixels(tensor)
-    # A cluster's centre lies within half its widest extent (and the 5 cm push) of each of its moving
-    # pixels: with no moving pixel that near a low candidate none can be confirmed, and the clusters,
-    # the costly part, are never formed.
-    reach = config.match_m + config.max_extent_m / 2.0 + 0.05
-    moving_xy = pixels.xy[pixels.moving]
-    if not len(moving_xy) or cdist(moving_xy, box_centres_m(boxes[low])).min() > reach:
-        return scores
+    moving_xy = pixels.moving_xy
+    if len(moving_xy) < config.min_moving_pixels:
+        return unchanged
+    if not adding:
+        # A cluster's centre lies within half its widest extent (and the 5 cm push) of each of its
+        # moving pixels: with no moving pixel that near a low candidate none can be confirmed, and the
+        # clusters, the costly part, are never formed.
+        reach = config.match_m + config.max_extent_m / 2.0 + 0.05
+        if cdist(moving_xy, box_centres_m(boxes[low])).min() > reach:
+            return unchanged
+    if still is None and _surely_moved(pixels, config):
+        return unchanged
     centres = _moving_people(pixels, config)
     if not len(centres) or (still is None and _still_share(pixels, centres, config) < config.still_share):
-        return scores
+        return unchanged
     confirmed = scores.copy()
-    distances = cdist(centres, box_centres_m(boxes[candidates]))
-    for row in distances:
-        near = candidates[row < config.match_m]
+    distances = cdist(centres, box_centres_m(boxes[candidates])) if candidates.size else None
+    added = []
+    for index, centre in enumerate(centres):
+        near = candidates[distances[index] < config.match_m] if distances is not None else candidates
         if near.size:
             best = near[np.argmax(scores[near])]
             confirmed[best] = max(confirmed[best], np.float32(config.score))
-    return confirmed
+        elif adding and _moves_itself(pixels, centre, config):
+            added.append(footprint_box(centre))
+    return confirmed, np.array(added, dtype=np.float32).reshape(-1, 4)

@@ -179,3 +179,44 @@ def test_map_by_iou_threshold_splits_the_average(tmp_path: Path) -> None:
     assert set(report.ap_by_iou_per_class) <= set(CLASS_NAMES) and report.ap_by_iou_per_class
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["map_by_iou"] == by_iou
+
+
+def test_people_are_counted_by_the_beams_on_them_and_found_only_above_the_threshold() -> None:
+    from training.evaluate import BEAM_BANDS, PERSON_ID, _count_people_by_beams
+
+    labels = np.array([[10, 10, 20, 20], [30, 10, 40, 20], [50, 10, 60, 20], [70, 10, 80, 20]], float)
+    sample = EvalSample(
+        "s",
+        np.zeros((64, 384, 3), np.uint8),
+        labels,
+        np.array([PERSON_ID, PERSON_ID, 0, PERSON_ID]),
+        None,
+        np.array([2, 9, 2, 40]),
+    )
+    # On the 9-beam person a confident person box, on the 2-beam one a person box below the threshold,
+    # on the chair a chair box, and beside the 40-beam person a box with IoU 1/3.
+    predictions = labels + np.array([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [5, 0, 5, 0]])
+    scores = np.array([0.1, 0.9, 0.9, 0.9])
+    classes = np.array([PERSON_ID, PERSON_ID, 0, PERSON_ID])
+    counts = {name: [0, 0] for name, _, _ in BEAM_BANDS}
+    _count_people_by_beams(counts, sample, box_iou(labels, predictions), scores, classes, PERSON_ID)
+    assert counts == {"2": [1, 0], "3-4": [0, 0], "5-7": [0, 0], "8-14": [1, 1], "15+": [1, 0]}
+
+
+def test_fresh_worlds_with_people_report_them_by_beams(tmp_path: Path) -> None:
+    from common.inference import OnnxDetector
+    from common.model_spec import MODELS_DIR
+    from training.evaluate import PERSON_ID, VAL_CONF, VAL_IOU, evaluate, fresh_samples
+
+    people_model = MODELS_DIR / "yolov8p-relu-dfl12" / "triscan-yolov8p-relu-dfl12-zero-int8.onnx"
+    detector = OnnxDetector(people_model, conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, motion_confirm=None)
+    samples = list(
+        fresh_samples(9000, 1, 4, "zero", 15, people=4, raster_yaw_deg=180.0, invalid=detector.invalid)
+    )
+    assert all(s.beams is not None and len(s.beams) == len(s.classes) for s in samples)
+    report = evaluate(detector, iter(samples), tmp_path, source="fresh", plots=False)
+    by_beams = report.person_recall_by_beams
+    people = sum(int((s.classes == PERSON_ID).sum()) for s in samples)
+    assert people and sum(int(row["instances"]) for row in by_beams.values()) == people
+    assert all(0.0 <= row["recall"] <= 1.0 for row in by_beams.values())
+    assert "people found at 0.25 by beams on them" in format_table(report)

@@ -1,5 +1,6 @@
-"""Motion confirmation: walking legs on a still sensor raise a person candidate past the threshold;
-a turning sensor, a static scene, furniture boxes and a four-class model are left exactly as they were."""
+"""Motion confirmation: walking legs on a still sensor raise a person candidate past the threshold, or
+add a person where the network proposed none; a turning sensor, a static scene, furniture boxes and a
+four-class model are left exactly as they were."""
 
 from __future__ import annotations
 
@@ -12,11 +13,13 @@ import pytest
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ROW_SCALE
 from common.inference import OnnxDetector
 from common.messages import Odometry, StackedTensor
-from common.model_spec import CLASS_NAMES, MODELS_DIR, PERSON, SHIPPED_MODEL
+from common.model_spec import CLASS_NAMES, MODELS_DIR, PERSON, PERSON_FOOTPRINT_RADIUS_M, SHIPPED_MODEL
 from common.moving_people import (
     DEFAULT_MOTION_CONFIRM,
+    MotionConfirm,
     box_centres_m,
     confirm_people,
+    footprint_box,
     moving_people,
     still_by_odometry,
     still_share,
@@ -93,15 +96,70 @@ def test_confirmation_raises_only_the_walkers_best_person_candidate() -> None:
     boxes = np.array([walker, walker, box_at(200.5, 1.5), walker, behind], np.float32)
     scores = np.array([0.05, 0.008, 0.06, 0.1, 0.9], np.float32)
     class_ids = np.array([PERSON_ID, PERSON_ID, PERSON_ID, 0, PERSON_ID])
-    confirmed = confirm_people(scene(), boxes[:4], scores[:4], class_ids[:4], PERSON_ID)
+    confirmed, added = confirm_people(scene(), boxes[:4], scores[:4], class_ids[:4], PERSON_ID)
     # The candidate on the legs is raised; one below the floor, one on the pole and a chair stay.
     np.testing.assert_array_equal(confirmed, np.float32([DEFAULT_MOTION_CONFIRM.score, 0.008, 0.06, 0.1]))
+    assert added.shape == (0, 4)  # the walker had a candidate: nothing is added
     # A cluster confirms one candidate: the best, which here is already confident.
-    again = confirm_people(scene(), boxes, scores, class_ids, PERSON_ID)
+    again, added = confirm_people(scene(), boxes, scores, class_ids, PERSON_ID)
     np.testing.assert_array_equal(again, scores)
+    assert added.shape == (0, 4)
     # A turning sensor moves everything: nothing is confirmed.
-    turned = confirm_people(scene(turn_columns=3), boxes[:4], scores[:4], class_ids[:4], PERSON_ID)
+    turned, added = confirm_people(scene(turn_columns=3), boxes[:4], scores[:4], class_ids[:4], PERSON_ID)
     np.testing.assert_array_equal(turned, scores[:4])
+    assert added.shape == (0, 4)
+
+
+def test_a_walker_without_any_candidate_is_added_as_a_person_about_its_legs() -> None:
+    # Only a chair box and a person candidate below the floor near the walker, and a person on the pole.
+    on_walker = box_at(WALKER_BEARING_DEG + STEP_DEG, WALKER_RANGE_M)
+    boxes = np.array([on_walker, box_at(20.5, 1.5), box_at(200.5, 1.5)], np.float32)
+    scores = np.array([0.6, 0.005, 0.1], np.float32)
+    class_ids = np.array([0, PERSON_ID, PERSON_ID])
+    kept, added = confirm_people(scene(), boxes, scores, class_ids, PERSON_ID)
+    np.testing.assert_array_equal(kept, scores)
+    (box,) = added
+    (centre,) = box_centres_m(added)
+    (walker,) = moving_people(scene())
+    assert math.hypot(*(centre - walker)) < 0.1
+    assert (box[3] - box[1]) / ROW_SCALE == pytest.approx(2 * PERSON_FOOTPRINT_RADIUS_M, abs=2 / ROW_SCALE)
+    # Turned off, on a turning sensor, and where odometry says the robot drove: nothing is added.
+    for tensor, still, config in (
+        (scene(), None, MotionConfirm(add_score=None)),
+        (scene(turn_columns=3), None, DEFAULT_MOTION_CONFIRM),
+        (scene(), False, DEFAULT_MOTION_CONFIRM),
+        (scene(walker=False), None, DEFAULT_MOTION_CONFIRM),
+    ):
+        kept, added = confirm_people(tensor, boxes, scores, class_ids, PERSON_ID, config, still)
+        np.testing.assert_array_equal(kept, scores)
+        assert added.shape == (0, 4)
+
+
+def test_the_wall_a_walker_hides_and_reveals_is_their_shadow_and_no_person() -> None:
+    tensor = scene(walker=False)
+    wall_row = row_of(2.8 / math.sin(math.radians(WALKER_BEARING_DEG)))
+    for channel in range(3):
+        legs = round(WALKER_BEARING_DEG) - 5 + STEP_DEG * channel + np.array([0, 1, 2, 3, 8, 9, 10, 11])
+        tensor[row_of(1.2), legs, channel] = 255  # a walker 1.2 m away, 1.6 m in front of the wall
+        tensor[wall_row, legs, channel] = 0  # which their legs hide in that scan
+    (walker,) = [c for c in moving_people(tensor) if math.hypot(*c) < 2.0]
+    assert math.hypot(*walker) == pytest.approx(1.2, abs=0.15)
+    assert len(moving_people(tensor)) == 2  # the walker, and the wall pixels they uncover
+    _, added = confirm_people(
+        tensor, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, int), PERSON_ID
+    )
+    (centre,) = box_centres_m(added)  # only the walker becomes a person
+    assert math.hypot(*(centre - walker)) < 0.1
+
+
+def test_a_footprint_box_is_the_labels_disc_and_stays_within_the_bearing_columns() -> None:
+    x1, y1, x2, y2 = footprint_box(np.array([0.0, 2.0]))
+    half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M / 2.0))
+    assert (x1, x2) == (math.floor(90.0 - half + 0.5), math.floor(90.0 + half + 0.5) + 1)
+    assert (y1, y2) == (math.floor(1.7 * ROW_SCALE), math.floor(2.3 * ROW_SCALE) + 1)
+    near_seam = footprint_box(np.array([1.0, 0.0]))  # at bearing 0: the part left of column 0 is cut
+    assert near_seam[0] == 0.0 and near_seam[2] < 30
+    assert footprint_box(np.array([0.1, 0.0]))[[0, 2]].tolist() == [0.0, 360.0]  # the sensor inside it
 
 
 def test_box_centres_invert_the_raster_geometry() -> None:
@@ -152,6 +210,11 @@ def test_the_detector_at_its_threshold_reports_what_a_low_threshold_run_confirms
     for tensor in (scene(turn_columns=3), scene(walker=False)):
         for got, want in zip(robot.detect_boxes(tensor)[:3], off.detect_boxes(tensor)[:3], strict=True):
             np.testing.assert_array_equal(got, want)
+    # The walker is reported, whether the network proposed them or not.
+    boxes, _, class_ids, _ = robot.detect_boxes(scene())
+    (walker,) = moving_people(scene())
+    people = box_centres_m(boxes[class_ids == PERSON_ID])
+    assert len(people) and np.hypot(*(people - walker).T).min() < DEFAULT_MOTION_CONFIRM.match_m
 
 
 def test_a_model_without_a_person_class_is_untouched() -> None:
@@ -182,7 +245,7 @@ def test_odometry_overrides_what_the_tensor_looks_like() -> None:
     raised = np.float32([DEFAULT_MOTION_CONFIRM.score])
 
     def confirmed(tensor: np.ndarray, still: bool | None) -> np.ndarray:
-        return confirm_people(tensor, walker, scores, class_ids, PERSON_ID, still=still)
+        return confirm_people(tensor, walker, scores, class_ids, PERSON_ID, still=still)[0]
 
     # A robot that odometry says drove: nothing is confirmed, however still the scans look.
     np.testing.assert_array_equal(confirmed(scene(), False), scores)

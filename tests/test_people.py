@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from common.encoding import ANGLE_COLUMNS
-from services.simulator.labels import PERSON_FOOTPRINT_RADIUS_M, clip_to_field_of_view, label_scan
+from common.model_spec import PERSON_FOOTPRINT_RADIUS_M
+from services.simulator.labels import clip_to_field_of_view, label_scan
 from services.simulator.people import (
     CADENCE_BASE,
     CADENCE_GAIN,

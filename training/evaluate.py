@@ -34,15 +34,21 @@ import numpy as np
 
 from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, InvalidRule, Padding
 from common.inference import OnnxDetector
-from common.model_spec import CLASS_NAMES, DEFAULT_BOX_GRID, FURNITURE_CLASSES, MAX_DETECTIONS
-from common.postprocess import unwrap_seam_duplicates
+from common.model_spec import (
+    CLASS_NAMES,
+    DEFAULT_BOX_GRID,
+    FURNITURE_CLASSES,
+    MAX_DETECTIONS,
+    PERSON,
+)
+from common.postprocess import DEFAULT_CONF, unwrap_seam_duplicates
 from training.detection_metrics import DetectionMetrics, box_iou
 from training.png import read_tensor_png
 
 if TYPE_CHECKING:
     from services.simulator.lidar import LidarSpec
 
-PERSON_ID = CLASS_NAMES.index("person")  # labelled, but not part of a scenario
+PERSON_ID = CLASS_NAMES.index(PERSON)  # labelled, but not part of a scenario
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +67,7 @@ class EvalSample:
     boxes: np.ndarray  # float64[M, 4]
     classes: np.ndarray  # int64[M]
     crosses_seam: np.ndarray | None = None  # bool[M]; None when the scene geometry is unknown
+    beams: np.ndarray | None = None  # int64[M]: beams of scan t−1 on each label's object; None: unknown
 
 
 @dataclass
@@ -81,6 +88,10 @@ class EvalReport:
     map_by_iou: dict[str, float] = field(default_factory=dict)
     ap_by_iou_per_class: dict[str, dict[str, float]] = field(default_factory=dict)
     mean_timings_ms: dict[str, float] = field(default_factory=dict)
+    # People by how many beams of scan t−1 hit them ("2", "3-4", …): instances and the share found, a
+    # person box above the detector's default threshold with IoU ≥ 0.5. Where the class loses: a
+    # person two beams light is a target (the label rule), and barely more than a pole.
+    person_recall_by_beams: dict[str, dict[str, float]] = field(default_factory=dict)
     files: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -229,12 +240,14 @@ def fresh_samples(
                     for label in sample.labels
                     for _ in label.boxes_px
                 ]
+                beams = [label.beams_on_object for label in sample.labels for _ in label.boxes_px]
                 yield EvalSample(
                     sample.name,
                     sample.tensor,
                     np.array(boxes, dtype=np.float64).reshape(-1, 4),
                     np.array(classes, dtype=np.int64),
                     np.array(crosses, dtype=bool),
+                    np.array(beams, dtype=np.int64),
                 )
 
 
@@ -249,8 +262,14 @@ def merge_label_copies(sample: EvalSample) -> EvalSample:
     if len(sample.classes) < 2:
         return sample
     keep = unwrap_seam_duplicates(sample.boxes, np.ones(len(sample.classes)), sample.classes, "wrap")
+    return _kept(sample, keep)
+
+
+def _kept(sample: EvalSample, keep: np.ndarray) -> EvalSample:
+    """``sample`` with only the labels ``keep`` selects."""
     crosses = None if sample.crosses_seam is None else sample.crosses_seam[keep]
-    return EvalSample(sample.name, sample.tensor, sample.boxes[keep], sample.classes[keep], crosses)
+    beams = None if sample.beams is None else sample.beams[keep]
+    return EvalSample(sample.name, sample.tensor, sample.boxes[keep], sample.classes[keep], crosses, beams)
 
 
 def seam_subset(
@@ -340,6 +359,8 @@ def evaluate(
     )
     timing_sums = {"encode_ms": 0.0, "inference_ms": 0.0, "nms_ms": 0.0}
     seam_instances = 0
+    person_id = model_classes.index(PERSON) if PERSON in model_classes else None
+    people_by_beams = {name: [0, 0] for name, _, _ in BEAM_BANDS}  # [instances, found]
     for raw_sample in samples:
         sample = merge_label_copies(raw_sample) if wrap else raw_sample
         if np.any(sample.classes >= len(names)):
@@ -356,6 +377,8 @@ def evaluate(
         )
         correct = match_predictions(classes, sample.classes, iou)
         metrics.update_stats(_stats(correct, scores, classes, sample.classes, sample.name))
+        if person_id is not None and sample.beams is not None:
+            _count_people_by_beams(people_by_beams, sample, iou, scores, classes, person_id)
         seam_instances += _update_seam_stats(seam_metrics, sample, iou, scores, classes)
         if confusion is not None:
             confusion.process_batch(*_confusion_batch(sample, boxes, scores, classes))
@@ -376,6 +399,11 @@ def evaluate(
         seam_metrics.process()
         report.seam_crossing = {"instances": seam_instances, **_figures(seam_metrics.mean_results())}
     report.mean_timings_ms = {k: v / report.images for k, v in timing_sums.items()}
+    report.person_recall_by_beams = {
+        name: {"instances": count, "recall": found / count}
+        for name, (count, found) in people_by_beams.items()
+        if count
+    }
     if confusion is not None:
         confusion.plot(normalize=True, save_dir=out_dir)
         _plot_curves(metrics, out_dir)
@@ -389,11 +417,40 @@ def evaluate(
     return report
 
 
+# Bands of beams on a person in scan t−1 (name, least, most): two is the least a target has.
+BEAM_BANDS: tuple[tuple[str, int, int], ...] = (
+    ("2", 2, 2),
+    ("3-4", 3, 4),
+    ("5-7", 5, 7),
+    ("8-14", 8, 14),
+    ("15+", 15, 1 << 30),
+)
+
+
+def _count_people_by_beams(
+    counts: dict[str, list[int]],
+    sample: EvalSample,
+    iou: np.ndarray,
+    scores: np.ndarray,
+    classes: np.ndarray,
+    person_id: int,
+) -> None:
+    """Add one image's people to ``counts`` by beam band: each, and whether a person box scoring above
+    the detector's default threshold overlaps it with IoU ≥ 0.5 (the best box, not one-to-one)."""
+    assert sample.beams is not None
+    reported = (classes == person_id) & (scores > DEFAULT_CONF)
+    for label in np.flatnonzero(sample.classes == person_id):
+        beams = int(sample.beams[label])
+        found = bool(reported.any() and iou[label, reported].max() >= 0.5)
+        for name, least, most in BEAM_BANDS:
+            if least <= beams <= most:
+                counts[name][0] += 1
+                counts[name][1] += found
+
+
 def _of_classes(sample: EvalSample, count: int) -> EvalSample:
     """``sample`` with only the labels of the first ``count`` classes."""
-    keep = sample.classes < count
-    crosses = None if sample.crosses_seam is None else sample.crosses_seam[keep]
-    return EvalSample(sample.name, sample.tensor, sample.boxes[keep], sample.classes[keep], crosses)
+    return _kept(sample, sample.classes < count)
 
 
 def _can_plot() -> bool:
@@ -505,6 +562,12 @@ def format_table(report: EvalReport) -> str:
             f"{'seam':10s} {int(m['instances']):7d} {m['precision']:6.3f} {m['recall']:6.3f} "
             f"{m['mAP50']:6.3f} {m['mAP50-95']:8.3f}"
         )
+    if report.person_recall_by_beams:
+        bands = ", ".join(
+            f"{name}: {row['recall']:.2f} of {int(row['instances'])}"
+            for name, row in report.person_recall_by_beams.items()
+        )
+        lines.append(f"people found at {DEFAULT_CONF} by beams on them: {bands}")
     return "\n".join(lines)
 
 

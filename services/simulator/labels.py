@@ -25,12 +25,11 @@ from common.encoding import (
     ROW_SCALE,
     Padding,
 )
+from common.model_spec import PERSON_FOOTPRINT_RADIUS_M
 from services.simulator.people import leg_object
 from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario
 
 MIN_BEAMS_ON_OBJECT = 2
-# A walking person's legs stay within about 0.3 m of their midpoint (half a fast step; docs/people.md).
-PERSON_FOOTPRINT_RADIUS_M = 0.3
 Box = tuple[float, float, float, float]
 
 
