@@ -28,6 +28,7 @@ from training.real_eval import (
     detector_for,
     evaluate_bag,
     leg_hits,
+    narrowed,
     pair_labels,
     positions_of,
     precision_recall_curve,
@@ -378,6 +379,26 @@ def test_another_beam_geometry_works(tmp_path: Path) -> None:
     assert report.people["r0.5"]["peak_f1"] == pytest.approx(1.0)
 
 
+def test_a_narrower_field_of_view_keeps_the_forward_beams_at_their_bearings() -> None:
+    from common.messages import Scan
+
+    step = math.radians(270.0) / 768
+    ranges = np.arange(768, dtype=np.float32) / 100.0 + 0.5
+    scan = Scan(
+        robot_id="r", seq=0, stamp_ns=1, angle_min=-math.radians(135.0), angle_increment=step,
+        range_min=0.02, range_max=11.0, ranges=ranges,
+    )  # fmt: skip
+    narrow = narrowed(scan, 180.0)
+    bearings = narrow.angle_min + step * np.arange(len(narrow.ranges))
+    assert len(narrow.ranges) == 512 and narrow.angle_increment == step
+    assert math.degrees(bearings[0]) >= -90.0 and math.degrees(bearings[-1]) < 90.0
+    first = round((narrow.angle_min - scan.angle_min) / step)  # the same beams, at the same bearings
+    np.testing.assert_array_equal(narrow.ranges, ranges[first : first + 512])
+    for wrong in (0.0, 300.0):
+        with pytest.raises(RealEvalError, match="field of view"):
+            narrowed(scan, wrong)
+
+
 def test_cli_refuses_in_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -393,6 +414,7 @@ def test_cli_refuses_in_one_line(
         (["--bag", str(garbage)], "is not a readable ROS bag"),
         (["--bag", str(tmp_path / "missing.bag")], "not found"),
         (["--bag", bag, "--bearing-window", "30", "-30"], "bearing window"),
+        (["--bag", bag, "--field-of-view", "400"], "at most the scan's own"),
     ):
         assert cli_main(["eval", "--model", model, *argv, "--out", str(tmp_path / "out")]) == 2
         errors = [r for r in caplog.records if r.levelname == "ERROR"]

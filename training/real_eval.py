@@ -332,6 +332,25 @@ def read_scans(reader: Any, connection: Any, rejected: Counter[str]) -> list[Sca
     return scans
 
 
+def narrowed(scan: Scan, field_of_view_deg: float) -> Scan:
+    """``scan`` as a sensor with a field of view of ``field_of_view_deg`` about the same heading takes
+    it: the beams at bearings in [−half, half) of forward, with the same angular step, so a 768-beam
+    270° development recording becomes the 512-beam 180° geometry of the demo recording's sensor."""
+    beams = len(scan.ranges)
+    step = abs(scan.angle_increment)
+    if not 0.0 < field_of_view_deg <= math.degrees(beams * step) + 1e-6:
+        raise RealEvalError(
+            f"field of view {field_of_view_deg:g}° must be above 0 and at most the scan's own "
+            f"{math.degrees(beams * step):.1f}°"
+        )
+    angles = scan.angle_min + scan.angle_increment * np.arange(beams)
+    half = math.radians(field_of_view_deg) / 2.0
+    keep = np.flatnonzero((angles >= -half - 1e-9) & (angles < half - 1e-9))
+    if not keep.size:
+        raise RealEvalError(f"no beam of the scan lies within ±{field_of_view_deg / 2:g}° of forward")
+    return scan.model_copy(update={"ranges": scan.ranges[keep], "angle_min": float(angles[keep[0]])})
+
+
 def read_positions(reader: Any, bag: Path, topic: str) -> list[Positions]:
     connections = [c for c in reader.connections if c.topic == topic]
     if not connections:
@@ -409,6 +428,9 @@ class BagEvalConfig:
     legs_window: Scope | None = None  # None: the development set's window for its bags, else everywhere
     people_free: bool = False
     conf: float = DEFAULT_CONF
+    # Score the recording as a sensor with this narrower field of view about the same heading would
+    # see it (degrees): only its beams within half of it either side of forward (None: all of them).
+    field_of_view_deg: float | None = None
 
     def legs_scope(self) -> Scope:
         window = self.legs_window or LEG_TRACKER_WINDOWS.get(self.bag.name, Scope(max_range_m=math.inf))
@@ -461,6 +483,8 @@ def _load(config: BagEvalConfig) -> _LabelledBag:
         }
     if not scans:
         raise RealEvalError(f"no usable scan on {connection.topic} in {config.bag}: refused {dict(rejected)}")
+    if config.field_of_view_deg is not None:
+        scans = [narrowed(scan, config.field_of_view_deg) for scan in scans]
     stamps = [scan.stamp_ns for scan in scans]
     paired: dict[str, dict[int, np.ndarray]] = {}
     for kind, positions in labels.items():
@@ -476,6 +500,8 @@ def _load(config: BagEvalConfig) -> _LabelledBag:
                 full, config.stream_bag, connection.topic if same_topic else None
             )
             stream = read_scans(full, full_connection, rejected)
+        if config.field_of_view_deg is not None:
+            stream = [narrowed(scan, config.field_of_view_deg) for scan in stream]
         if not set(stamps) & {scan.stamp_ns for scan in stream}:
             raise RealEvalError(f"no scan of {config.bag} has its stamp in {config.stream_bag}")
     return _LabelledBag(connection.topic, stream, paired.get("people"), paired.get("legs"), dict(rejected))

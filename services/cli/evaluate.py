@@ -120,6 +120,11 @@ def _add_bag_arguments(g: argparse._ArgumentGroup) -> None:
         help="bearings where --legs-topic's legs were extracted (default: the development set's own)",
     )  # fmt: skip
     g.add_argument("--people-free", action="store_true", help="the bag holds no people: false people/min")
+    g.add_argument(
+        "--field-of-view", type=float, default=None, metavar="DEG",
+        help="score the recording as a sensor with this narrower field of view about the same heading "
+        "would see it: only its beams within DEG/2 either side of forward (default: all its beams)",
+    )  # fmt: skip
     g.add_argument("--conf", type=float, default=None, help="operating confidence (default: the detector's)")
 
 
@@ -142,6 +147,7 @@ def _run_bag(args: argparse.Namespace) -> int:
         scope=Scope(*args.bearing_window) if args.bearing_window else Scope(),
         legs_window=Scope(*args.legs_window, max_range_m=float("inf")) if args.legs_window else None,
         people_free=args.people_free,
+        field_of_view_deg=args.field_of_view,
         **({} if args.conf is None else {"conf": args.conf}),
     )
     if args.tracks:
