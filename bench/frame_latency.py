@@ -67,7 +67,7 @@ from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
 from common.inference import OnnxDetector
 from common.model_spec import PAPER_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
-from common.moving_people import DEFAULT_MOTION_CONFIRM, add_motion_argument
+from common.moving_people import DEFAULT_MOTION_CONFIRM, add_motion_argument, motion_confirm_of
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
 
 ROOT: Final[Path] = Path(__file__).resolve().parents[1]
@@ -668,7 +668,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         skip_ultralytics=args.skip_ultralytics,
         skip_grid=args.skip_grid,
         rounds=args.rounds,
-        motion_confirm=args.motion_confirm,
+        motion_confirm=motion_confirm_of(args) is not None,
     )
     return config, args.out
 

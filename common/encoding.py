@@ -365,3 +365,46 @@ def scan_points_xy(
     valid = valid_returns(values, range_min, range_max)
     bearings = np.degrees(beam_bearings_rad(angle_min, angle_increment, values.size))
     return polar_to_xy(bearings[valid], values[valid])
+
+
+def disc_polar(
+    centre_xy: np.ndarray | tuple[float, float], radius_m: float
+) -> tuple[float, float, float, float, float]:
+    """(centre bearing in [0, 360), arc min, arc max, range min, range max) of a disc about a point of
+    the sensor's frame (metres): the arc of bearings it covers, unwrapped around the centre, and its
+    nearest and farthest range. A sensor inside the disc sees it all around."""
+    x, y = float(centre_xy[0]), float(centre_xy[1])
+    distance = math.hypot(x, y)
+    center = float(np.mod(math.degrees(math.atan2(y, x)), 360.0))
+    if distance <= radius_m:
+        return center, 0.0, 360.0, 0.0, distance + radius_m
+    half = math.degrees(math.asin(radius_m / distance))
+    return center, center - half, center + half, distance - radius_m, distance + radius_m
+
+
+def arc_pixel_boxes(
+    center_deg: float, lo_deg: float, hi_deg: float, range_min: float, range_max: float, padding: Padding
+) -> tuple[tuple[float, float, float, float], ...]:
+    """Raster boxes (x1, y1, x2, y2 pixels) of one arc of bearings (degrees, the raster's frame; the
+    ends unwrapped around the centre) and ranges: every pixel a return from it can light, snapped
+    outward to whole pixels. With ``zero`` padding one box, the piece holding the centre's column; with
+    ``wrap`` every copy in the image (README "Labels": the seam rule)."""
+    x1 = math.floor(lo_deg + 0.5)  # column of the arc's first bearing
+    x2 = math.floor(hi_deg + 0.5) + 1  # one past the column of its last bearing
+    y1 = float(min(math.floor(range_min * ROW_SCALE), RANGE_ROWS - 1))
+    y2 = float(min(math.floor(range_max * ROW_SCALE) + 1, RANGE_ROWS))
+    x2 = min(x2, x1 + ANGLE_COLUMNS)  # a full circle covers each column once
+    if padding == "zero" and x2 - x1 == ANGLE_COLUMNS:
+        return ((0.0, y1, float(ANGLE_COLUMNS), y2),)  # every column, wherever the centre lies
+    if padding == "zero":
+        # Keep the one piece (shifted by k·360°) that holds the centre column; clip it to [0, 360).
+        shift = -ANGLE_COLUMNS * math.floor(math.floor(center_deg + 0.5) / ANGLE_COLUMNS)
+        a, b = max(x1 + shift, 0), min(x2 + shift, ANGLE_COLUMNS)
+        return ((float(a), y1, float(b), y2),) if b > a else ()
+    # wrap: columns 360–383 repeat 0–23, so every copy of the arc that falls in the image is real.
+    boxes = []
+    for shift in (-ANGLE_COLUMNS, 0, ANGLE_COLUMNS):
+        a, b = max(x1 + shift, 0), min(x2 + shift, IMAGE_WIDTH)
+        if b > a:
+            boxes.append((float(a), y1, float(b), y2))
+    return tuple(boxes)

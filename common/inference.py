@@ -167,7 +167,8 @@ class OnnxDetector:
         the model's ``triscan.box_grid`` (``none`` if absent); either value may be asked for, as it
         changes only the post-processing. ``spin_wait``: see :func:`session_options`.
         ``motion_confirm``: a model with a person class reports the person candidates below the
-        threshold that a still sensor sees walk (:mod:`common.moving_people`); None turns it off."""
+        threshold that a still sensor sees walk, and adds people where walking legs have no candidate
+        (:mod:`common.moving_people`); None turns it off."""
         path = Path(model_path)
         if not 0.0 <= conf_threshold <= 1.0:
             raise ValueError(f"conf_threshold must lie in [0, 1], got {conf_threshold}")
@@ -376,6 +377,7 @@ class OnnxDetector:
             class_ids = np.concatenate([class_ids, np.full(len(added), self._person_id, class_ids.dtype)])
         keep = scores > np.float32(self.postprocessing.conf_threshold)
         order = np.flatnonzero(keep)[np.argsort(-scores[keep], kind="stable")]
+        order = order[: self.postprocessing.max_detections]
         return boxes[order], scores[order], class_ids[order]
 
     def still_by_odometry(self, poses: Sequence[Odometry | None]) -> bool | None:

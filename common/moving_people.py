@@ -33,11 +33,21 @@ from typing import Final
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from common.encoding import ANGLE_COLUMNS, R_MAX_M, RANGE_ROWS, ROW_SCALE, SENTINEL_ROW
+from common.encoding import (
+    ANGLE_COLUMNS,
+    R_MAX_M,
+    RANGE_ROWS,
+    ROW_SCALE,
+    SENTINEL_ROW,
+    arc_pixel_boxes,
+    disc_polar,
+)
 from common.messages import Odometry
 from common.model_spec import PERSON_FOOTPRINT_RADIUS_M
 
 _PADDED_WIDTH: Final[int] = ANGLE_COLUMNS + 2
+# A scan sees a leg's near side: a cluster's centre lies about one leg radius beyond its pixels.
+LEG_DEPTH_M: Final[float] = 0.05
 _NEIGHBOUR_OFFSETS: Final = np.array([dr * _PADDED_WIDTH + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
 
 
@@ -69,9 +79,17 @@ class MotionConfirm:
     min_moving_pixels: int = 2
     merge_m: float = 0.5  # clusters closer than this are one person (two legs found apart)
     match_m: float = 0.35  # a candidate whose box centre lies this close to a cluster is confirmed
+
+    @property
+    def centre_reach_m(self) -> float:
+        """How far a cluster's centre can lie from any of its pixels: half its widest extent, plus
+        the push to a leg's far side."""
+        return self.max_extent_m / 2.0 + LEG_DEPTH_M
+
     # A cluster with no person candidate within ``match_m`` becomes a person box (the footprint disc
     # of the labels about its centre) scoring this: just above the detector's default threshold, so
-    # it is reported and ranks after every box the network proposed. None adds nothing.
+    # it is reported there (not at a threshold above it), and below the confirmed candidates and
+    # nearly all of the network's reported people. None adds nothing.
     add_score: float | None = 0.26
 
 
@@ -84,8 +102,8 @@ def add_motion_argument(parser: argparse.ArgumentParser | argparse._ArgumentGrou
         "--no-motion-confirm",
         dest="motion_confirm",
         action="store_false",
-        help="report only the network's own people: no person candidate below the threshold is "
-        "confirmed by walking legs on a still sensor (docs/people.md)",
+        help="report only the network's own people: walking legs on a still sensor neither confirm a "
+        "person candidate below the threshold nor add a person (docs/people.md)",
     )
 
 
@@ -118,7 +136,7 @@ class _Pixels:
         self._around = (lit[..., 0], lit[..., 2])
         self._unmatched = [~flat[neighbourhood + channel].any(axis=0) for channel in (0, 2)]
         self.moving = self._unmatched[0] | self._unmatched[1]  # unmatched in the older or the newer scan
-        self._groups: np.ndarray | None = None
+        self._groups: dict[float, np.ndarray] = {}
 
     @cached_property
     def xy(self) -> np.ndarray:
@@ -141,9 +159,9 @@ class _Pixels:
 
     def moving_groups(self, link_m: float) -> np.ndarray:
         """:func:`_groups` of the moving pixels, worked out once per frame."""
-        if self._groups is None:
-            self._groups = _groups(self.moving_xy, link_m)
-        return self._groups
+        if link_m not in self._groups:
+            self._groups[link_m] = _groups(self.moving_xy, link_m)
+        return self._groups[link_m]
 
     @staticmethod
     def _nearest_rows(plane: np.ndarray) -> np.ndarray:
@@ -200,18 +218,20 @@ def _groups(points: np.ndarray, link_m: float) -> np.ndarray:
 
 
 def _surely_moved(pixels: _Pixels, config: MotionConfirm) -> bool:
-    """Whether :func:`still_share` must come out below ``config.still_share``, told without forming
-    clusters: the frames of a moving sensor, the costly ones, are turned away cheaply.
+    """Whether :func:`still_share` must come out below ``config.still_share``, told from the groups of
+    moving pixels alone (not their still pixels, extents, merges or the still test): the frames of a
+    moving sensor, the costly ones, are turned away early.
 
-    Every cluster centre lies within half the widest extent (and the 5 cm push) of the moving pixels of
-    one group small enough to be a cluster, so a moving pixel farther than that plus ``background_m``
-    from every such group is surely background, and surely unmatched. When those alone exceed the
-    share of all pixels the rule allows, the still test fails whatever the clusters turn out to be.
+    Every cluster centre lies within :attr:`MotionConfirm.centre_reach_m` of the moving pixels of one
+    group small enough to be a cluster, so a moving pixel farther than that plus ``background_m`` from
+    every such group is surely background, and surely unmatched. When those alone exceed the share of
+    all pixels the rule allows, the still test fails whatever the clusters turn out to be.
     """
-    moving_xy, labels = pixels.moving_xy, pixels.moving_groups(config.link_m)
+    moving_xy = pixels.moving_xy
     allowed = (1.0 - config.still_share) * len(pixels.moving)
     if len(moving_xy) <= max(allowed, config.background_min_pixels):
         return False
+    labels = pixels.moving_groups(config.link_m)
     low = np.full((len(moving_xy), 2), np.inf)
     high = np.full((len(moving_xy), 2), -np.inf)
     np.minimum.at(low, labels, moving_xy)
@@ -219,7 +239,7 @@ def _surely_moved(pixels: _Pixels, config: MotionConfirm) -> bool:
     sizes = np.bincount(labels, minlength=len(moving_xy))
     small = (sizes >= config.min_moving_pixels) & (np.hypot(*(high - low).T) <= config.max_extent_m)
     in_small = small[labels]
-    reach = config.background_m + config.max_extent_m / 2.0 + 0.05
+    reach = config.background_m + config.centre_reach_m
     far = ~in_small
     if in_small.any() and far.any():
         far[far] = cdist(moving_xy[far], moving_xy[in_small]).min(axis=1) > reach
@@ -233,7 +253,7 @@ def moving_people(tensor: np.ndarray, config: MotionConfirm = DEFAULT_MOTION_CON
     A pixel of scan t−1 moves when scan t−2 or scan t has no lit pixel within one pixel of it.
     Moving pixels closer than ``link_m`` form a cluster, which takes in the still pixels within
     ``stance_m`` (a planted leg does not move while the other swings). A cluster wider than
-    ``max_extent_m`` is dropped; its centre is the middle of its extent, pushed one leg radius (5 cm)
+    ``max_extent_m`` is dropped; its centre is the middle of its extent, pushed :data:`LEG_DEPTH_M`
     away from the sensor, since a scan sees only a leg's near side. Centres closer than ``merge_m``
     are one person. Only a still sensor's tensors mean anything here (:func:`still_share`).
     """
@@ -257,9 +277,9 @@ def _moving_people(pixels: _Pixels, config: MotionConfirm) -> np.ndarray:
             continue
         centre = (low + high) / 2.0
         distance = math.hypot(*centre)
-        if distance == 0.0 or distance + 0.05 > R_MAX_M:
+        if distance == 0.0 or distance + LEG_DEPTH_M > R_MAX_M:
             continue
-        centres.append((size, centre * (distance + 0.05) / distance))
+        centres.append((size, centre * (distance + LEG_DEPTH_M) / distance))
     merged: list[np.ndarray] = []
     for _, centre in sorted(centres, key=lambda item: -item[0]):  # the most moving pixels first
         if all(math.hypot(*(centre - kept)) >= config.merge_m for kept in merged):
@@ -294,25 +314,15 @@ def _moves_itself(pixels: _Pixels, centre: np.ndarray, config: MotionConfirm) ->
     """Whether the cluster about ``centre`` is more than a shadow: at least ``min_moving_pixels`` of
     the moving pixels within half the widest extent of it moved where nothing nearer hid them."""
     unhidden = pixels.xy[pixels.unhidden]
-    near = np.hypot(*(unhidden - centre).T) <= config.max_extent_m / 2.0 + 0.05
+    near = np.hypot(*(unhidden - centre).T) <= config.centre_reach_m
     return int(near.sum()) >= config.min_moving_pixels
 
 
 def footprint_box(centre: np.ndarray) -> np.ndarray:
-    """The raster box (xyxy pixels) of a person standing at ``centre`` (raster-frame metres): the
-    labels' footprint disc about it, snapped outward to whole pixels as labels are and kept within the
-    bearing columns."""
-    distance = math.hypot(*centre)
-    if distance <= PERSON_FOOTPRINT_RADIUS_M:  # the sensor stands inside it: every bearing
-        x1, x2 = 0, ANGLE_COLUMNS
-    else:
-        bearing = math.degrees(math.atan2(centre[1], centre[0])) % 360.0
-        half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M / distance))
-        x1 = max(math.floor(bearing - half + 0.5), 0)
-        x2 = min(math.floor(bearing + half + 0.5) + 1, ANGLE_COLUMNS)
-    y1 = min(math.floor(max(distance - PERSON_FOOTPRINT_RADIUS_M, 0.0) * ROW_SCALE), RANGE_ROWS - 1)
-    y2 = min(math.floor((distance + PERSON_FOOTPRINT_RADIUS_M) * ROW_SCALE) + 1, RANGE_ROWS)
-    return np.array([x1, y1, x2, y2], dtype=np.float32)
+    """The raster box (xyxy pixels) of a person standing at ``centre`` (raster-frame metres): the box
+    the labels give them (the footprint disc about their position, by the labels' pixel rule)."""
+    (box,) = arc_pixel_boxes(*disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M), "zero")
+    return np.array(box, dtype=np.float32)
 
 
 def confirm_people(
@@ -346,10 +356,10 @@ def confirm_people(
     if len(moving_xy) < config.min_moving_pixels:
         return unchanged
     if not adding:
-        # A cluster's centre lies within half its widest extent (and the 5 cm push) of each of its
-        # moving pixels: with no moving pixel that near a low candidate none can be confirmed, and the
-        # clusters, the costly part, are never formed.
-        reach = config.match_m + config.max_extent_m / 2.0 + 0.05
+        # A cluster's centre lies within ``centre_reach_m`` of each of its moving pixels: with no
+        # moving pixel that near a low candidate none can be confirmed, and the clusters, the costly
+        # part, are never formed.
+        reach = config.match_m + config.centre_reach_m
         if cdist(moving_xy, box_centres_m(boxes[low])).min() > reach:
             return unchanged
     if still is None and _surely_moved(pixels, config):

@@ -193,11 +193,13 @@ def test_people_are_counted_by_the_beams_on_them_and_found_only_above_the_thresh
         None,
         np.array([2, 9, 2, 40]),
     )
-    # On the 9-beam person a confident person box, on the 2-beam one a person box below the threshold,
-    # on the chair a chair box, and beside the 40-beam person a box with IoU 1/3.
-    predictions = labels + np.array([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [5, 0, 5, 0]])
-    scores = np.array([0.1, 0.9, 0.9, 0.9])
-    classes = np.array([PERSON_ID, PERSON_ID, 0, PERSON_ID])
+    # On the 9-beam person a confident person box, on the 2-beam one a person box below the threshold
+    # and a confident chair box, on the chair a chair box, and beside the 40-beam person a box with
+    # IoU 1/3.
+    shifts = np.array([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [5, 0, 5, 0], [0, 0, 0, 0]])
+    predictions = np.concatenate([labels, labels[:1]]) + shifts
+    scores = np.array([0.1, 0.9, 0.9, 0.9, 0.9])
+    classes = np.array([PERSON_ID, PERSON_ID, 0, PERSON_ID, 0])
     counts = {name: [0, 0] for name, _, _ in BEAM_BANDS}
     _count_people_by_beams(counts, sample, box_iou(labels, predictions), scores, classes, PERSON_ID)
     assert counts == {"2": [1, 0], "3-4": [0, 0], "5-7": [0, 0], "8-14": [1, 1], "15+": [1, 0]}
@@ -206,7 +208,7 @@ def test_people_are_counted_by_the_beams_on_them_and_found_only_above_the_thresh
 def test_fresh_worlds_with_people_report_them_by_beams(tmp_path: Path) -> None:
     from common.inference import OnnxDetector
     from common.model_spec import MODELS_DIR
-    from training.evaluate import PERSON_ID, VAL_CONF, VAL_IOU, evaluate, fresh_samples
+    from training.evaluate import BEAM_BANDS, PERSON_ID, VAL_CONF, VAL_IOU, evaluate, fresh_samples
 
     people_model = MODELS_DIR / "yolov8p-relu-dfl12" / "triscan-yolov8p-relu-dfl12-zero-int8.onnx"
     detector = OnnxDetector(people_model, conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, motion_confirm=None)
@@ -219,4 +221,5 @@ def test_fresh_worlds_with_people_report_them_by_beams(tmp_path: Path) -> None:
     people = sum(int((s.classes == PERSON_ID).sum()) for s in samples)
     assert people and sum(int(row["instances"]) for row in by_beams.values()) == people
     assert all(0.0 <= row["recall"] <= 1.0 for row in by_beams.values())
+    assert set(by_beams) <= {name for name, _, _ in BEAM_BANDS}
     assert "people found at 0.25 by beams on them" in format_table(report)

@@ -9,14 +9,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial.distance import cdist
 
-from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ROW_SCALE
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ROW_SCALE, arc_pixel_boxes
 from common.inference import OnnxDetector
 from common.messages import Odometry, StackedTensor
 from common.model_spec import CLASS_NAMES, MODELS_DIR, PERSON, PERSON_FOOTPRINT_RADIUS_M, SHIPPED_MODEL
 from common.moving_people import (
     DEFAULT_MOTION_CONFIRM,
     MotionConfirm,
+    _groups,
+    _moving_people,
+    _Pixels,
+    _still_share,
+    _surely_moved,
     box_centres_m,
     confirm_people,
     footprint_box,
@@ -26,6 +33,7 @@ from common.moving_people import (
 )
 from common.postprocess import PostprocessSettings
 from services.detector.core import DetectorCore
+from services.simulator.labels import person_footprint_polar
 
 PERSON_ID = CLASS_NAMES.index(PERSON)
 PEOPLE_MODEL = MODELS_DIR / "yolov8p-relu-dfl12" / "triscan-yolov8p-relu-dfl12-zero-int8.onnx"
@@ -111,9 +119,9 @@ def test_confirmation_raises_only_the_walkers_best_person_candidate() -> None:
 
 
 def test_a_walker_without_any_candidate_is_added_as_a_person_about_its_legs() -> None:
-    # Only a chair box and a person candidate below the floor near the walker, and a person on the pole.
+    # On the walker a chair box and a person candidate below the floor; a person candidate on a pole.
     on_walker = box_at(WALKER_BEARING_DEG + STEP_DEG, WALKER_RANGE_M)
-    boxes = np.array([on_walker, box_at(20.5, 1.5), box_at(200.5, 1.5)], np.float32)
+    boxes = np.array([on_walker, on_walker, box_at(200.5, 1.5)], np.float32)
     scores = np.array([0.6, 0.005, 0.1], np.float32)
     class_ids = np.array([0, PERSON_ID, PERSON_ID])
     kept, added = confirm_people(scene(), boxes, scores, class_ids, PERSON_ID)
@@ -152,14 +160,48 @@ def test_the_wall_a_walker_hides_and_reveals_is_their_shadow_and_no_person() -> 
     assert math.hypot(*(centre - walker)) < 0.1
 
 
-def test_a_footprint_box_is_the_labels_disc_and_stays_within_the_bearing_columns() -> None:
-    x1, y1, x2, y2 = footprint_box(np.array([0.0, 2.0]))
-    half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M / 2.0))
-    assert (x1, x2) == (math.floor(90.0 - half + 0.5), math.floor(90.0 + half + 0.5) + 1)
-    assert (y1, y2) == (math.floor(1.7 * ROW_SCALE), math.floor(2.3 * ROW_SCALE) + 1)
-    near_seam = footprint_box(np.array([1.0, 0.0]))  # at bearing 0: the part left of column 0 is cut
-    assert near_seam[0] == 0.0 and near_seam[2] < 30
+def test_a_footprint_box_is_the_box_the_labels_give_a_person_standing_there() -> None:
+    for bearing_deg, distance in ((90.0, 2.0), (359.7, 1.7), (0.3, 1.7), (180.0, 3.9), (45.0, 0.1)):
+        centre = distance * np.array(
+            [math.cos(math.radians(bearing_deg)), math.sin(math.radians(bearing_deg))]
+        )
+        legs = [(centre[0] + 0.1, centre[1], 0.05), (centre[0] - 0.1, centre[1], 0.05)]
+        (label,) = arc_pixel_boxes(*person_footprint_polar(legs, (0.0, 0.0, 0.0)), "zero")
+        assert footprint_box(centre).tolist() == list(label)
     assert footprint_box(np.array([0.1, 0.0]))[[0, 2]].tolist() == [0.0, 360.0]  # the sensor inside it
+    assert footprint_box(np.array([1.7, -0.01]))[0] == 0.0  # just right of the seam: the left piece
+
+
+def test_groups_link_chains_as_scipy_does() -> None:
+    rng = np.random.default_rng(5)
+    for points in (
+        np.stack([np.linspace(0.0, 6.0, 120), np.zeros(120)], axis=1),  # a moving wall: one long chain
+        rng.uniform(-3.0, 3.0, (200, 2)),
+        rng.uniform(-1.0, 1.0, (7, 2)),
+    ):
+        linked = cdist(points, points) < 0.35
+        count, theirs = connected_components(linked, directed=False)
+        ours = _groups(points, 0.35)
+        assert len(np.unique(ours)) == count
+        assert all(len(np.unique(theirs[ours == label])) == 1 for label in np.unique(ours))
+        assert all(ours[label] == label for label in np.unique(ours))  # the smallest index names it
+
+
+def test_frames_turned_away_early_are_frames_the_still_test_fails() -> None:
+    assert not _surely_moved(_Pixels(scene()), DEFAULT_MOTION_CONFIRM)
+    assert _surely_moved(_Pixels(scene(turn_columns=3)), DEFAULT_MOTION_CONFIRM)
+    rng = np.random.default_rng(11)
+    turned_away = 0
+    for _ in range(60):
+        tensor = scene(turn_columns=int(rng.integers(0, 4)), walker=bool(rng.integers(0, 2)))
+        flicker = rng.random(tensor.shape) < rng.uniform(0.0, 0.02)
+        tensor[:63, :360][flicker[:63, :360]] = 255
+        pixels = _Pixels(tensor)
+        if _surely_moved(pixels, DEFAULT_MOTION_CONFIRM):
+            turned_away += 1
+            centres = _moving_people(pixels, DEFAULT_MOTION_CONFIRM)
+            assert _still_share(pixels, centres, DEFAULT_MOTION_CONFIRM) < DEFAULT_MOTION_CONFIRM.still_share
+    assert turned_away > 10
 
 
 def test_box_centres_invert_the_raster_geometry() -> None:

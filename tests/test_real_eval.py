@@ -397,6 +397,23 @@ def test_a_narrower_field_of_view_keeps_the_forward_beams_at_their_bearings() ->
     for wrong in (0.0, 300.0):
         with pytest.raises(RealEvalError, match="field of view"):
             narrowed(scan, wrong)
+    # A full circle from 0 rad, either way round: the kept beams run across the scan's end.
+    for direction in (1.0, -1.0):
+        circle = scan.model_copy(
+            update={
+                "angle_min": 0.0,
+                "angle_increment": direction * math.radians(1.0),
+                "ranges": ranges[:360],
+            }
+        )
+        narrow = narrowed(circle, 180.0)
+        bearings = narrow.angle_min + narrow.angle_increment * np.arange(len(narrow.ranges))
+        assert len(narrow.ranges) == 180 and np.all(np.abs(np.degrees(bearings)) <= 90.0 + 1e-6)
+        np.testing.assert_allclose(np.diff(bearings), narrow.angle_increment)
+        beam_of = np.round(np.mod(np.degrees(bearings), 360.0) / np.degrees(abs(narrow.angle_increment)))
+        if direction < 0:
+            beam_of = np.mod(360 - beam_of, 360)
+        np.testing.assert_array_equal(narrow.ranges, ranges[:360][beam_of.astype(int) % 360])
 
 
 def test_cli_refuses_in_one_line(

@@ -42,6 +42,7 @@ from common.model_spec import (
     PERSON,
 )
 from common.postprocess import DEFAULT_CONF, unwrap_seam_duplicates
+from services.simulator.labels import MIN_BEAMS_ON_OBJECT
 from training.detection_metrics import DetectionMetrics, box_iou
 from training.png import read_tensor_png
 
@@ -417,9 +418,9 @@ def evaluate(
     return report
 
 
-# Bands of beams on a person in scan t−1 (name, least, most): two is the least a target has.
+# Bands of beams on a person in scan t−1 (name, least, most), from the least a target has.
 BEAM_BANDS: tuple[tuple[str, int, int], ...] = (
-    ("2", 2, 2),
+    (str(MIN_BEAMS_ON_OBJECT), MIN_BEAMS_ON_OBJECT, 2),
     ("3-4", 3, 4),
     ("5-7", 5, 7),
     ("8-14", 8, 14),
@@ -441,7 +442,7 @@ def _count_people_by_beams(
     reported = (classes == person_id) & (scores > DEFAULT_CONF)
     for label in np.flatnonzero(sample.classes == person_id):
         beams = int(sample.beams[label])
-        found = bool(reported.any() and iou[label, reported].max() >= 0.5)
+        found = bool(reported.any() and iou[label, reported].max() >= IOU_THRESHOLDS[0])
         for name, least, most in BEAM_BANDS:
             if least <= beams <= most:
                 counts[name][0] += 1

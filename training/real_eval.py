@@ -343,11 +343,15 @@ def narrowed(scan: Scan, field_of_view_deg: float) -> Scan:
             f"field of view {field_of_view_deg:g}° must be above 0 and at most the scan's own "
             f"{math.degrees(beams * step):.1f}°"
         )
-    angles = scan.angle_min + scan.angle_increment * np.arange(beams)
+    # Bearings in [−π, π): a scan may start anywhere (0 rad, say), and the kept beams are taken in
+    # their scan direction from the first one past −half, across the scan's end if they wrap.
+    angles = np.mod(scan.angle_min + scan.angle_increment * np.arange(beams) + math.pi, 2 * math.pi) - math.pi
     half = math.radians(field_of_view_deg) / 2.0
     keep = np.flatnonzero((angles >= -half - 1e-9) & (angles < half - 1e-9))
     if not keep.size:
         raise RealEvalError(f"no beam of the scan lies within ±{field_of_view_deg / 2:g}° of forward")
+    order = np.argsort(angles[keep] if scan.angle_increment > 0 else -angles[keep], kind="stable")
+    keep = keep[order]
     return scan.model_copy(update={"ranges": scan.ranges[keep], "angle_min": float(angles[keep[0]])})
 
 

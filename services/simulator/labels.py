@@ -18,13 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.encoding import (
-    ANGLE_COLUMNS,
-    IMAGE_WIDTH,
-    RANGE_ROWS,
-    ROW_SCALE,
-    Padding,
-)
+from common.encoding import ANGLE_COLUMNS, IMAGE_WIDTH, RANGE_ROWS, Padding, arc_pixel_boxes, disc_polar
 from common.model_spec import PERSON_FOOTPRINT_RADIUS_M
 from services.simulator.people import leg_object
 from services.simulator.scenario import DOORFRAME, PERSON, Rect, Scenario
@@ -85,29 +79,6 @@ def arc_crosses_seam(center_deg: float, lo_deg: float, hi_deg: float) -> bool:
     first = math.floor(lo_deg + 0.5) + shift
     past_last = min(math.floor(hi_deg + 0.5) + 1, math.floor(lo_deg + 0.5) + ANGLE_COLUMNS) + shift
     return first < 0 or past_last > ANGLE_COLUMNS
-
-
-def _pixel_boxes(
-    center_deg: float, lo_deg: float, hi_deg: float, range_min: float, range_max: float, padding: Padding
-) -> tuple[Box, ...]:
-    """Boxes of one arc in the padded image, applying the seam rule of README "Labels"."""
-    x1 = math.floor(lo_deg + 0.5)  # column of the arc's first bearing
-    x2 = math.floor(hi_deg + 0.5) + 1  # one past the column of its last bearing
-    y1 = float(min(math.floor(range_min * ROW_SCALE), RANGE_ROWS - 1))
-    y2 = float(min(math.floor(range_max * ROW_SCALE) + 1, RANGE_ROWS))
-    x2 = min(x2, x1 + ANGLE_COLUMNS)  # a full circle covers each column once
-    if padding == "zero":
-        # Keep the one piece (shifted by k·360°) that holds the centre column; clip it to [0, 360).
-        shift = -ANGLE_COLUMNS * math.floor(math.floor(center_deg + 0.5) / ANGLE_COLUMNS)
-        a, b = max(x1 + shift, 0), min(x2 + shift, ANGLE_COLUMNS)
-        return ((float(a), y1, float(b), y2),) if b > a else ()
-    # wrap: columns 360–383 repeat 0–23, so every copy of the arc that falls in the image is real.
-    boxes = []
-    for shift in (-ANGLE_COLUMNS, 0, ANGLE_COLUMNS):
-        a, b = max(x1 + shift, 0), min(x2 + shift, IMAGE_WIDTH)
-        if b > a:
-            boxes.append((float(a), y1, float(b), y2))
-    return tuple(boxes)
 
 
 def turned_arc(center: float, lo: float, hi: float, yaw_deg: float) -> tuple[float, float, float]:
@@ -176,19 +147,7 @@ def person_footprint_polar(
     the person is as big as a chair's, and its centre is where the person stands.
     """
     centres = np.array([leg[:2] for leg in legs], dtype=np.float64)
-    local = _to_sensor_frame(centres.mean(axis=0), lidar_pose)
-    distance = float(np.hypot(local[0], local[1]))
-    center = float(np.mod(np.degrees(np.arctan2(local[1], local[0])), 360.0))
-    if distance <= PERSON_FOOTPRINT_RADIUS_M:
-        return center, 0.0, 360.0, 0.0, distance + PERSON_FOOTPRINT_RADIUS_M
-    half = math.degrees(math.asin(PERSON_FOOTPRINT_RADIUS_M / distance))
-    return (
-        center,
-        center - half,
-        center + half,
-        distance - PERSON_FOOTPRINT_RADIUS_M,
-        distance + PERSON_FOOTPRINT_RADIUS_M,
-    )
+    return disc_polar(_to_sensor_frame(centres.mean(axis=0), lidar_pose), PERSON_FOOTPRINT_RADIUS_M)
 
 
 def label_scan(
@@ -232,7 +191,7 @@ def label_scan(
         center, lo, hi = turned_arc(laser_center, laser_lo, laser_hi, raster_yaw_deg)
         arc = clip_to_field_of_view(center, lo, hi, seen_bearings)
         visible = beams >= MIN_BEAMS_ON_OBJECT and rmin <= range_max and arc is not None
-        boxes = _pixel_boxes(center, *arc, rmin, rmax, padding) if visible and arc is not None else ()
+        boxes = arc_pixel_boxes(center, *arc, rmin, rmax, padding) if visible and arc is not None else ()
         labels.append(
             ObjectLabel(class_id, beams, visible and bool(boxes), center, lo, hi, rmin, rmax, boxes)
         )
