@@ -394,8 +394,6 @@ def arc_pixel_boxes(
     y1 = float(min(math.floor(range_min * ROW_SCALE), RANGE_ROWS - 1))
     y2 = float(min(math.floor(range_max * ROW_SCALE) + 1, RANGE_ROWS))
     x2 = min(x2, x1 + ANGLE_COLUMNS)  # a full circle covers each column once
-    if padding == "zero" and x2 - x1 == ANGLE_COLUMNS:
-        return ((0.0, y1, float(ANGLE_COLUMNS), y2),)  # every column, wherever the centre lies
     if padding == "zero":
         # Keep the one piece (shifted by k·360°) that holds the centre column; clip it to [0, 360).
         shift = -ANGLE_COLUMNS * math.floor(math.floor(center_deg + 0.5) / ANGLE_COLUMNS)

@@ -320,9 +320,14 @@ def _moves_itself(pixels: _Pixels, centre: np.ndarray, config: MotionConfirm) ->
 
 def footprint_box(centre: np.ndarray) -> np.ndarray:
     """The raster box (xyxy pixels) of a person standing at ``centre`` (raster-frame metres): the box
-    the labels give them (the footprint disc about their position, by the labels' pixel rule)."""
-    (box,) = arc_pixel_boxes(*disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M), "zero")
-    return np.array(box, dtype=np.float32)
+    the labels give them (the footprint disc about their position, by the labels' pixel rule), and
+    every column when the sensor stands inside the disc."""
+    boxes = arc_pixel_boxes(*disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M), "zero")
+    if math.hypot(*centre) <= PERSON_FOOTPRINT_RADIUS_M or not boxes:
+        _, _, _, _, range_max = disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M)
+        (box,) = arc_pixel_boxes(180.0, 0.0, 360.0, 0.0, range_max, "zero")
+        return np.array(box, dtype=np.float32)
+    return np.array(boxes[0], dtype=np.float32)
 
 
 def confirm_people(
