@@ -112,6 +112,10 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     assert flag_values(default, "--person-resume") == []  # the tracker's default
     resume = service_commands(UpConfig(viewer="none", person_resume_s=0.0), ports, None)["tracker"]
     assert flag_values(resume, "--person-resume") == ["0.0"]
+    shown = service_commands(UpConfig(viewer="none", person_show_coast_s=1.5), ports, None)["tracker"]
+    assert flag_values(shown, "--person-show-coast") == ["1.5"] and not flag_values(
+        default, "--person-show-coast"
+    )
     with pytest.raises(ValueError, match="person confirm travel must be >= 0 metres, got -1"):
         UpConfig(person_confirm_travel_m=-1.0)
     assert cli_main(["up", "--person-confirm-travel", "-1", "--duration", "1"]) == 2  # before any start

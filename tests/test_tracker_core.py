@@ -142,6 +142,27 @@ def test_coasting_through_an_occlusion_then_deletion_after_the_timeout() -> None
     assert gone is not None and gone.tracks == [] and core.counters.tracks_deleted == 1
 
 
+def test_a_coasting_person_leaves_the_message_before_their_track_ends_and_keeps_their_id() -> None:
+    config = TrackerConfig()
+    core = TrackerCore(config)
+    for k in range(10):
+        seen = core.update(message(k, [det(2.0, 0.0, "chair"), det(0.0, 2.0, "person")]))
+    assert seen is not None
+    ids = {t.class_name: t.track_id for t in seen.tracks}
+    shown_until = 9 + round(config.person_show_coast_s * 10)  # 10 Hz scans
+    for k in range(10, 22):  # 1.2 s unseen: past person_show_coast_s, within delete_after_s
+        out = core.update(message(k, []))
+        assert out is not None
+        shown = {t.class_name for t in out.tracks}
+        assert "chair" in shown  # furniture coasts in the message until delete_after_s
+        assert ("person" in shown) is (k <= shown_until)
+    back = core.update(message(22, [det(2.0, 0.0, "chair"), det(0.0, 2.05, "person")]))
+    assert back is not None and {t.class_name: t.track_id for t in back.tracks} == ids
+    for bad in (-0.1, math.nan):
+        with pytest.raises(ValueError, match="person show coast must be >= 0 seconds"):
+            TrackerConfig(person_show_coast_s=bad)
+
+
 def test_still_furniture_out_of_sight_is_hidden_then_takes_its_id_back_and_a_person_is_deleted() -> None:
     core = TrackerCore(TrackerConfig(delete_after_s=0.5, still_delete_after_s=5.0))
     for k in range(5):

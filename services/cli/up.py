@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         motion_confirm=args.motion_confirm,
         person_confirm_travel_m=args.person_confirm_travel,
         person_resume_s=args.person_resume,
+        person_show_coast_s=args.person_show_coast,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,

@@ -28,10 +28,17 @@ def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: the tracker's, services.tracker.core.TrackerConfig; 0: off)",
     )  # fmt: skip
 
+    parser.add_argument(
+        "--person-show-coast", type=float, default=None, metavar="S",
+        help="leave a person track out of the output S seconds after it was last seen, though it keeps "
+        "its id if found again before it ends (default: the tracker's, services.tracker.core.TrackerConfig)",
+    )  # fmt: skip
+
 
 RULE_FLAGS: dict[str, str] = {
     "person_confirm_travel_m": "--person-confirm-travel",
     "person_resume_s": "--person-resume",
+    "person_show_coast_s": "--person-show-coast",
 }
 """The :class:`~services.tracker.core.TrackerConfig` fields a user may set, and their flags."""
 
@@ -51,7 +58,11 @@ def rule_flags(rules: dict[str, float]) -> list[str]:
 
 def rules_of(args: argparse.Namespace) -> dict[str, float]:
     """The rules given by the arguments :func:`add_tracker_arguments` added (:func:`given_rules`)."""
-    return given_rules(person_confirm_travel_m=args.person_confirm_travel, person_resume_s=args.person_resume)
+    return given_rules(
+        person_confirm_travel_m=args.person_confirm_travel,
+        person_resume_s=args.person_resume,
+        person_show_coast_s=args.person_show_coast,
+    )
 
 
 def tracker_config(args: argparse.Namespace) -> TrackerConfig:

@@ -79,6 +79,7 @@ from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES, PERSON
 
 log = logging.getLogger(__name__)
 
+_PERSON_ID: Final[int] = CLASS_NAMES.index(PERSON)
 REPORTED_STATES: Final[tuple[TrackState, ...]] = ("confirmed", "coasting")
 """The tracks a consumer should treat as objects (ROS 2 output, scoring): a tentative track may be noise."""
 POSES_KEPT: Final[int] = 4  # per robot: the middle scan's pose is the one before the newest
@@ -153,6 +154,11 @@ class TrackerConfig:
     # second between. 0: off.
     person_resume_s: float = 10.0
     person_resume_speed_mps: float = 1.5  # a brisk walk: the simulator's people walk up to 1.6 m/s
+    # A coasting person track is left out of the message this long after its last hit, though kept to
+    # be found again until delete_after_s: a person unseen for a second has walked on, and their track
+    # standing where they were lost was a false person to every consumer (on the fresh worlds of
+    # docs/tracking.md, most of the people's false positives were such tracks).
+    person_show_coast_s: float = 0.8
 
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
@@ -161,6 +167,8 @@ class TrackerConfig:
             raise ValueError(f"invalid tracker config: {self}")
         if not self.person_coast_decay_s >= 0:  # NaN included
             raise ValueError(f"person coast decay must be >= 0 seconds, got {self.person_coast_decay_s:g}")
+        if not self.person_show_coast_s >= 0:  # NaN included
+            raise ValueError(f"person show coast must be >= 0 seconds, got {self.person_show_coast_s:g}")
         travel = self.person_confirm_travel_m
         if not travel >= 0:  # NaN included
             raise ValueError(f"person confirm travel must be >= 0 metres, got {travel:g}")
@@ -656,8 +664,11 @@ class TrackerCore:
         stamp = message.scan_stamp_ns
         tracks = []
         for t in robot.tracks:
-            if (stamp - t.last_hit_ns) / _NS_PER_S > self.config.delete_after_s:
+            since_hit_s = (stamp - t.last_hit_ns) / _NS_PER_S
+            if since_hit_s > self.config.delete_after_s:
                 continue  # dormant: still furniture kept to take its id back when seen again, not shown
+            if since_hit_s > self.config.person_show_coast_s and t.class_id == _PERSON_ID:
+                continue
             dx, dy = t.x - ox, t.y - oy
             class_id = t.class_id
             tracks.append(
