@@ -180,8 +180,7 @@ def _start_services(
     """
     cfg = ZenohSettings(cfg=zenoh_cfg).to_cli()  # the --cfg flags, written as every service parses them
     detector_args = [*(["--threads", str(threads)] if threads else []), "--model", str(model), *cfg]
-    period = model_facts(model).stack_period_s  # the encoder stacks as the launcher has it stack
-    encoder_args = [*(["--stack-period-s", repr(period)] if period else []), *cfg]
+    encoder_args = [*model_facts(model).encoder_flags(), *cfg]  # its tensors as the launcher has them
     if from_scans:
         return {
             "detector": start_loopback_service(

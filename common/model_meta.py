@@ -169,3 +169,12 @@ class ModelFacts(NamedTuple):
             stack_period_s=declared_stack_period(session, path),
             raster_yaw_deg=declared_raster_yaw(session, path),
         )
+
+    def encoder_flags(self) -> list[str]:
+        """``python -m services.encoder`` flags that make its tensors this model's: padding, invalid-return
+        rule, stacking period and raster yaw (a detector refuses tensors that do not match)."""
+        return [
+            *("--padding", self.padding, "--invalid", self.invalid),
+            *(("--stack-period-s", repr(self.stack_period_s)) if self.stack_period_s else ()),
+            *(("--raster-yaw", repr(self.raster_yaw_deg)) if self.raster_yaw_deg else ()),
+        ]

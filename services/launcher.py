@@ -218,11 +218,7 @@ def service_commands(
             *("--padding", padding),
             *(("--raster-yaw", repr(facts.raster_yaw_deg)) if facts.raster_yaw_deg else ()),
         ],
-        "encoder": [
-            *("--padding", padding, "--invalid", facts.invalid),
-            *(("--stack-period-s", repr(facts.stack_period_s)) if facts.stack_period_s else ()),
-            *(("--raster-yaw", repr(facts.raster_yaw_deg)) if facts.raster_yaw_deg else ()),
-        ],
+        "encoder": facts.encoder_flags(),
         "detector": [
             *(("--model", str(config.model)) if config.model else ()),
             *(("--batch", str(config.batch)) if config.batch is not None else ()),
