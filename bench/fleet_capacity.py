@@ -238,8 +238,9 @@ def _start_services(
     children = {}
     with_encoder = runs_encoder(args)
     if with_encoder:
+        encoder_flags = model_facts(detector_model(args)).encoder_flags()  # the model's tensors
         children["encoder"] = start_loopback_service(
-            "services.encoder", encoder_port, [bench_port, detector_port]
+            "services.encoder", encoder_port, [bench_port, detector_port], *encoder_flags
         )
     children["detector"] = start_loopback_service(
         "services.detector",

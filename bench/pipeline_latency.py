@@ -293,7 +293,7 @@ def bare_frame_latency(model: Path, threads: int | None, rate_hz: float, frames:
     from services.encoder.core import EncoderCore
     from services.sim_bag import recorded_scans
 
-    encoder = EncoderCore("zero")
+    encoder = EncoderCore.for_model(model_facts(model))  # the tensors the pipeline's encoder makes
     tensors = [t.tensor for scan in recorded_scans(60) if (t := encoder.push(scan)) is not None]
     detector = OnnxDetector(model, intra_op_threads=threads)
     detector.warmup()
