@@ -20,6 +20,7 @@ NUM_CLASSES: Final[int] = len(CLASS_NAMES)
 # The paper's classes: a data set without people, and the models trained on one, hold these only.
 FURNITURE_CLASSES: Final[tuple[str, ...]] = CLASS_NAMES[:4]
 PERSON: Final[str] = CLASS_NAMES[4]  # the class the paper left to future work
+PERSON_ID: Final[int] = CLASS_NAMES.index(PERSON)
 # A person's box is the disc of this radius about the midpoint of their legs: a walking person's legs
 # stay within about 0.3 m of it (half a fast step; docs/people.md).
 PERSON_FOOTPRINT_RADIUS_M: Final[float] = 0.3

@@ -157,6 +157,10 @@ class _Pixels:
             unhidden |= missing & (self._nearest_rows(plane)[self._padded_columns] >= self.rows - 1)
         return unhidden
 
+    @cached_property
+    def unhidden_xy(self) -> np.ndarray:
+        return self.xy[self.unhidden]
+
     def moving_groups(self, link_m: float) -> np.ndarray:
         """:func:`_groups` of the moving pixels, worked out once per frame."""
         if link_m not in self._groups:
@@ -313,8 +317,7 @@ def box_centres_m(boxes: np.ndarray) -> np.ndarray:
 def _moves_itself(pixels: _Pixels, centre: np.ndarray, config: MotionConfirm) -> bool:
     """Whether the cluster about ``centre`` is more than a shadow: at least ``min_moving_pixels`` of
     the moving pixels within half the widest extent of it moved where nothing nearer hid them."""
-    unhidden = pixels.xy[pixels.unhidden]
-    near = np.hypot(*(unhidden - centre).T) <= config.centre_reach_m
+    near = np.hypot(*(pixels.unhidden_xy - centre).T) <= config.centre_reach_m
     return int(near.sum()) >= config.min_moving_pixels
 
 
@@ -322,12 +325,13 @@ def footprint_box(centre: np.ndarray) -> np.ndarray:
     """The raster box (xyxy pixels) of a person standing at ``centre`` (raster-frame metres): the box
     the labels give them (the footprint disc about their position, by the labels' pixel rule), and
     every column when the sensor stands inside the disc."""
-    boxes = arc_pixel_boxes(*disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M), "zero")
-    if math.hypot(*centre) <= PERSON_FOOTPRINT_RADIUS_M or not boxes:
-        _, _, _, _, range_max = disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M)
-        (box,) = arc_pixel_boxes(180.0, 0.0, 360.0, 0.0, range_max, "zero")
-        return np.array(box, dtype=np.float32)
-    return np.array(boxes[0], dtype=np.float32)
+    bearing, lo, hi, range_min, range_max = disc_polar(centre, PERSON_FOOTPRINT_RADIUS_M)
+    if hi - lo >= 360.0:
+        # Every bearing: the pixel rule keeps the piece holding the centre's column, of which a centre
+        # at 359.5° or more keeps none, so the circle is placed about one that keeps it all.
+        bearing = 180.0
+    (box,) = arc_pixel_boxes(bearing, lo, hi, range_min, range_max, "zero")
+    return np.array(box, dtype=np.float32)
 
 
 def confirm_people(
@@ -373,10 +377,10 @@ def confirm_people(
     if not len(centres) or (still is None and _still_share(pixels, centres, config) < config.still_share):
         return unchanged
     confirmed = scores.copy()
-    distances = cdist(centres, box_centres_m(boxes[candidates])) if candidates.size else None
+    distances = cdist(centres, box_centres_m(boxes[candidates]))
     added = []
     for index, centre in enumerate(centres):
-        near = candidates[distances[index] < config.match_m] if distances is not None else candidates
+        near = candidates[distances[index] < config.match_m]
         if near.size:
             best = near[np.argmax(scores[near])]
             confirmed[best] = max(confirmed[best], np.float32(config.score))

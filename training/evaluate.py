@@ -40,6 +40,7 @@ from common.model_spec import (
     FURNITURE_CLASSES,
     MAX_DETECTIONS,
     PERSON,
+    PERSON_ID,
 )
 from common.postprocess import DEFAULT_CONF, unwrap_seam_duplicates
 from services.simulator.labels import MIN_BEAMS_ON_OBJECT
@@ -49,7 +50,6 @@ from training.png import read_tensor_png
 if TYPE_CHECKING:
     from services.simulator.lidar import LidarSpec
 
-PERSON_ID = CLASS_NAMES.index(PERSON)  # labelled, but not part of a scenario
 
 log = logging.getLogger(__name__)
 

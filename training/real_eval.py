@@ -40,14 +40,13 @@ from scipy.optimize import linear_sum_assignment
 from common.encoding import R_MAX_M, ScanError, ScanStacker
 from common.inference import OnnxDetector
 from common.messages import Detection, Odometry, Scan
-from common.model_spec import CLASS_NAMES, PERSON
+from common.model_spec import CLASS_NAMES, PERSON, PERSON_ID
 from common.moving_people import DEFAULT_MOTION_CONFIRM, MotionConfirm
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU, detections_from_boxes
 from training.evaluate import VAL_CONF
 
 log = logging.getLogger(__name__)
 
-PERSON_ID: Final[int] = CLASS_NAMES.index(PERSON)
 CENTRE_RADII_M: Final[tuple[float, ...]] = (0.3, 0.5)  # DR-SPAAM's association radii
 # A leg cluster is the mean point of one leg's near surface, a person's centre lies between the two
 # legs: 0.4 m covers a stride's half-spread plus the leg's radius.

@@ -75,11 +75,10 @@ from common.messages import (
     TrackState,
     decode_message,
 )
-from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES, PERSON
+from common.model_spec import CLASS_NAMES, FURNITURE_CLASSES, PERSON_ID
 
 log = logging.getLogger(__name__)
 
-_PERSON_ID: Final[int] = CLASS_NAMES.index(PERSON)
 REPORTED_STATES: Final[tuple[TrackState, ...]] = ("confirmed", "coasting")
 """The tracks a consumer should treat as objects (ROS 2 output, scoring): a tentative track may be noise."""
 POSES_KEPT: Final[int] = 4  # per robot: the middle scan's pose is the one before the newest
@@ -451,7 +450,7 @@ class TrackerCore:
         models = [FREE if laser else MOTION_MODELS[CLASS_NAMES[t.class_id]] for t in robot.tracks]
         decay = self.config.person_coast_decay_s
         for track, model in zip(robot.tracks, models, strict=True):
-            if decay > 0.0 and track.misses and CLASS_NAMES[track.class_id] == PERSON:
+            if decay > 0.0 and track.misses and track.class_id == PERSON_ID:
                 keep = math.exp(-dt / decay)
                 track.vx, track.vy = track.vx * keep, track.vy * keep
             track.predict(dt, model)
@@ -488,7 +487,7 @@ class TrackerCore:
                 kept.append(track)  # a retired track leaves below, with those retired by new tracks
             else:
                 self.counters.tracks_deleted += 1
-                if resume_ns > 0 and track.state != "tentative" and CLASS_NAMES[track.class_id] == PERSON:
+                if resume_ns > 0 and track.state != "tentative" and track.class_id == PERSON_ID:
                     robot.ended.append(track)
         for di in unmatched:
             det = message.detections[di]
@@ -524,11 +523,9 @@ class TrackerCore:
         the tracks that may still be coasting."""
         track.state = "confirmed"
         resume_s = self.config.person_resume_s
-        if resume_s <= 0 or CLASS_NAMES[track.class_id] != "person":
+        if resume_s <= 0 or track.class_id != PERSON_ID:
             return
-        coasting = [
-            t for t in live if t.state == "coasting" and not t.retired and CLASS_NAMES[t.class_id] == PERSON
-        ]
+        coasting = [t for t in live if t.state == "coasting" and not t.retired and t.class_id == PERSON_ID]
         best: tuple[float, _Track] | None = None
         for lost in (*robot.ended, *coasting):
             gap_s = (track.first_stamp_ns - lost.last_hit_ns) / _NS_PER_S
@@ -581,16 +578,16 @@ class TrackerCore:
         if track.hits < self.config.confirm_hits:
             return False
         travel = self.config.person_confirm_travel_m
-        return travel <= 0.0 or CLASS_NAMES[track.class_id] != "person" or track.moved_m >= travel
+        return travel <= 0.0 or track.class_id != PERSON_ID or track.moved_m >= travel
 
     def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
         """A second detection of an object a track already follows: within ``duplicate_m`` of a
         confirmed track of the same group (furniture or person) that a detection of this scan updated."""
-        person = det.class_name == PERSON
+        person = det.class_id == PERSON_ID
         return any(
             t.state == "confirmed"
             and t.misses == 0
-            and (CLASS_NAMES[t.class_id] == PERSON) == person
+            and (t.class_id == PERSON_ID) == person
             and math.hypot(t.x - point[0], t.y - point[1]) < self.config.duplicate_m
             for t in tracks
         )
@@ -667,7 +664,7 @@ class TrackerCore:
             since_hit_s = (stamp - t.last_hit_ns) / _NS_PER_S
             if since_hit_s > self.config.delete_after_s:
                 continue  # dormant: still furniture kept to take its id back when seen again, not shown
-            if since_hit_s > self.config.person_show_coast_s and t.class_id == _PERSON_ID:
+            if since_hit_s > self.config.person_show_coast_s and t.class_id == PERSON_ID:
                 continue
             dx, dy = t.x - ox, t.y - oy
             class_id = t.class_id
