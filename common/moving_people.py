@@ -129,14 +129,28 @@ class _Pixels:
         # neighbourhood: a bool array's flat indices are far quicker to find than rows and columns of
         # the uint8 tensor.
         flat = lit.ravel()
-        centre = np.flatnonzero(flat[1::3])
-        padded_rows, self._padded_columns = np.divmod(centre, _PADDED_WIDTH)
-        self.rows, self.columns = padded_rows - 1, self._padded_columns - 1
+        self._centre = centre = np.flatnonzero(flat[1::3])
         neighbourhood = 3 * (centre[None, :] + _NEIGHBOUR_OFFSETS[:, None])
         self._around = (lit[..., 0], lit[..., 2])
         self._unmatched = [~flat[neighbourhood + channel].any(axis=0) for channel in (0, 2)]
         self.moving = self._unmatched[0] | self._unmatched[1]  # unmatched in the older or the newer scan
         self._groups: dict[float, np.ndarray] = {}
+
+    @cached_property
+    def _padded_rows_columns(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.divmod(self._centre, _PADDED_WIDTH)
+
+    @property
+    def _padded_columns(self) -> np.ndarray:
+        return self._padded_rows_columns[1]
+
+    @cached_property
+    def rows(self) -> np.ndarray:
+        return self._padded_rows_columns[0] - 1
+
+    @cached_property
+    def columns(self) -> np.ndarray:
+        return self._padded_columns - 1
 
     @cached_property
     def xy(self) -> np.ndarray:
@@ -265,14 +279,21 @@ def moving_people(tensor: np.ndarray, config: MotionConfirm = DEFAULT_MOTION_CON
 
 
 def _moving_people(pixels: _Pixels, config: MotionConfirm) -> np.ndarray:
-    if pixels.moving.sum() < config.min_moving_pixels:
+    if np.count_nonzero(pixels.moving) < config.min_moving_pixels:
         return np.zeros((0, 2))
-    moving_xy, still_xy = pixels.moving_xy, pixels.xy[~pixels.moving]
     labels = pixels.moving_groups(config.link_m)
-    near_still = cdist(still_xy, moving_xy) < config.stance_m  # [still, moving]
-    centres: list[tuple[int, np.ndarray]] = []
     sizes = np.bincount(labels)
-    for label in np.flatnonzero(sizes >= config.min_moving_pixels):
+    big = sizes >= config.min_moving_pixels
+    if not big.any():  # lone moving pixels: a dropout or the noise, no leg
+        return np.zeros((0, 2))
+    kept = np.flatnonzero(big)
+    # Only the kept groups' pixels take in still pixels, so only their distances are worked out.
+    in_kept = big[labels]
+    moving_xy, still_xy = pixels.moving_xy[in_kept], pixels.xy[~pixels.moving]
+    labels = labels[in_kept]
+    near_still = cdist(still_xy, moving_xy) < config.stance_m  # [still, kept moving]
+    centres: list[tuple[int, np.ndarray]] = []
+    for label in kept:
         members = labels == label
         size = int(sizes[label])
         points = np.concatenate([moving_xy[members], still_xy[near_still[:, members].any(axis=1)]])
@@ -361,9 +382,9 @@ def confirm_people(
     if still is False or not (low.size or adding):
         return unchanged
     pixels = _Pixels(tensor)
-    moving_xy = pixels.moving_xy
-    if len(moving_xy) < config.min_moving_pixels:
+    if np.count_nonzero(pixels.moving) < config.min_moving_pixels:  # most frames of a quiet room
         return unchanged
+    moving_xy = pixels.moving_xy
     if not adding:
         # A cluster's centre lies within ``centre_reach_m`` of each of its moving pixels: with no
         # moving pixel that near a low candidate none can be confirmed, and the clusters, the costly

@@ -26,7 +26,15 @@ from training.int8_recipes import compare_recipes, format_recipe_table
 from training.offline import configure_offline
 from training.onnx_export import export_onnx
 from training.onnx_model import BOX_CHANNELS, ExportError, check_io
-from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
+from training.onnx_rewrites import (
+    DFL_EXPECTATION,
+    DFL_SOFTMAX_LAST_AXIS,
+    dfl_expectation,
+    dfl_softmax_on_last_axis,
+    rewrite_card,
+    rewrite_file,
+    same_detections,
+)
 from training.png import read_tensor_png, write_rgb_png
 from training.quantization import (
     DEFAULT_FLOAT_LEADING_MODULES,
@@ -150,19 +158,77 @@ def test_fp32_metadata_keeps_ultralytics_and_adds_triscan(fp32: Path, weights: P
     assert json.loads(meta["triscan.classes"]) == list(CLASS_NAMES)
     assert meta["triscan.source_weights"] == f"last.pt sha256:{file_sha256(weights)[:12]}"
     assert meta["triscan.precision"] == "fp32"
-    assert meta["triscan.rewrites"] == DFL_SOFTMAX_LAST_AXIS
+    assert meta["triscan.rewrites"] == f"{DFL_SOFTMAX_LAST_AXIS},{DFL_EXPECTATION}"
     assert meta["triscan.box_grid"] == "none" and OnnxDetector(fp32).box_grid == "none"
 
 
-def test_the_dfl_softmax_runs_on_the_innermost_axis_and_a_second_rewrite_is_refused(fp32: Path) -> None:
-    """The rewrite's numbers are the torch model's (next test); here its shape, once and only once."""
+def test_the_dfl_is_one_expectation_over_the_innermost_axis_and_a_second_rewrite_is_refused(
+    fp32: Path,
+) -> None:
+    """The rewrites' numbers are the torch model's (next test); here their shape, once and only once."""
     model = onnx.load(str(fp32))
-    (softmax,) = [n for n in model.graph.node if n.op_type == "Softmax"]
-    assert [a.i for a in softmax.attribute if a.name == "axis"] == [-1]
-    assert not any(n.op_type == "Conv" and "/dfl/" in n.name for n in model.graph.node)
-    assert any(n.op_type == "MatMul" and "/dfl/" in n.name for n in model.graph.node)
+    dfl = [n for n in model.graph.node if "/dfl/" in n.name]
+    assert not any(n.op_type in ("Softmax", "Conv") for n in dfl)
+    assert [n.op_type for n in dfl if n.op_type in ("ReduceMax", "Sub", "Exp", "MatMul", "Div")] == [
+        "ReduceMax",
+        "Sub",
+        "Exp",
+        "MatMul",
+        "Div",
+    ]
+    (transpose,) = [n for n in dfl if n.op_type == "Transpose"]
+    assert [list(a.ints) for a in transpose.attribute if a.name == "perm"] == [[0, 1, 3, 2]]
     with pytest.raises(ExportError, match="DFL"):
-        dfl_softmax_on_last_axis(model)  # already rewritten: the pattern is gone
+        dfl_softmax_on_last_axis(model)  # already rewritten: the patterns are gone
+    with pytest.raises(ExportError, match="DFL"):
+        dfl_expectation(model)
+
+
+def test_rewrite_file_gives_an_old_export_the_rewrites_with_its_outputs(
+    weights: Path, tmp_path: Path
+) -> None:
+    """A file exported without the rewrites gets both, within float rounding of its own outputs, and
+    says what it was made from; a file that has them is copied as it is."""
+    plain = export_onnx(weights, tmp_path / "plain.onnx", rewrite_dfl=False)
+    assert "triscan.rewrites" not in onnx_metadata(plain)
+    rewritten = tmp_path / "rewritten.onnx"
+    assert rewrite_file(plain, rewritten) == [DFL_SOFTMAX_LAST_AXIS, DFL_EXPECTATION]
+    meta = onnx_metadata(rewritten)
+    assert meta["triscan.rewrites"] == f"{DFL_SOFTMAX_LAST_AXIS},{DFL_EXPECTATION}"
+    assert meta["triscan.rewritten_from"] == f"plain.onnx sha256:{file_sha256(plain)[:12]}"
+    x = np.random.default_rng(1).random(INPUT_SHAPE, dtype=np.float32)
+    expected, got = _run(plain, x), _run(rewritten, x)
+    assert np.std(expected[0, :BOX_CHANNELS]) > 1.0
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-3)
+    assert rewrite_file(rewritten, tmp_path / "again.onnx") == []
+    with pytest.raises(ExportError, match="beside"):
+        rewrite_file(rewritten, rewritten)
+
+
+def test_same_detections_counts_equal_frames_and_refuses_a_file_that_detects_otherwise(
+    tmp_path: Path,
+) -> None:
+    from common.model_spec import MODELS_DIR
+
+    directory = MODELS_DIR / "yolov8p-relu-dfl12"
+    card = json.loads((directory / "MODEL_CARD.json").read_text())
+    fp32_file, int8_file = (directory / card["files"][kind] for kind in ("fp32", "int8"))
+    worlds = {"seed": 5, "scenarios": 1, "positions": 2, "frame_stride": 15, "people": 2}
+    assert same_detections(fp32_file, fp32_file, worlds) > 0
+    with pytest.raises(ExportError, match="other boxes"):
+        same_detections(fp32_file, int8_file, worlds)  # quantised: not the same boxes
+
+
+def test_rewrite_card_leaves_a_card_whose_files_have_every_rewrite_as_it_is(tmp_path: Path) -> None:
+    import shutil
+
+    from common.model_spec import MODELS_DIR
+
+    directory = tmp_path / "card"
+    shutil.copytree(MODELS_DIR / "yolov8p-relu-dfl12", directory)
+    before = {p.name: p.read_bytes() for p in directory.iterdir()}
+    assert rewrite_card(directory) == {}
+    assert {p.name: p.read_bytes() for p in directory.iterdir()} == before
 
 
 def test_fp32_output_equals_the_torch_model(fp32: Path, weights: Path) -> None:
@@ -241,7 +307,7 @@ def test_int8_is_qdq_with_per_channel_conv_weights(int8: Path) -> None:
 def test_int8_keeps_the_head_decode_in_float(int8: Path) -> None:
     model = onnx.load(str(int8))
     tail = set(head_decode_nodes(model))
-    assert {"Sigmoid", "Softmax", "Concat"} <= {n.op_type for n in model.graph.node if n.name in tail}
+    assert {"Sigmoid", "Exp", "Concat"} <= {n.op_type for n in model.graph.node if n.name in tail}
     produced_by = {o: n for n in model.graph.node for o in n.output}
     for node in model.graph.node:
         if node.op_type == "QuantizeLinear":

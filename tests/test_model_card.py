@@ -14,6 +14,8 @@ from common.model_spec import (
     SHIPPED_FP32_MODEL,
     SHIPPED_INT8_MODEL,
     SHIPPED_MODEL,
+    file_model_id,
+    file_sha256,
     model_stem,
     network_of_stem,
 )
@@ -24,6 +26,7 @@ from training.model_card import (
     _float_parts_of_int8,
     card_status,
     checkpoint_epoch,
+    refresh_files,
     refresh_status,
     shipped_card_dirs,
     write_card,
@@ -353,6 +356,36 @@ def test_the_shipped_cards_status_is_what_the_spec_writes(tmp_path: Path) -> Non
             assert (copy / name).read_text() == (directory / name).read_text(), (directory, name)
     assert [d for d, status in statuses.items() if status == "default"] == [SHIPPED_DIR]
     assert len(statuses) >= 2
+
+
+def test_a_files_refresh_rewrites_the_file_table_and_ids_from_the_files_and_nothing_else(
+    tmp_path: Path,
+) -> None:
+    """Every shipped card's table already matches its files; a card whose files changed gets their sizes,
+    hashes and model ids, and its figures stay as they were."""
+    import shutil
+
+    for directory in shipped_card_dirs():
+        copy = tmp_path / directory.name
+        shutil.copytree(directory, copy, ignore=shutil.ignore_patterns("*.pt"))
+        refresh_files(copy)
+        for name in ("MODEL_CARD.md", "MODEL_CARD.json"):
+            assert (copy / name).read_text() == (directory / name).read_text(), (directory, name)
+    card = json.loads((copy / "MODEL_CARD.json").read_text())
+    int8 = copy / card["files"]["int8"]
+    int8.write_bytes(int8.read_bytes() + b"\0")  # another file (ONNX Runtime would not load it; no matter)
+    before = (copy / "MODEL_CARD.md").read_text()
+    refreshed = refresh_files(copy)
+    assert refreshed["model_ids"]["int8"] == file_model_id(int8) != card["model_ids"]["int8"]
+    assert {k: v for k, v in refreshed.items() if k != "model_ids"} == {
+        k: v for k, v in card.items() if k != "model_ids"
+    }
+    after = (copy / "MODEL_CARD.md").read_text()
+    changed = [line for line in after.splitlines() if line not in before.splitlines()]
+    assert len(changed) == 1 and f"| {int8.stat().st_size} | `{file_sha256(int8)[:16]}…` |" in changed[0]
+    (copy / card["files"]["fp32"]).unlink()
+    with pytest.raises(FileNotFoundError):
+        refresh_files(copy)
 
 
 def test_each_card_embeds_its_notes_verbatim() -> None:

@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import platform
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,8 @@ from common.model_spec import (
     SHIPPED_DIR,
     SHIPPED_FP32_MODEL,
     SHIPPED_MODEL,
+    file_model_id,
+    file_sha256,
     network_of_stem,
     network_title,
 )
@@ -997,6 +1000,29 @@ def refresh_status(directory: Path) -> dict[str, Any]:
         raise ValueError(f"{md_path} has {len(found)} status paragraphs ({STATUS_MARK} …), expected one")
     paragraphs[found[0]] = status_line(card)
     md_path.write_text("\n\n".join(paragraphs))
+    json_path.write_text(json.dumps(card, indent=2) + "\n")
+    return card
+
+
+def refresh_files(directory: Path) -> dict[str, Any]:
+    """Rewrite a written card's file table (bytes, sha256) and model ids from the files on disk, leaving
+    every figure as it is: for files whose detections a change kept (a graph rewrite, checked by
+    :func:`training.onnx_rewrites.rewrite_card`). Returns the card's JSON."""
+    json_path, md_path = directory / "MODEL_CARD.json", directory / "MODEL_CARD.md"
+    card = _read_json(json_path)
+    text = md_path.read_text()
+    for kind, name in card["files"].items():
+        path = directory / name
+        if kind == "checkpoint":
+            continue
+        row = re.compile(rf"^(\| `{re.escape(name)}` \|.*\| )\d+ \| `[0-9a-f]{{16}}…` \|$", re.MULTILINE)
+        if len(row.findall(text)) != 1:
+            raise ValueError(f"{md_path} has no single file-table row for {name}")
+        cells = f"{path.stat().st_size} | `{file_sha256(path)[:16]}…` |"
+        text = row.sub(rf"\g<1>{cells}", text)  # cells: digits, hex, a backtick and "…"
+        if kind in card.get("model_ids", {}):
+            card["model_ids"][kind] = file_model_id(path)
+    md_path.write_text(text)
     json_path.write_text(json.dumps(card, indent=2) + "\n")
     return card
 

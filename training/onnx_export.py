@@ -25,7 +25,7 @@ from common.model_meta import metadata_entries
 from common.model_spec import BOX_GRIDS, CLASS_NAMES, DEFAULT_BOX_GRID, META_PREFIX
 from services.simulator.defaults import SCAN_PERIOD_S
 from training.onnx_model import ExportError, provenance, save_checked, set_metadata
-from training.onnx_rewrites import DFL_SOFTMAX_LAST_AXIS, dfl_softmax_on_last_axis
+from training.onnx_rewrites import apply_rewrites
 
 log = logging.getLogger(__name__)
 
@@ -159,8 +159,8 @@ def export_onnx(
     ``box_grid`` (``none``, ``pixel``) is recorded for the detector: whether it rounds the boxes to
     whole pixels after NMS (:func:`common.postprocess.snap_boxes_to_pixels`).
 
-    ``rewrite_dfl`` applies :func:`training.onnx_rewrites.dfl_softmax_on_last_axis` (exact, faster);
-    off only to measure what it buys (docs/benchmarks.md, dfl_rewrite).
+    ``rewrite_dfl`` applies the DFL rewrites of :mod:`training.onnx_rewrites` (the same detections,
+    faster); off only to measure what they buy (docs/benchmarks.md, dfl_rewrite).
 
     Ultralytics writes the ONNX next to the file it loaded, so the checkpoint is copied into a scratch
     directory first: exporting never litters the run directory or the working directory.
@@ -207,7 +207,7 @@ def export_onnx(
         )
         model = onnx.load(str(exported))
     if rewrite_dfl:
-        dfl_softmax_on_last_axis(model)
+        apply_rewrites(model)  # records them in the metadata
     set_metadata(
         model,
         {
@@ -222,7 +222,6 @@ def export_onnx(
             ),
             f"{META_PREFIX}source_weights": provenance(weights),
             f"{META_PREFIX}precision": "fp32",
-            f"{META_PREFIX}rewrites": DFL_SOFTMAX_LAST_AXIS if rewrite_dfl else "",
         },
     )
     save_checked(model, out)

@@ -10,17 +10,43 @@ one node of ~130 took 10 % of the pico network's time (ORT profile, 1 thread). T
 ``(b, 4, a, 16)`` instead puts the bins innermost, ``Softmax(axis=-1)`` runs contiguous, and the 1×1
 conv becomes a ``MatMul`` with the same 16 weights as a column: the same sums in the same order.
 Outputs are bit-equal; docs/benchmarks.md (dfl_rewrite) has what it saves.
+
+**DFL as one expectation.** ONNX Runtime's ``Softmax`` still works row by row, and a pico head has
+2,016 rows of 12 bins. The expectation ``Σ softmax(x)_i · w_i`` equals
+``Σ e^(x_i − m) · w_i / Σ e^(x_i − m)`` for the row's maximum ``m``, so
+``ReduceMax → Sub → Exp → MatMul([w, 1]) → Split → Div`` computes it with whole-tensor kernels, the
+numerator and the denominator in one ``MatMul``. The same numbers summed in another order: box edges
+move by float32 rounding, which the detector's whole-pixel box grid absorbs (docs/training.md, "The
+five-class model", has what it saves and what it was checked on).
+
+:func:`main` applies the rewrites a file lacks to a file already exported (fp32, INT8 or ``-batch``:
+the DFL stays float in every one), checks its outputs against the original's, and records them.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import argparse
+import logging
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Final
 
 import numpy as np
 
-from training.onnx_model import ExportError
+from common.model_spec import META_PREFIX
+from training.onnx_model import ExportError, provenance, save_checked, set_metadata
 
-DFL_SOFTMAX_LAST_AXIS = "dfl_softmax_last_axis"
+log = logging.getLogger(__spec__.name if __spec__ else __name__)
+
+DFL_SOFTMAX_LAST_AXIS: Final[str] = "dfl_softmax_last_axis"
+DFL_EXPECTATION: Final[str] = "dfl_expectation"
+META_REWRITES: Final[str] = f"{META_PREFIX}rewrites"
+META_REWRITTEN_FROM: Final[str] = f"{META_PREFIX}rewritten_from"
+# How far a rewritten file's raw outputs may lie from the original's: box edges are pixels up to ~480,
+# where one float32 step is 3e-5, and the expectation sums its terms in another order.
+OUTPUT_TOLERANCE: Final[float] = 1e-3
 
 
 def dfl_softmax_on_last_axis(model: Any) -> None:
@@ -70,3 +96,253 @@ def dfl_softmax_on_last_axis(model: Any) -> None:
     kept = [v for v in graph.value_info if v.name not in stale]
     del graph.value_info[:]
     graph.value_info.extend(kept)
+
+
+def dfl_expectation(model: Any) -> None:
+    """Replace the last-axis DFL ``Softmax → MatMul`` in place by one max-shifted expectation (see the
+    module docstring); raises if :func:`dfl_softmax_on_last_axis` has not made that pattern."""
+    from onnx import helper, numpy_helper
+
+    graph = model.graph
+    softmaxes = [n for n in graph.node if n.op_type == "Softmax"]
+    if len(softmaxes) != 1 or [a.i for a in softmaxes[0].attribute if a.name == "axis"] != [-1]:
+        raise ExportError(
+            "expected the head's one DFL Softmax on the last axis: run dfl_softmax_on_last_axis first"
+        )
+    (softmax,) = softmaxes
+    consumers = [n for n in graph.node if softmax.output[0] in n.input]
+    initializers = {t.name: t for t in graph.initializer}
+    if len(consumers) != 1 or consumers[0].op_type != "MatMul" or consumers[0].input[1] not in initializers:
+        raise ExportError("the DFL softmax does not feed one MatMul with the bin weights")
+    (matmul,) = consumers
+    weight = numpy_helper.to_array(initializers[matmul.input[1]])
+    if weight.ndim != 2 or weight.shape[1] != 1:
+        raise ExportError(f"the DFL MatMul weights are not one column: {weight.shape}")
+    prefix = (
+        softmax.name.rsplit("/", 1)[0] + "/"
+    )  # /model.<head>/dfl/: the quantiser's head-decode rule keeps it float
+    names = {
+        key: f"{prefix}expectation_{key}"
+        for key in ("max", "axes", "shifted", "exp", "weights", "sums", "split", "num", "den")
+    }
+    graph.initializer.extend(
+        [
+            numpy_helper.from_array(
+                np.concatenate([weight, np.ones_like(weight)], axis=1).astype(np.float32), names["weights"]
+            ),
+            numpy_helper.from_array(np.array([1, 1], np.int64), names["split"]),
+        ]
+    )
+    opset = next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+    if opset >= 18:  # ReduceMax takes its axes as an input from opset 18 on
+        graph.initializer.append(numpy_helper.from_array(np.array([-1], np.int64), names["axes"]))
+        reduce_max = helper.make_node(
+            "ReduceMax", [softmax.input[0], names["axes"]], [names["max"]], name=names["max"], keepdims=1
+        )
+    else:
+        reduce_max = helper.make_node(
+            "ReduceMax", [softmax.input[0]], [names["max"]], name=names["max"], axes=[-1], keepdims=1
+        )
+    nodes = [
+        reduce_max,
+        helper.make_node("Sub", [softmax.input[0], names["max"]], [names["shifted"]], name=names["shifted"]),
+        helper.make_node("Exp", [names["shifted"]], [names["exp"]], name=names["exp"]),
+        helper.make_node("MatMul", [names["exp"], names["weights"]], [names["sums"]], name=names["sums"]),
+        helper.make_node(
+            "Split",
+            [names["sums"], names["split"]],
+            [names["num"], names["den"]],
+            name=names["split"],
+            axis=-1,
+        ),
+        helper.make_node(
+            "Div", [names["num"], names["den"]], [matmul.output[0]], name=f"{prefix}expectation"
+        ),
+    ]
+    position = list(graph.node).index(softmax)
+    graph.node.remove(softmax)
+    graph.node.remove(matmul)
+    for offset, node in enumerate(nodes):
+        graph.node.insert(position + offset, node)
+    if not any(matmul.input[1] in n.input for n in graph.node):
+        graph.initializer.remove(initializers[matmul.input[1]])
+    stale = {softmax.output[0]}
+    kept = [v for v in graph.value_info if v.name not in stale]
+    del graph.value_info[:]
+    graph.value_info.extend(kept)
+
+
+# Every rewrite an export applies, in order; a file's ``triscan.rewrites`` lists those it has.
+REWRITES: Final[dict[str, Callable[[Any], None]]] = {
+    DFL_SOFTMAX_LAST_AXIS: dfl_softmax_on_last_axis,
+    DFL_EXPECTATION: dfl_expectation,
+}
+
+
+def rewrites_of(model: Any) -> list[str]:
+    """The rewrites a model's metadata says it has (none for a file exported without them)."""
+    value = next((p.value for p in model.metadata_props if p.key == META_REWRITES), "")
+    return [name for name in value.split(",") if name]
+
+
+def apply_rewrites(model: Any) -> list[str]:
+    """Apply in place every rewrite of :data:`REWRITES` the model lacks and record them all in its
+    metadata; the names applied now."""
+    done = rewrites_of(model)
+    unknown = sorted(set(done) - set(REWRITES))
+    if unknown:
+        raise ExportError(f"the file records rewrites this version does not know: {unknown}")
+    applied = [name for name in REWRITES if name not in done]
+    for name in applied:
+        REWRITES[name](model)
+    set_metadata(
+        model, {META_REWRITES: ",".join(name for name in REWRITES if name in done or name in applied)}
+    )
+    return applied
+
+
+def _outputs(path: Path, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
+    import onnxruntime as ort
+
+    from common.inference import session_options
+
+    session = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
+    name = session.get_inputs()[0].name
+    return [session.run(None, {name: x})[0] for x in inputs]
+
+
+def rewrite_file(source: Path, out: Path, checks: int = 8) -> list[str]:
+    """Write ``source`` with the rewrites it lacks to ``out``, once its raw outputs on ``checks`` inputs
+    (empty, and random scans' sparse lit pixels) lie within :data:`OUTPUT_TOLERANCE` of the source's;
+    the names applied (none: ``out`` is a copy)."""
+    import onnx
+
+    from common.model_spec import INPUT_SHAPE
+
+    source, out = Path(source), Path(out)
+    if source.resolve() == out.resolve():
+        raise ExportError(f"write the rewritten file beside {source}, not over it: its card names its hash")
+    model = onnx.load(str(source))
+    applied = apply_rewrites(model)
+    batch = model.graph.input[0].type.tensor_type.shape.dim[0]
+    set_metadata(model, {META_REWRITTEN_FROM: provenance(source)})
+    save_checked(model, out, batch.dim_param or batch.dim_value)
+    rng = np.random.default_rng(0)
+    inputs = [np.zeros(INPUT_SHAPE, np.float32)]
+    inputs += [(rng.random(INPUT_SHAPE) < 0.02).astype(np.float32) for _ in range(checks - 1)]
+    worst = max(
+        float(np.abs(a - b).max())
+        for a, b in zip(_outputs(source, inputs), _outputs(out, inputs), strict=True)
+    )
+    if worst > OUTPUT_TOLERANCE:
+        out.unlink()
+        raise ExportError(
+            f"{out.name}: the rewrite moved an output by {worst:.3g} (> {OUTPUT_TOLERANCE}); not written"
+        )
+    log.info(
+        "%s → %s: applied %s; outputs within %.2g of the source's", source, out, applied or "nothing", worst
+    )
+    return applied
+
+
+def same_detections(source: Path, rewritten: Path, worlds: dict[str, Any]) -> int:
+    """How many frames of the given simulated worlds (a card's ``quality_gate``: seed, scenarios,
+    positions, frame stride, people, clutter) the two files detect the same boxes, scores and classes
+    in, down to a 0.001 threshold; raises at the first frame they differ."""
+    from common.inference import OnnxDetector
+    from training.evaluate import fresh_samples
+
+    threshold = 0.001
+    before, after = (
+        OnnxDetector(source, conf_threshold=threshold),
+        OnnxDetector(rewritten, conf_threshold=threshold),
+    )
+    samples = fresh_samples(
+        worlds["seed"],
+        worlds["scenarios"],
+        worlds["positions"],
+        before.padding,
+        worlds["frame_stride"],
+        invalid=before.invalid,
+        clutter=worlds.get("clutter", 0),
+        people=worlds.get("people", 0),
+        raster_yaw_deg=before.raster_yaw_deg,
+    )
+    frames = 0
+    for frames, sample in enumerate(samples, start=1):
+        expected, got = before.detect_boxes(sample.tensor)[:3], after.detect_boxes(sample.tensor)[:3]
+        if not all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True)):
+            raise ExportError(
+                f"{rewritten.name} detects other boxes than {source.name} in frame {frames}: the card's "
+                "figures would no longer be its own; evaluate the rewritten file and write a new card"
+            )
+    return frames
+
+
+def rewrite_card(directory: Path) -> dict[str, list[str]]:
+    """Give a card's fp32 and INT8 files the rewrites they lack, in place, make their ``-batch``
+    variants again and refresh the card's file table; the rewrites applied, per file kind.
+
+    A card's figures were measured on its files, so a file is replaced only when the rewritten one
+    detects exactly what it did on the card's own quality-gate worlds (:func:`same_detections`).
+    """
+    import json
+
+    from training.batch_variant import add_batch_axis
+    from training.model_card import refresh_files
+
+    card = json.loads((directory / "MODEL_CARD.json").read_text())
+    applied: dict[str, list[str]] = {}
+    with tempfile.TemporaryDirectory(prefix="triscan-rewrite-") as scratch:
+        staged = {}
+        for kind in ("fp32", "int8"):
+            source = directory / card["files"][kind]
+            candidate = Path(scratch) / source.name
+            names = rewrite_file(source, candidate)
+            if names:
+                frames = same_detections(source, candidate, card["quality_gate"])
+                log.info(
+                    "%s: the same detections in all %d frames of the card's gate worlds", source.name, frames
+                )
+                staged[kind], applied[kind] = candidate, names
+        for kind, candidate in staged.items():
+            target = directory / card["files"][kind]
+            shutil.move(candidate, target)
+            add_batch_axis(target, directory / card["files"][f"{kind}_batch"])
+    if applied:
+        refresh_files(directory)
+    return applied
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Give an exported model file the graph rewrites of this version's export: ``-o`` writes a new
+    file; ``--card`` rewrites a card's files in place, keeping its figures only where the detections
+    stay the same (:func:`rewrite_card`)."""
+    parser = argparse.ArgumentParser(prog="python -m training.onnx_rewrites", description=main.__doc__)
+    parser.add_argument(
+        "model", type=Path, help="an ONNX file `triscan export` wrote, or with --card a card's directory"
+    )
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("-o", "--out", type=Path, help="where the rewritten file goes")
+    where.add_argument(
+        "--card", action="store_true", help="MODEL is a card's directory: rewrite its files in place"
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        if args.card:
+            if not (args.model / "MODEL_CARD.json").is_file():
+                raise FileNotFoundError(
+                    f"{args.model} holds no MODEL_CARD.json: give --card a card's directory"
+                )
+            rewrite_card(args.model)
+        else:
+            rewrite_file(args.model, args.out)
+    except (ExportError, FileNotFoundError, ValueError) as exc:
+        log.error("error: %s", exc)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

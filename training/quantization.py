@@ -393,7 +393,11 @@ def quantize_int8(
         model_in = fp32_onnx
         if preprocess:
             model_in = Path(scratch) / "preprocessed.onnx"
-            quant_pre_process(str(fp32_onnx), str(model_in))
+            # ONNX's own shape inference gives every tensor of a fixed-shape triscan graph its shape
+            # (the quantised graph came out the same with and without the symbolic pass), and the
+            # symbolic pass cannot infer the DFL's ReduceMax (training.onnx_rewrites), whose axes are
+            # an input: it stops there.
+            quant_pre_process(str(fp32_onnx), str(model_in), skip_symbolic_shape=True)
         # Found on the graph actually quantised: pre-processing may fuse or rename nodes.
         graph_in = onnx.load(str(model_in))
         head = head_decode_nodes(graph_in) if keep_head_float else []
