@@ -342,6 +342,24 @@ def test_a_class_flicker_continues_the_track_and_the_class_is_smoothed() -> None
     assert out.tracks[0].class_name == "chair" and out.tracks[0].hits == 6
 
 
+def test_a_track_first_seen_as_a_walking_person_that_turns_out_a_box_stops_where_the_box_is() -> None:
+    """Its velocity, learnt while it was a walking person, starts afresh when it becomes furniture:
+    coasting, the box stays where it was seen rather than walking on."""
+    core = TrackerCore()
+    still = pose(0, 0, 0)
+    for k in range(3):  # a person detection walking at 1 m/s, then the box it was
+        core.update(message(k, [det(2.0 + 0.1 * k, 0.0, "person", 0.5)], still))
+    for k in range(3, 12):
+        out = core.update(message(k, [det(2.2, 0.0, "box")], still))
+    assert out is not None and [t.class_name for t in out.tracks] == ["box"]
+    for k in range(12, 24):  # out of sight for 1.2 s
+        out = core.update(message(k, [], still))
+    assert out is not None
+    (box,) = out.tracks
+    assert box.state == "coasting" and (box.odom_x_m, box.odom_y_m) == pytest.approx((2.2, 0.0), abs=0.05)
+    assert math.hypot(box.vx_mps, box.vy_mps) < 0.02
+
+
 # -- bad input -------------------------------------------------------------------------------------
 
 

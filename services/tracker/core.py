@@ -12,6 +12,8 @@ Method (docs/tracking.md has the reasoning and the scores):
 * **Motion models per class** (:data:`MOTION_MODELS`): furniture barely accelerates, so its velocity
   stays near zero and its position does not drift with noisy detections; people accelerate freely.
   In the laser frame the robot's own motion moves everything, so all classes get the free model.
+  The model follows the track's class, and a track whose class changes group starts its velocity
+  afresh under the new one (:meth:`_Track.use`).
 * **Assignment.** Cost = distance from each track's predicted position to each detection, plus a
   penalty when the classes differ (a detection whose class flickers still continues its track);
   pairs farther than ``gate_m`` are never matched. The optimum is scipy's
@@ -224,6 +226,7 @@ class _Track:
         "hits",
         "last_hit_ns",
         "misses",
+        "model",
         "moved_m",
         "origin",
         "p_pp",
@@ -243,6 +246,7 @@ class _Track:
         self.track_id = track_id
         self.x, self.y, self.vx, self.vy = x, y, 0.0, 0.0
         self.origin, self.moved_m = (x, y), 0.0  # the farthest the filtered position got from its start
+        self.model = model
         self.p_pp = model.measurement_std_m**2
         self.p_pv = 0.0
         self.p_vv = model.initial_speed_std_mps**2
@@ -260,6 +264,18 @@ class _Track:
     def class_id(self) -> int:
         scores = self.class_scores
         return max(range(len(scores)), key=scores.__getitem__)
+
+    def use(self, model: MotionModel) -> None:
+        """Follow ``model`` from now on. A track whose class turned from a person into furniture, or
+        back, starts its velocity afresh from the new model's prior: what it learnt under the other
+        model is wrong for this one (a box first seen as a person would otherwise drift on at a
+        walker's speed, as furniture barely corrects its velocity)."""
+        if model is self.model:
+            return
+        self.model = model
+        self.vx = self.vy = 0.0
+        self.p_pv = 0.0
+        self.p_vv = model.initial_speed_std_mps**2
 
     def predict(self, dt: float, model: MotionModel) -> None:
         if dt <= 0.0:
@@ -450,6 +466,7 @@ class TrackerCore:
         models = [FREE if laser else MOTION_MODELS[CLASS_NAMES[t.class_id]] for t in robot.tracks]
         decay = self.config.person_coast_decay_s
         for track, model in zip(robot.tracks, models, strict=True):
+            track.use(model)
             if decay > 0.0 and track.misses and track.class_id == PERSON_ID:
                 keep = math.exp(-dt / decay)
                 track.vx, track.vy = track.vx * keep, track.vy * keep
