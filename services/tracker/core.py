@@ -221,6 +221,7 @@ class _Track:
     """One track's filter state; the covariance is one 2×2 block (see the module docstring)."""
 
     __slots__ = (
+        "class_id",
         "class_scores",
         "first_stamp_ns",
         "hits",
@@ -251,7 +252,8 @@ class _Track:
         self.p_pv = 0.0
         self.p_vv = model.initial_speed_std_mps**2
         self.class_scores = [0.0] * len(CLASS_NAMES)
-        self.class_scores[det.class_id] = det.score
+        self.class_id = 0
+        self._add_score(det)
         self.score = det.score
         self.hits, self.misses = 1, 0
         self.first_stamp_ns = self.last_hit_ns = stamp_ns
@@ -260,10 +262,11 @@ class _Track:
         # (``_merge_furniture``): gone after this scan.
         self.retired = False
 
-    @property
-    def class_id(self) -> int:
+    def _add_score(self, det: Detection) -> None:
+        """Sum the detection's score into its class's and keep ``class_id``, the class with the most."""
         scores = self.class_scores
-        return max(range(len(scores)), key=scores.__getitem__)
+        scores[det.class_id] += det.score
+        self.class_id = max(range(len(scores)), key=scores.__getitem__)
 
     def use(self, model: MotionModel) -> None:
         """Follow ``model`` from now on. A track whose class turned from a person into furniture, or
@@ -302,7 +305,7 @@ class _Track:
         self.p_vv -= k_v * self.p_pv
         self.p_pv *= 1.0 - k_p
         self.p_pp *= 1.0 - k_p
-        self.class_scores[det.class_id] += det.score
+        self._add_score(det)
         self.score += smooth * (det.score - self.score)
         self.hits += 1
         self.misses = 0
@@ -578,17 +581,24 @@ class TrackerCore:
             ),
             key=lambda t: (t.first_stamp_ns, t.track_id),
         )
-        for i, older in enumerate(established):
-            if older.retired:
-                continue
-            for younger in established[i + 1 :]:
-                if (
-                    not younger.retired
-                    and younger.class_id == older.class_id
-                    and math.hypot(younger.x - older.x, younger.y - older.y) < self.config.duplicate_m
-                ):
-                    younger.retired = True
-                    self.counters.tracks_merged += 1
+        if len(established) < 2:
+            return
+        # Every pair is looked at, oldest first, but only the close ones in Python: a room's worth of
+        # furniture is a few hundred pairs a scan, nearly all far apart. The margin leaves the exact
+        # comparison to math.hypot below.
+        xy = np.array([(t.x, t.y) for t in established])
+        apart = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        near = apart < self.config.duplicate_m + 1e-6
+        for i, j in zip(*np.nonzero(np.triu(near, 1)), strict=True):  # row by row: older i first
+            older, younger = established[i], established[j]
+            if (
+                not older.retired
+                and not younger.retired
+                and younger.class_id == older.class_id
+                and math.hypot(younger.x - older.x, younger.y - older.y) < self.config.duplicate_m
+            ):
+                younger.retired = True
+                self.counters.tracks_merged += 1
 
     def _confirms(self, track: _Track) -> bool:
         """Whether a tentative track has earned confirmation: enough hits, and a person enough travel."""
