@@ -33,7 +33,7 @@ from training.onnx_rewrites import (
     dfl_softmax_on_last_axis,
     rewrite_card,
     rewrite_file,
-    same_detections,
+    same_figures,
 )
 from training.png import read_tensor_png, write_rgb_png
 from training.quantization import (
@@ -205,18 +205,88 @@ def test_rewrite_file_gives_an_old_export_the_rewrites_with_its_outputs(
         rewrite_file(rewritten, rewritten)
 
 
-def test_same_detections_counts_equal_frames_and_refuses_a_file_that_detects_otherwise(
-    tmp_path: Path,
-) -> None:
+def test_same_figures_counts_the_frames_and_refuses_a_file_that_detects_otherwise(tmp_path: Path) -> None:
     from common.model_spec import MODELS_DIR
 
     directory = MODELS_DIR / "yolov8p-relu-dfl12"
     card = json.loads((directory / "MODEL_CARD.json").read_text())
     fp32_file, int8_file = (directory / card["files"][kind] for kind in ("fp32", "int8"))
     worlds = {"seed": 5, "scenarios": 1, "positions": 2, "frame_stride": 15, "people": 2}
-    assert same_detections(fp32_file, fp32_file, worlds) > 0
+    frames = same_figures(fp32_file, fp32_file, worlds, tmp_path)
+    assert frames > 0 and frames % 2 == 0  # the same worlds under each of the two conditions
     with pytest.raises(ExportError, match="other boxes"):
-        same_detections(fp32_file, int8_file, worlds)  # quantised: not the same boxes
+        same_figures(fp32_file, int8_file, worlds, tmp_path)  # quantised: not the same boxes
+    with pytest.raises(ExportError, match="no frame"):
+        same_figures(fp32_file, fp32_file, worlds | {"scenarios": 0}, tmp_path)
+
+
+def test_the_expectation_rewrite_holds_below_opset_18(weights: Path, tmp_path: Path) -> None:
+    """Below opset 18 ReduceMax takes its axes as an attribute."""
+    opset = 17
+    plain = export_onnx(weights, tmp_path / "plain.onnx", opset=opset, rewrite_dfl=False)
+    rewritten = tmp_path / "rewritten.onnx"
+    assert rewrite_file(plain, rewritten) == [DFL_SOFTMAX_LAST_AXIS, DFL_EXPECTATION]
+    nodes = {n.op_type: n for n in onnx.load(str(rewritten)).graph.node if "/dfl/expectation" in n.name}
+    assert [a.name for a in nodes["ReduceMax"].attribute if a.name == "axes"] == ["axes"]
+    assert len(nodes["ReduceMax"].input) == 1
+    x = np.random.default_rng(2).random(INPUT_SHAPE, dtype=np.float32)
+    np.testing.assert_allclose(_run(rewritten, x), _run(plain, x), rtol=0, atol=1e-3)
+
+
+def test_rewrite_file_refuses_a_rewrite_that_moves_the_outputs(
+    weights: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import training.onnx_rewrites as rewrites
+
+    plain = export_onnx(weights, tmp_path / "plain.onnx", rewrite_dfl=False)
+    monkeypatch.setattr(rewrites, "OUTPUT_TOLERANCE", 0.0)  # float rounding alone now moves too much
+    with pytest.raises(ExportError, match="moved an output"):
+        rewrite_file(plain, tmp_path / "rewritten.onnx")
+    assert not (tmp_path / "rewritten.onnx").exists()
+
+
+def test_rewrite_card_replaces_files_without_the_rewrites_and_refreshes_the_card(
+    weights: Path, dataset: Path, tmp_path: Path
+) -> None:
+    """A card whose files lack the rewrites gets them in place, with new -batch variants made from the
+    new files and a file table that names them; what the card measured stays."""
+    import shutil
+
+    from common.model_spec import MODELS_DIR, file_model_id
+
+    directory = tmp_path / "card"
+    directory.mkdir()
+    card = json.loads((MODELS_DIR / "yolov8p-relu-dfl12" / "MODEL_CARD.json").read_text())
+    card["quality_gate"] |= {"scenarios": 1, "positions": 2}
+    (directory / "MODEL_CARD.json").write_text(json.dumps(card, indent=2) + "\n")
+    shutil.copy(MODELS_DIR / "yolov8p-relu-dfl12" / "MODEL_CARD.md", directory)
+    files = card["files"]
+    plain = export_onnx(weights, directory / files["fp32"], rewrite_dfl=False, box_grid="pixel")
+    quantize_int8(plain, directory / files["int8"], calibration_images(dataset, CALIB_COUNT))
+    for kind in ("fp32", "int8"):
+        add_batch_axis(directory / files[kind], directory / files[f"{kind}_batch"])
+    before = {name: file_sha256(directory / files[name]) for name in ("fp32", "int8")}
+
+    assert rewrite_card(directory) == {
+        kind: [DFL_SOFTMAX_LAST_AXIS, DFL_EXPECTATION] for kind in ("fp32", "int8")
+    }
+    refreshed = json.loads((directory / "MODEL_CARD.json").read_text())
+    text = (directory / "MODEL_CARD.md").read_text()
+    for kind in ("fp32", "int8"):
+        path, batch = directory / files[kind], directory / files[f"{kind}_batch"]
+        meta, batch_meta = onnx_metadata(path), onnx_metadata(batch)
+        assert meta["triscan.rewrites"] == f"{DFL_SOFTMAX_LAST_AXIS},{DFL_EXPECTATION}"
+        assert meta["triscan.rewritten_from"] == f"{path.name} sha256:{before[kind][:12]}"
+        assert batch_meta["triscan.batch_source"] == f"{path.name} sha256:{file_sha256(path)[:12]}"
+        assert refreshed["model_ids"][kind] == file_model_id(path)
+        assert f"`{file_sha256(batch)[:16]}…`" in text
+    assert {k: v for k, v in refreshed.items() if k != "model_ids"} == {
+        k: v for k, v in card.items() if k != "model_ids"
+    }
+    assert sorted(p.name for p in directory.iterdir()) == sorted(
+        [*(name for kind, name in files.items() if kind != "checkpoint"), "MODEL_CARD.json", "MODEL_CARD.md"]
+    )
+    assert rewrite_card(directory) == {}  # nothing left to do
 
 
 def test_rewrite_card_leaves_a_card_whose_files_have_every_rewrite_as_it_is(tmp_path: Path) -> None:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
+import os
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -130,10 +130,15 @@ def dfl_expectation(model: Any) -> None:
             numpy_helper.from_array(
                 np.concatenate([weight, np.ones_like(weight)], axis=1).astype(np.float32), names["weights"]
             ),
-            numpy_helper.from_array(np.array([1, 1], np.int64), names["split"]),
         ]
     )
     opset = next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+    if opset < 13:  # the softmax rewrite before this one needs 13 as well
+        raise ExportError(f"the DFL expectation needs ONNX opset 13 or later, the file has {opset}")
+    graph.initializer.append(numpy_helper.from_array(np.array([1, 1], np.int64), names["split"]))
+    split = helper.make_node(
+        "Split", [names["sums"], names["split"]], [names["num"], names["den"]], name=names["split"], axis=-1
+    )
     if opset >= 18:  # ReduceMax takes its axes as an input from opset 18 on
         graph.initializer.append(numpy_helper.from_array(np.array([-1], np.int64), names["axes"]))
         reduce_max = helper.make_node(
@@ -148,13 +153,7 @@ def dfl_expectation(model: Any) -> None:
         helper.make_node("Sub", [softmax.input[0], names["max"]], [names["shifted"]], name=names["shifted"]),
         helper.make_node("Exp", [names["shifted"]], [names["exp"]], name=names["exp"]),
         helper.make_node("MatMul", [names["exp"], names["weights"]], [names["sums"]], name=names["sums"]),
-        helper.make_node(
-            "Split",
-            [names["sums"], names["split"]],
-            [names["num"], names["den"]],
-            name=names["split"],
-            axis=-1,
-        ),
+        split,
         helper.make_node(
             "Div", [names["num"], names["den"]], [matmul.output[0]], name=f"{prefix}expectation"
         ),
@@ -211,18 +210,31 @@ def _outputs(path: Path, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
     return [session.run(None, {name: x})[0] for x in inputs]
 
 
+def _load(path: Path) -> Any:
+    """An ONNX model from a file, or a one-line error saying why not."""
+    import onnx
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is no file: give an ONNX file `triscan export` wrote")
+    try:
+        return onnx.load(str(path))
+    except Exception as exc:  # protobuf's DecodeError and friends, with the file nowhere in them
+        raise ExportError(f"{path} is not an ONNX model ({type(exc).__name__}: {exc})") from exc
+
+
 def rewrite_file(source: Path, out: Path, checks: int = 8) -> list[str]:
     """Write ``source`` with the rewrites it lacks to ``out``, once its raw outputs on ``checks`` inputs
     (empty, and random scans' sparse lit pixels) lie within :data:`OUTPUT_TOLERANCE` of the source's;
     the names applied (none: ``out`` is a copy)."""
-    import onnx
-
     from common.model_spec import INPUT_SHAPE
 
     source, out = Path(source), Path(out)
+    if out.is_dir():
+        raise ExportError(f"{out} is a directory: give -o the new file's path")
     if source.resolve() == out.resolve():
         raise ExportError(f"write the rewritten file beside {source}, not over it: its card names its hash")
-    model = onnx.load(str(source))
+    model = _load(source)
     applied = apply_rewrites(model)
     batch = model.graph.input[0].type.tensor_type.shape.dim[0]
     set_metadata(model, {META_REWRITTEN_FROM: provenance(source)})
@@ -245,37 +257,73 @@ def rewrite_file(source: Path, out: Path, checks: int = 8) -> list[str]:
     return applied
 
 
-def same_detections(source: Path, rewritten: Path, worlds: dict[str, Any]) -> int:
-    """How many frames of the given simulated worlds (a card's ``quality_gate``: seed, scenarios,
-    positions, frame stride, people, clutter) the two files detect the same boxes, scores and classes
-    in, down to a 0.001 threshold; raises at the first frame they differ."""
-    from common.inference import OnnxDetector
-    from training.evaluate import fresh_samples
+# The simulated conditions a card's files are compared under: clean, and the harshest the cards report.
+SAME_FIGURES_CONDITIONS: Final[tuple[str, ...]] = ("clean", "drop10+sigma3+spur1")
+FIGURE_DIGITS: Final[int] = 3  # the cards print mAP to three decimals
 
-    threshold = 0.001
-    before, after = (
-        OnnxDetector(source, conf_threshold=threshold),
-        OnnxDetector(rewritten, conf_threshold=threshold),
-    )
-    samples = fresh_samples(
-        worlds["seed"],
-        worlds["scenarios"],
-        worlds["positions"],
-        before.padding,
-        worlds["frame_stride"],
-        invalid=before.invalid,
-        clutter=worlds.get("clutter", 0),
-        people=worlds.get("people", 0),
-        raster_yaw_deg=before.raster_yaw_deg,
-    )
+
+def _figures(report: Any) -> dict[str, float]:
+    """An evaluation's mAP figures, overall and per class, to the digits a card prints."""
+    figures = {f"all {k}": report.overall[k] for k in ("mAP50", "mAP50-95")}
+    for name, values in report.per_class.items():
+        figures |= {f"{name} {k}": values[k] for k in ("mAP50", "mAP50-95") if k in values}
+    return {k: round(v, FIGURE_DIGITS) for k, v in figures.items()}
+
+
+def same_figures(source: Path, rewritten: Path, worlds: dict[str, Any], scratch: Path) -> int:
+    """Check that a rewritten file keeps its source's card: on the given simulated worlds (a card's
+    ``quality_gate``: seed, scenarios, positions, frame stride, people, clutter), under each of
+    :data:`SAME_FIGURES_CONDITIONS`, it detects exactly the same boxes, scores and classes at the
+    detector's defaults, what a robot gets, and scores the same mAP figures, overall and per class, to
+    the digits a card prints, under the evaluation's settings (there float rounding may move a box of
+    score 0.001 by a pixel). The number of frames compared; raises where they differ, or with none."""
+    from common.inference import OnnxDetector
+    from training.evaluate import VAL_CONF, VAL_IOU, VAL_MAX_DET, condition_spec, evaluate, fresh_samples
+
+    robot = OnnxDetector(source), OnnxDetector(rewritten)
+    scoring = [
+        OnnxDetector(path, conf_threshold=VAL_CONF, iou_threshold=VAL_IOU, max_detections=VAL_MAX_DET)
+        for path in (source, rewritten)
+    ]
+    first = robot[0]
     frames = 0
-    for frames, sample in enumerate(samples, start=1):
-        expected, got = before.detect_boxes(sample.tensor)[:3], after.detect_boxes(sample.tensor)[:3]
-        if not all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True)):
-            raise ExportError(
-                f"{rewritten.name} detects other boxes than {source.name} in frame {frames}: the card's "
-                "figures would no longer be its own; evaluate the rewritten file and write a new card"
+    for condition in SAME_FIGURES_CONDITIONS:
+        samples = list(
+            fresh_samples(
+                worlds["seed"],
+                worlds["scenarios"],
+                worlds["positions"],
+                first.padding,
+                worlds["frame_stride"],
+                spec=condition_spec(condition),
+                invalid=first.invalid,
+                clutter=worlds.get("clutter", 0),
+                people=worlds.get("people", 0),
+                raster_yaw_deg=first.raster_yaw_deg,
             )
+        )
+        if not samples:
+            break
+        for sample in samples:
+            frames += 1
+            expected, got = (detector.detect_boxes(sample.tensor)[:3] for detector in robot)
+            if not all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True)):
+                raise ExportError(
+                    f"{rewritten.name} detects other boxes than {source.name} at the detector's defaults "
+                    f"({condition}, frame {frames}): evaluate the rewritten file and write a new card"
+                )
+        before, after = (
+            _figures(evaluate(d, iter(samples), scratch / f"{condition}-{k}", source="rewrite", plots=False))
+            for k, d in enumerate(scoring)
+        )
+        if before != after:
+            moved = {k: (before[k], after.get(k)) for k in before if before[k] != after.get(k)}
+            raise ExportError(
+                f"{rewritten.name} scores other figures than {source.name} ({condition}): {moved}; "
+                "evaluate the rewritten file and write a new card"
+            )
+    if not frames:
+        raise ExportError(f"the worlds {worlds} hold no frame: nothing to compare the files on")
     return frames
 
 
@@ -283,8 +331,10 @@ def rewrite_card(directory: Path) -> dict[str, list[str]]:
     """Give a card's fp32 and INT8 files the rewrites they lack, in place, make their ``-batch``
     variants again and refresh the card's file table; the rewrites applied, per file kind.
 
-    A card's figures were measured on its files, so a file is replaced only when the rewritten one
-    detects exactly what it did on the card's own quality-gate worlds (:func:`same_detections`).
+    A card's accuracy figures were measured on its files, so a file is replaced only when the
+    rewritten one detects what it did and scores what it did (:func:`same_figures`, on the card's
+    quality-gate worlds). Every new file is made and checked beside the card first and only then moved
+    over the old ones, so a failure leaves the card as it was.
     """
     import json
 
@@ -293,22 +343,24 @@ def rewrite_card(directory: Path) -> dict[str, list[str]]:
 
     card = json.loads((directory / "MODEL_CARD.json").read_text())
     applied: dict[str, list[str]] = {}
-    with tempfile.TemporaryDirectory(prefix="triscan-rewrite-") as scratch:
-        staged = {}
+    # Beside the card, so that each move below is a rename on one file system.
+    with tempfile.TemporaryDirectory(prefix=".triscan-rewrite-", dir=directory) as scratch:
+        staged: dict[str, Path] = {}
         for kind in ("fp32", "int8"):
             source = directory / card["files"][kind]
             candidate = Path(scratch) / source.name
             names = rewrite_file(source, candidate)
-            if names:
-                frames = same_detections(source, candidate, card["quality_gate"])
-                log.info(
-                    "%s: the same detections in all %d frames of the card's gate worlds", source.name, frames
-                )
-                staged[kind], applied[kind] = candidate, names
-        for kind, candidate in staged.items():
-            target = directory / card["files"][kind]
-            shutil.move(candidate, target)
-            add_batch_axis(target, directory / card["files"][f"{kind}_batch"])
+            if not names:
+                continue
+            frames = same_figures(source, candidate, card["quality_gate"], Path(scratch))
+            log.info("%s: the same detections and figures on %d frames", source.name, frames)
+            batch_name = card["files"][f"{kind}_batch"]
+            add_batch_axis(candidate, Path(scratch) / batch_name)  # names its source: same name, same bytes
+            staged[card["files"][kind]] = candidate
+            staged[batch_name] = Path(scratch) / batch_name
+            applied[kind] = names
+        for name, path in staged.items():
+            os.replace(path, directory / name)
     if applied:
         refresh_files(directory)
     return applied
@@ -338,7 +390,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             rewrite_card(args.model)
         else:
             rewrite_file(args.model, args.out)
-    except (ExportError, FileNotFoundError, ValueError) as exc:
+    except (ExportError, OSError, ValueError) as exc:
         log.error("error: %s", exc)
         return 1
     return 0
