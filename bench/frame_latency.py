@@ -37,6 +37,7 @@ job (load averages at start and end are recorded in the JSON to show whether it 
     python -m bench.frame_latency                     # full run → bench/results/frame_latency.json
     python -m bench.frame_latency --frames 200 --skip-grid --skip-ultralytics
     python -m bench.frame_latency --threads 1 --skip-grid --rounds 10   # pipelines in turns
+    python -m bench.frame_latency --threads 1 --rounds 10 --odometry    # scans with the robot's poses
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ import json
 import logging
 import os
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -66,6 +68,7 @@ from bench.occupancy_grid import (
 from bench.report import write_report
 from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
 from common.inference import OnnxDetector
+from common.messages import Odometry
 from common.model_spec import PAPER_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
 from common.moving_people import DEFAULT_MOTION_CONFIRM, add_motion_argument, motion_confirm_of
 from common.postprocess import DEFAULT_CONF, DEFAULT_IOU
@@ -111,13 +114,19 @@ _NS_PER_MS: Final[float] = 1e6
 
 
 class ScanArgs(NamedTuple):
-    """One scan's ``push_scan`` arguments, unpacked ahead of time so no pydantic access is timed."""
+    """One scan's ``push_scan`` arguments, unpacked ahead of time so no pydantic access is timed, and
+    the robot's pose when it was taken (``--odometry``; None: the scan carries none)."""
 
     ranges: np.ndarray
     angle_min: float
     angle_increment: float
     range_min: float
     range_max: float
+    odom: Odometry | None = None
+
+    @property
+    def beams(self) -> tuple[np.ndarray, float, float, float, float]:
+        return self.ranges, self.angle_min, self.angle_increment, self.range_min, self.range_max
 
 
 @dataclass
@@ -141,9 +150,11 @@ class BenchConfig:
     # 1: each pipeline's long run in one go, one pipeline after the other; N: in N rounds taking turns
     rounds: int = 1
     # The detector's motion confirmation of people (a model with a person class; common.moving_people),
-    # part of its post-processing. The scans carry no odometry, so every frame asks the tensor whether
-    # the robot stood still: the cost of a robot without odometry.
+    # part of its post-processing. Without odometry on the scans every frame asks the tensor whether
+    # the robot stood still: the cost of a robot without odometry. With it (the simulator's, as the live
+    # loop and a ROS robot send it) a driving robot's frames skip it and a standing one's skip the test.
     motion_confirm: bool = True
+    odometry: bool = False
 
     @property
     def scans_needed(self) -> int:
@@ -208,7 +219,7 @@ class Pipeline(Protocol):
 
 def _stacked(stacker: ScanStacker, scan: ScanArgs) -> np.ndarray:
     """The stacked tensor of a FIFO primed with two scans (``prime``), after pushing ``scan``."""
-    tensor = stacker.push_scan(*scan)
+    tensor = stacker.push_scan(*scan.beams)
     if tensor is None:
         raise RuntimeError("the scan FIFO holds fewer than three scans: prime the pipeline first")
     return tensor
@@ -225,15 +236,21 @@ class TriscanPipeline:
             providers=["CPUExecutionProvider"],
             motion_confirm=DEFAULT_MOTION_CONFIRM if motion_confirm else None,
         )
+        self.poses: deque[Odometry | None] = deque(maxlen=3)  # of the scans in the FIFO, oldest first
 
     def prime(self, scan: ScanArgs) -> None:
-        self.stacker.push_scan(*scan)
+        self.stacker.push_scan(*scan.beams)
+        self.poses.append(scan.odom)
 
     def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
         t0 = time.perf_counter_ns()
         tensor = _stacked(self.stacker, scan)
+        self.poses.append(scan.odom)
         t1 = time.perf_counter_ns()
-        boxes, _scores, _classes, timings = self.detector.detect_boxes(tensor)
+        # What odometry says of the tensor's three scans, as the detector service asks it (None
+        # without odometry: motion confirmation then asks the tensor).
+        still = self.detector.still_by_odometry(list(self.poses))
+        boxes, _scores, _classes, timings = self.detector.detect_boxes(tensor, still)
         encode_ms = (t1 - t0) / _NS_PER_MS
         return (encode_ms, timings.encode_ms, timings.inference_ms, timings.nms_ms), len(boxes)
 
@@ -255,7 +272,7 @@ class UltralyticsPipeline:
         self.model = YOLO(str(pt_path), task="detect")
 
     def prime(self, scan: ScanArgs) -> None:
-        self.stacker.push_scan(*scan)
+        self.stacker.push_scan(*scan.beams)
 
     def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
         t0 = time.perf_counter_ns()
@@ -288,7 +305,7 @@ class GridPipeline:
 
     def frame(self, scan: ScanArgs) -> tuple[Stages, int]:
         t0 = time.perf_counter_ns()
-        image = rasterise_occupancy_grid(*scan, size=self.detector.size)
+        image = rasterise_occupancy_grid(*scan.beams, size=self.detector.size)
         t1 = time.perf_counter_ns()
         boxes, _scores, _classes, (pre_ms, inference_ms, post_ms) = self.detector.detect_boxes(image)
         return ((t1 - t0) / _NS_PER_MS, pre_ms, inference_ms, post_ms), len(boxes)
@@ -299,8 +316,9 @@ class GridPipeline:
 # --------------------------------------------------------------------------------------------------
 
 
-def simulated_scans(count: int, seed: int) -> list[ScanArgs]:
-    """``count`` consecutive scans of one simulated robot (10 Hz, a new world every 30 s of sim time)."""
+def simulated_scans(count: int, seed: int, odometry: bool = False) -> list[ScanArgs]:
+    """``count`` consecutive scans of one simulated robot (10 Hz, a new world every 30 s of sim time),
+    with the simulator's odometry when ``odometry``."""
     from services.sim_bag import recorded_scans
 
     return [
@@ -310,6 +328,7 @@ def simulated_scans(count: int, seed: int) -> list[ScanArgs]:
             scan.angle_increment,
             scan.range_min,
             scan.range_max,
+            scan.odom if odometry else None,
         )
         for scan in recorded_scans(count, seed=seed)
     ]
@@ -509,7 +528,7 @@ def run(config: BenchConfig) -> BenchReport:
             machine.usable_cpus,
         )
     log.info("simulating %d scans (seed %d)…", config.scans_needed, config.seed)
-    scans = simulated_scans(config.scans_needed, config.seed)
+    scans = simulated_scans(config.scans_needed, config.seed, config.odometry)
     # Exported (once, then cached) before anything is timed.
     grid_model = None if config.skip_grid else grid_model_onnx(config.cache_dir, config.grid_px)
     factories = _factories(config, grid_model)
@@ -649,6 +668,11 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         "after the other); ratios then hold when the machine's speed drifts during the run",
     )  # fmt: skip
     add_motion_argument(parser)
+    parser.add_argument(
+        "--odometry", action="store_true",
+        help="the scans carry the simulator's odometry, as the live loop's and a ROS robot's do: motion "
+        "confirmation asks it, not the tensor, whether the robot stood (default: no odometry)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON report path")
     args = parser.parse_args(argv)
     config = BenchConfig(
@@ -669,6 +693,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[BenchConfig, Path]:
         skip_grid=args.skip_grid,
         rounds=args.rounds,
         motion_confirm=motion_confirm_of(args) is not None,
+        odometry=args.odometry,
     )
     return config, args.out
 

@@ -28,11 +28,13 @@ from bench.frame_latency import (
     LatencyRow,
     MachineInfo,
     RatioRow,
+    TriscanPipeline,
     goals,
     main,
     measure_in_turns,
     ratios,
     round_bounds,
+    simulated_scans,
 )
 from bench.occupancy_grid import rasterise_occupancy_grid
 
@@ -203,3 +205,30 @@ def test_a_real_run_in_rounds_reports_every_frame(tmp_path) -> None:
     report = json.loads(out.read_text())
     assert report["config"]["rounds"] == 2
     assert [(r["pipeline"], r["frames"]) for r in report["rows"]] == [(TRISCAN_FP32, 4), (TRISCAN_INT8, 4)]
+
+
+def test_with_odometry_the_bench_tells_the_detector_what_the_poses_say_as_the_service_does() -> None:
+    """``--odometry``: each frame passes what the poses of its three scans say (driving, standing) to
+    the detector's motion confirmation; without it, nothing, and the tensor is asked."""
+    from common.model_spec import MODELS_DIR
+
+    people_int8 = MODELS_DIR / "yolov8p-relu-dfl12" / "triscan-yolov8p-relu-dfl12-zero-int8.onnx"
+    driving = simulated_scans(PRIME_SCANS + 4, seed=1, odometry=True)
+    assert all(scan.odom is not None for scan in driving)
+    standing = [scan._replace(odom=driving[0].odom) for scan in driving]
+    without = [scan._replace(odom=None) for scan in driving]
+    for scans, expected in ((driving, False), (standing, True), (without, None)):
+        pipeline = TriscanPipeline(people_int8, 1)
+        asked: list[bool | None] = []
+        detect_boxes = pipeline.detector.detect_boxes
+
+        def recording(tensor: np.ndarray, still: bool | None = None, real=detect_boxes, log=asked):
+            log.append(still)
+            return real(tensor, still)
+
+        pipeline.detector.detect_boxes = recording
+        for scan in scans[:PRIME_SCANS]:
+            pipeline.prime(scan)
+        for scan in scans[PRIME_SCANS:]:
+            pipeline.frame(scan)
+        assert asked == [expected] * 4
