@@ -8,10 +8,11 @@ file under ``models/``, named by its path there (the default's directory is
 ``common.model_spec.SHIPPED_DIR``). With ``--sensors``, the two processes serve each named sensor
 profile at its own rate in turn, and the report gives each one's CPU (cores busy): a model that
 declares its stacking period has the encoder stack a 40 Hz sensor's every 4th scan, so the detector
-should cost what it costs at 10 Hz.
+should cost what it costs at 10 Hz. ``NAME@HZ`` runs a profile at another rate: the same beams at 10 and
+40 Hz tell the rate's cost from the denser scan's.
 
     python -m bench.robot_footprint --seconds 30
-    python -m bench.robot_footprint --seconds 30 --sensors lds-01 ust-10lx --model M.onnx --out F.json
+    python -m bench.robot_footprint --seconds 30 --sensors lds-01 ust-10lx ust-10lx@10 --model M --out F
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--out", type=Path, default=Path("bench/results/robot_footprint.json"))
     parser.add_argument(
-        "--sensors", nargs="+", choices=list(PROFILES), metavar="NAME",
-        help="instead: the CPU of encoder and detector serving each sensor profile at its own rate",
+        "--sensors", nargs="+", type=sensor_at_rate, metavar="NAME[@HZ]",
+        help="instead: the CPU of encoder and detector serving each sensor profile at its own rate, or "
+        f"at HZ scans a second (profiles: {', '.join(PROFILES)})",
     )  # fmt: skip
     parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
     args = parser.parse_args(argv)
@@ -63,15 +65,28 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def sensor_cpu(sensors: list[str], seconds: float, model: Path | None) -> dict[str, object]:
+def sensor_at_rate(text: str) -> tuple[str, float]:
+    """``NAME`` (a profile at its own rate) or ``NAME@HZ``, for argparse: the profile and its rate."""
+    name, _, rate = text.partition("@")
+    if name not in PROFILES:
+        raise argparse.ArgumentTypeError(f"no sensor profile {name!r}: one of {', '.join(PROFILES)}")
+    try:
+        hz = float(rate) if rate else PROFILES[name].rate_hz
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: the rate after @ must be a number of Hz") from None
+    if not 0 < hz <= 100:
+        raise argparse.ArgumentTypeError(f"{text!r}: the rate must lie in (0, 100] Hz")
+    return name, hz
+
+
+def sensor_cpu(sensors: list[tuple[str, float]], seconds: float, model: Path | None) -> dict[str, object]:
     """Cores busy in the encoder and the detector while one robot streams each sensor at its rate."""
     rows = {}
-    for name in sensors:
-        result = run_pipeline(
-            1, PROFILES[name].rate_hz, seconds, from_scans=False, threads=None, model=model, sensor=name
-        )
-        rows[name] = {
-            "rate_hz": PROFILES[name].rate_hz,
+    for name, rate_hz in sensors:
+        result = run_pipeline(1, rate_hz, seconds, from_scans=False, threads=None, model=model, sensor=name)
+        label = name if rate_hz == PROFILES[name].rate_hz else f"{name}@{rate_hz:g}"
+        rows[label] = {
+            "rate_hz": rate_hz,
             "beams": PROFILES[name].beams,
             "cpu_cores": result.cpu_cores,
             "scans_published": result.scans_published,

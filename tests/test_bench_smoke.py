@@ -123,3 +123,19 @@ def test_fleet_bound_measures_the_default_models_best_throughput() -> None:
     cores = os.cpu_count() or 1
     ways = {(row["workers"], row["threads"]) for row in rows}  # type: ignore[union-attr]
     assert ways == ({(1, 1), (1, cores), (cores, 1)} if cores > 1 else {(1, 1)})
+
+
+def test_robot_footprint_runs_a_sensor_profile_at_another_rate(tmp_path: Path) -> None:
+    """``NAME@HZ``: the same beams at another rate, to tell the rate's cost from a denser scan's."""
+    import argparse
+
+    assert robot_footprint.sensor_at_rate("ust-10lx") == ("ust-10lx", 40.0)
+    assert robot_footprint.sensor_at_rate("ust-10lx@10") == ("ust-10lx", 10.0)
+    for bad in ("lidar-9000", "ust-10lx@fast", "ust-10lx@0"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            robot_footprint.sensor_at_rate(bad)
+    out = tmp_path / "cpu.json"
+    argv = ["--seconds", "1", "--sensors", "lds-01@5", "--out", str(out)]
+    assert robot_footprint.main(argv) == 0
+    (row,) = json.loads(out.read_text())["sensors"].items()
+    assert row[0] == "lds-01@5" and row[1]["rate_hz"] == 5.0 and row[1]["scans_published"] > 0
