@@ -142,25 +142,36 @@ def test_coasting_through_an_occlusion_then_deletion_after_the_timeout() -> None
     assert gone is not None and gone.tracks == [] and core.counters.tracks_deleted == 1
 
 
-def test_a_coasting_person_leaves_the_message_before_their_track_ends_and_keeps_their_id() -> None:
+@pytest.mark.parametrize(("seen_scans", "shown_scans"), [(31, 8), (11, 3)])
+def test_a_coasting_person_leaves_the_message_before_their_track_ends_and_keeps_their_id(
+    seen_scans: int, shown_scans: int
+) -> None:
+    """Shown coasting for person_show_coast_s (0.8 s) after a 3 s track, for 0.3 of the time seen after
+    a 1 s one (person_show_coast_share): a short track lost is the likelier false person."""
     config = TrackerConfig()
+    assert (config.person_show_coast_s, config.person_show_coast_share) == (0.8, 0.3)
     core = TrackerCore(config)
-    for k in range(10):
+    for k in range(seen_scans):
         seen = core.update(message(k, [det(2.0, 0.0, "chair"), det(0.0, 2.0, "person")]))
     assert seen is not None
     ids = {t.class_name: t.track_id for t in seen.tracks}
-    shown_until = 9 + round(config.person_show_coast_s * 10)  # 10 Hz scans
-    for k in range(10, 22):  # 1.2 s unseen: past person_show_coast_s, within delete_after_s
+    last = seen_scans - 1
+    for k in range(seen_scans, seen_scans + 12):  # 1.2 s unseen: past the show time, within delete_after_s
         out = core.update(message(k, []))
         assert out is not None
         shown = {t.class_name for t in out.tracks}
         assert "chair" in shown  # furniture coasts in the message until delete_after_s
-        assert ("person" in shown) is (k <= shown_until)
-    back = core.update(message(22, [det(2.0, 0.0, "chair"), det(0.0, 2.05, "person")]))
+        assert ("person" in shown) is (k - last <= shown_scans), k
+    back = core.update(message(seen_scans + 12, [det(2.0, 0.0, "chair"), det(0.0, 2.05, "person")]))
     assert back is not None and {t.class_name: t.track_id for t in back.tracks} == ids
+
+
+def test_a_person_show_time_that_is_no_number_of_seconds_or_share_is_refused() -> None:
     for bad in (-0.1, math.nan):
         with pytest.raises(ValueError, match="person show coast must be >= 0 seconds"):
             TrackerConfig(person_show_coast_s=bad)
+        with pytest.raises(ValueError, match="person show coast share must be >= 0"):
+            TrackerConfig(person_show_coast_share=bad)
 
 
 def test_still_furniture_out_of_sight_is_hidden_then_takes_its_id_back_and_a_person_is_deleted() -> None:

@@ -160,6 +160,10 @@ class TrackerConfig:
     # standing where they were lost was a false person to every consumer (on the fresh worlds of
     # docs/tracking.md, most of the people's false positives were such tracks).
     person_show_coast_s: float = 0.8
+    # ... and at most this share of the time the track was seen before: a person track followed for a
+    # few scans and lost was more often a false person than one followed for seconds (on the fresh
+    # worlds of docs/tracking.md most people's false positives were such short tracks, coasting).
+    person_show_coast_share: float = 0.3
 
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
@@ -170,6 +174,8 @@ class TrackerConfig:
             raise ValueError(f"person coast decay must be >= 0 seconds, got {self.person_coast_decay_s:g}")
         if not self.person_show_coast_s >= 0:  # NaN included
             raise ValueError(f"person show coast must be >= 0 seconds, got {self.person_show_coast_s:g}")
+        if not self.person_show_coast_share >= 0:  # NaN included
+            raise ValueError(f"person show coast share must be >= 0, got {self.person_show_coast_share:g}")
         travel = self.person_confirm_travel_m
         if not travel >= 0:  # NaN included
             raise ValueError(f"person confirm travel must be >= 0 metres, got {travel:g}")
@@ -680,6 +686,12 @@ class TrackerCore:
         taken = {c for _, c in matches}
         return matches, [d for d in range(len(detections)) if d not in taken]
 
+    def _person_show_s(self, track: _Track) -> float:
+        """How long a coasting person track stays in the message after its last hit: the shorter of
+        ``person_show_coast_s`` and ``person_show_coast_share`` of the time it was seen."""
+        seen_s = (track.last_hit_ns - track.first_stamp_ns) / _NS_PER_S
+        return min(self.config.person_show_coast_s, self.config.person_show_coast_share * seen_s)
+
     def _message(self, message: Detections, robot: _Robot, pose: Odometry | None) -> Tracks:
         if pose is None:
             c, s, ox, oy = 1.0, 0.0, 0.0, 0.0
@@ -691,7 +703,7 @@ class TrackerCore:
             since_hit_s = (stamp - t.last_hit_ns) / _NS_PER_S
             if since_hit_s > self.config.delete_after_s:
                 continue  # dormant: still furniture kept to take its id back when seen again, not shown
-            if since_hit_s > self.config.person_show_coast_s and t.class_id == PERSON_ID:
+            if t.class_id == PERSON_ID and since_hit_s > self._person_show_s(t):
                 continue
             dx, dy = t.x - ox, t.y - oy
             class_id = t.class_id
