@@ -267,6 +267,27 @@ def test_one_desk_followed_by_two_tracks_keeps_the_older_and_close_people_stay_a
     assert core.counters.tracks_merged == 1
 
 
+def test_one_person_followed_by_two_tracks_keeps_the_older_and_a_pair_walking_together_stays_two() -> None:
+    """A walker's second detection, 0.2 m from the first and just outside the duplicate rule's reach
+    while the first track is tentative, opens a track beside it; once both are established the younger
+    is retired (person_merge_m). Two people 0.5 m apart stay two."""
+    core = TrackerCore()
+    still = pose(0.0, 0.0, 0.0)
+    first = core.update(message(0, [det(1.0, -1.0, "person")], still))
+    assert first is not None
+    (walker_id,) = [t.track_id for t in first.tracks]
+    for k in range(1, 6):
+        walker = [det(1.0, -1.0 + 0.1 * k, "person"), det(1.2, -1.0 + 0.1 * k, "person")]
+        pair = [det(3.0, 1.0 - 0.1 * k, "person"), det(3.5, 1.0 - 0.1 * k, "person")]
+        out = core.update(message(k, walker + pair, still))
+        assert out is not None
+    people = [t for t in out.tracks if t.state == "confirmed" and t.class_name == "person"]
+    assert len(people) == 3 and walker_id in {t.track_id for t in people}
+    assert core.counters.tracks_merged == 1
+    with pytest.raises(ValueError, match="person merge must be >= 0 metres"):
+        TrackerConfig(person_merge_m=math.nan)
+
+
 def test_a_second_detection_of_a_tracked_object_opens_no_track() -> None:
     core = TrackerCore(TrackerConfig(duplicate_m=0.4))
     for k in range(4):
