@@ -531,7 +531,7 @@ def lose_and_find(core: TrackerCore, unseen: range, back_at: tuple[float, float]
         (range(10, 40), (2.5, 0.5), True),  # 3 s later, 0.7 m off: ended, its id taken back
         (range(10, 16), (3.3, 0.0), True),  # 0.6 s later, 1.3 m off: still coasting, retired
         (range(10, 40), (8.0, 0.0), False),  # 6 m off in 3 s: someone else
-        (range(10, 130), (2.0, 0.0), False),  # 12 s later: past person_resume_s
+        (range(10, 180), (2.0, 0.0), False),  # 17 s later: past person_resume_s
     ],
 )
 def test_a_person_found_again_near_where_their_track_was_lost_gets_its_id_back(

@@ -153,7 +153,7 @@ class TrackerConfig:
     # hit within person_resume_s before the new track's first detection, whose last filtered position
     # is no farther from the new track's start than gate_m plus person_resume_speed_mps for every
     # second between. 0: off.
-    person_resume_s: float = 10.0
+    person_resume_s: float = 15.0
     person_resume_speed_mps: float = 1.5  # a brisk walk: the simulator's people walk up to 1.6 m/s
     # A coasting person track is left out of the message this long after its last hit, though kept to
     # be found again until delete_after_s: a person unseen for a second has walked on, and their track
