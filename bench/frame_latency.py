@@ -66,7 +66,7 @@ from bench.occupancy_grid import (
     rasterise_occupancy_grid,
 )
 from bench.report import write_report
-from common.encoding import IMAGE_WIDTH, RANGE_ROWS, ScanStacker
+from common.encoding import IMAGE_WIDTH, RANGE_ROWS, STACK_DEPTH, ScanStacker
 from common.inference import OnnxDetector
 from common.messages import Odometry
 from common.model_spec import PAPER_CHECKPOINT, SHIPPED_FP32_MODEL, SHIPPED_INT8_MODEL
@@ -236,7 +236,7 @@ class TriscanPipeline:
             providers=["CPUExecutionProvider"],
             motion_confirm=DEFAULT_MOTION_CONFIRM if motion_confirm else None,
         )
-        self.poses: deque[Odometry | None] = deque(maxlen=3)  # of the scans in the FIFO, oldest first
+        self.poses: deque[Odometry | None] = deque(maxlen=STACK_DEPTH)  # the FIFO's scans', oldest first
 
     def prime(self, scan: ScanArgs) -> None:
         self.stacker.push_scan(*scan.beams)

@@ -99,11 +99,12 @@ class UpConfig:
     # The detector's --detectors (None: one process per core, services.detector.core.default_processes).
     detectors: int | None = None
     motion_confirm: bool = True  # the detector's motion confirmation (--no-motion-confirm: off)
-    # The tracker's --person-confirm-travel, --person-resume and --person-show-coast (None: its
-    # defaults, services.tracker.core).
+    # The tracker's --person-confirm-travel, --person-resume, --person-show-coast and
+    # --person-show-coast-share (None: its defaults, services.tracker.core).
     person_confirm_travel_m: float | None = None
     person_resume_s: float | None = None
     person_show_coast_s: float | None = None
+    person_show_coast_share: float | None = None
     seed: int = SIM_SEED
     max_restarts: int = 5  # per service within RESTART_WINDOW_S, then the launcher gives up
     settings: ZenohSettings = field(default_factory=lambda: ZenohSettings(listen=(DEFAULT_LISTEN,)))
@@ -141,6 +142,7 @@ class UpConfig:
             person_confirm_travel_m=self.person_confirm_travel_m,
             person_resume_s=self.person_resume_s,
             person_show_coast_s=self.person_show_coast_s,
+            person_show_coast_share=self.person_show_coast_share,
         )
 
     @property

@@ -217,7 +217,16 @@ def test_with_odometry_the_bench_tells_the_detector_what_the_poses_say_as_the_se
     assert all(scan.odom is not None for scan in driving)
     standing = [scan._replace(odom=driving[0].odom) for scan in driving]
     without = [scan._replace(odom=None) for scan in driving]
-    for scans, expected in ((driving, False), (standing, True), (without, None)):
+    # Standing for the first tensor's three scans, then driving: only that tensor stood.
+    starts = [scan._replace(odom=driving[0].odom) for scan in driving[: PRIME_SCANS + 1]]
+    starts += driving[PRIME_SCANS + 1 :]
+    cases: list[tuple[list, list[bool | None]]] = [
+        (driving, [False] * 4),
+        (standing, [True] * 4),
+        (without, [None] * 4),
+        (starts, [True, False, False, False]),
+    ]
+    for scans, expected in cases:
         pipeline = TriscanPipeline(people_int8, 1)
         asked: list[bool | None] = []
         detect_boxes = pipeline.detector.detect_boxes
@@ -231,4 +240,4 @@ def test_with_odometry_the_bench_tells_the_detector_what_the_poses_say_as_the_se
             pipeline.prime(scan)
         for scan in scans[PRIME_SCANS:]:
             pipeline.frame(scan)
-        assert asked == [expected] * 4
+        assert asked == expected

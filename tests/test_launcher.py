@@ -116,6 +116,9 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     assert flag_values(shown, "--person-show-coast") == ["1.5"] and not flag_values(
         default, "--person-show-coast"
     )
+    share = service_commands(UpConfig(viewer="none", person_show_coast_share=0.5), ports, None)["tracker"]
+    assert flag_values(share, "--person-show-coast-share") == ["0.5"]
+    assert not flag_values(default, "--person-show-coast-share")
     with pytest.raises(ValueError, match="person confirm travel must be >= 0 metres, got -1"):
         UpConfig(person_confirm_travel_m=-1.0)
     assert cli_main(["up", "--person-confirm-travel", "-1", "--duration", "1"]) == 2  # before any start

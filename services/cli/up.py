@@ -156,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
         person_confirm_travel_m=args.person_confirm_travel,
         person_resume_s=args.person_resume,
         person_show_coast_s=args.person_show_coast,
+        person_show_coast_share=args.person_show_coast_share,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,

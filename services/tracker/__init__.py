@@ -33,12 +33,18 @@ def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
         help="leave a person track out of the output S seconds after it was last seen, though it keeps "
         "its id if found again before it ends (default: the tracker's, services.tracker.core.TrackerConfig)",
     )  # fmt: skip
+    parser.add_argument(
+        "--person-show-coast-share", type=float, default=None, metavar="F",
+        help="and sooner after a short track: at most F times the track's age at its last hit (default: "
+        "the tracker's, services.tracker.core.TrackerConfig)",
+    )  # fmt: skip
 
 
 RULE_FLAGS: dict[str, str] = {
     "person_confirm_travel_m": "--person-confirm-travel",
     "person_resume_s": "--person-resume",
     "person_show_coast_s": "--person-show-coast",
+    "person_show_coast_share": "--person-show-coast-share",
 }
 """The :class:`~services.tracker.core.TrackerConfig` fields a user may set, and their flags."""
 
@@ -62,6 +68,7 @@ def rules_of(args: argparse.Namespace) -> dict[str, float]:
         person_confirm_travel_m=args.person_confirm_travel,
         person_resume_s=args.person_resume,
         person_show_coast_s=args.person_show_coast,
+        person_show_coast_share=args.person_show_coast_share,
     )
 
 

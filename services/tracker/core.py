@@ -160,15 +160,12 @@ class TrackerConfig:
     # standing where they were lost was a false person to every consumer (on the fresh worlds of
     # docs/tracking.md, most of the people's false positives were such tracks).
     person_show_coast_s: float = 0.8
-    # ... and at most this share of the time the track was seen before: a person track followed for a
-    # few scans and lost was more often a false person than one followed for seconds (on the fresh
-    # worlds of docs/tracking.md most people's false positives were such short tracks, coasting).
+    # ... and at most this share of the track's age at its last hit (from its first detection; a
+    # resumed track's from its first life's): a person track followed for a few scans and lost was
+    # more often a false person than one followed for seconds (on the fresh worlds of docs/tracking.md
+    # most people's false positives were such short tracks, coasting). A tentative person track (one
+    # hit) so leaves the message at its first miss.
     person_show_coast_share: float = 0.3
-    # Two established person tracks closer than this are one person followed twice (a second detection
-    # of a walker opened a track beside theirs, each then taking some of their detections): no two
-    # people stand with their centres this close. The older keeps its id. Wider, it began to merge two
-    # people walking together (docs/tracking.md). 0: off.
-    person_merge_m: float = 0.25
 
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
@@ -179,8 +176,6 @@ class TrackerConfig:
             raise ValueError(f"person coast decay must be >= 0 seconds, got {self.person_coast_decay_s:g}")
         if not self.person_show_coast_s >= 0:  # NaN included
             raise ValueError(f"person show coast must be >= 0 seconds, got {self.person_show_coast_s:g}")
-        if not self.person_merge_m >= 0:  # NaN included
-            raise ValueError(f"person merge must be >= 0 metres, got {self.person_merge_m:g}")
         if not self.person_show_coast_share >= 0:  # NaN included
             raise ValueError(f"person show coast share must be >= 0, got {self.person_show_coast_share:g}")
         travel = self.person_confirm_travel_m
@@ -204,7 +199,7 @@ class TrackerCounters:
     tracks_deleted: int = 0
     tracks_forgotten: int = 0
     tracks_resumed: int = 0  # new person tracks that took a lost one's id back (person_resume_s)
-    tracks_merged: int = 0  # tracks retired as a second track of an object (duplicate_m, person_merge_m)
+    tracks_merged: int = 0  # furniture tracks retired as a second track of an object (duplicate_m)
     forgotten_robots: int = 0
     duplicates: int = 0  # detections of an object a track already follows: no new track
     rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
@@ -272,7 +267,7 @@ class _Track:
         self.first_stamp_ns = self.last_hit_ns = stamp_ns
         self.state: TrackState = "tentative"
         # A new track took this one's id (``person_resume_s``), or an older one follows its object
-        # (``_merge_duplicates``): gone after this scan.
+        # (``_merge_furniture``): gone after this scan.
         self.retired = False
 
     def _add_score(self, det: Detection) -> None:
@@ -534,7 +529,7 @@ class TrackerCore:
             if self._confirms(kept[-1]):
                 self._confirm(robot, kept[-1], kept)  # the tracks deleted this scan are in robot.ended
         if not laser:
-            self._merge_duplicates(kept)
+            self._merge_furniture(kept)
         retired = [t for t in kept if t.retired]
         if retired:
             kept = [t for t in kept if not t.retired]
@@ -578,25 +573,19 @@ class TrackerCore:
         track.track_id, track.first_stamp_ns = lost.track_id, lost.first_stamp_ns
         self.counters.tracks_resumed += 1
 
-    def _merge_duplicates(self, tracks: list[_Track]) -> None:
-        """Retire the younger of two established tracks of one object: of one furniture class closer
-        than ``duplicate_m`` (a big desk seen in part from close by, where each part's box has its own
-        centre, starts a second track before the first is confirmed, and the duplicate rule guards
-        only against confirmed ones), or two people closer than ``person_merge_m``. The older keeps
-        its id; a consumer that counts chairs sees one chair. Only in the odometry frame, where
-        furniture stands still: in the laser frame every track moves with the robot, and there the
-        rule cost the real recordings person tracks (a detection the retired track would have taken
-        opened a new one)."""
-        person_m = self.config.person_merge_m
+    def _merge_furniture(self, tracks: list[_Track]) -> None:
+        """Retire the younger of two established tracks of one furniture class closer than
+        ``duplicate_m``: one object followed twice (a big desk seen in part from close by, where each
+        part's box has its own centre, starts a second track before the first is confirmed, and the
+        duplicate rule guards only against confirmed ones). The older keeps its id; a consumer that
+        counts chairs sees one chair. Only in the odometry frame, where furniture stands still: in the
+        laser frame every track moves with the robot, and there the rule cost the real recordings
+        person tracks (a detection the retired track would have taken opened a new one)."""
         established = sorted(
             (
                 t
                 for t in tracks
-                if t.state != "tentative"
-                and not t.retired
-                and (
-                    CLASS_NAMES[t.class_id] in FURNITURE_CLASSES or (person_m > 0 and t.class_id == PERSON_ID)
-                )
+                if t.state != "tentative" and not t.retired and CLASS_NAMES[t.class_id] in FURNITURE_CLASSES
             ),
             key=lambda t: (t.first_stamp_ns, t.track_id),
         )
@@ -607,15 +596,14 @@ class TrackerCore:
         # comparison to math.hypot below.
         xy = np.array([(t.x, t.y) for t in established])
         apart = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
-        near = apart < max(self.config.duplicate_m, person_m) + 1e-6
+        near = apart < self.config.duplicate_m + 1e-6
         for i, j in zip(*np.nonzero(np.triu(near, 1)), strict=True):  # row by row: older i first
             older, younger = established[i], established[j]
-            radius = person_m if older.class_id == PERSON_ID else self.config.duplicate_m
             if (
                 not older.retired
                 and not younger.retired
                 and younger.class_id == older.class_id
-                and math.hypot(younger.x - older.x, younger.y - older.y) < radius
+                and math.hypot(younger.x - older.x, younger.y - older.y) < self.config.duplicate_m
             ):
                 younger.retired = True
                 self.counters.tracks_merged += 1
@@ -702,7 +690,7 @@ class TrackerCore:
 
     def _person_show_s(self, track: _Track) -> float:
         """How long a coasting person track stays in the message after its last hit: the shorter of
-        ``person_show_coast_s`` and ``person_show_coast_share`` of the time it was seen."""
+        ``person_show_coast_s`` and ``person_show_coast_share`` of its age at that hit."""
         seen_s = (track.last_hit_ns - track.first_stamp_ns) / _NS_PER_S
         return min(self.config.person_show_coast_s, self.config.person_show_coast_share * seen_s)
 
