@@ -66,7 +66,7 @@ from services.runtime import (
 )
 from services.simulator.defaults import ROBOTS, SIM_PEOPLE, SIM_SEED
 from services.simulator.sensors import DEFAULT_PROFILE, check_sensor
-from services.tracker import given_rules, rule_flags
+from services.tracker import RULE_FLAGS, given_rules, rule_flags
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +99,8 @@ class UpConfig:
     # The detector's --detectors (None: one process per core, services.detector.core.default_processes).
     detectors: int | None = None
     motion_confirm: bool = True  # the detector's motion confirmation (--no-motion-confirm: off)
-    # The tracker's --person-confirm-travel, --person-resume, --person-show-coast and
-    # --person-show-coast-share (None: its defaults, services.tracker.core).
+    # The tracker rules of services.tracker.RULE_FLAGS, by their TrackerConfig field names (None: the
+    # tracker's defaults, services.tracker.core).
     person_confirm_travel_m: float | None = None
     person_resume_s: float | None = None
     person_show_coast_s: float | None = None
@@ -138,12 +138,7 @@ class UpConfig:
     @property
     def tracker_rules(self) -> dict[str, float]:
         """The tracker rules given (:func:`services.tracker.given_rules`)."""
-        return given_rules(
-            person_confirm_travel_m=self.person_confirm_travel_m,
-            person_resume_s=self.person_resume_s,
-            person_show_coast_s=self.person_show_coast_s,
-            person_show_coast_share=self.person_show_coast_share,
-        )
+        return given_rules(**{field: getattr(self, field) for field in RULE_FLAGS})
 
     @property
     def services(self) -> tuple[str, ...]:

@@ -36,7 +36,7 @@ from typing import Any, Final
 import numpy as np
 
 from common.model_spec import META_PREFIX
-from training.onnx_model import ExportError, provenance, save_checked, set_metadata
+from training.onnx_model import ExportError, cpu_session, provenance, save_checked, set_metadata
 
 log = logging.getLogger(__spec__.name if __spec__ else __name__)
 
@@ -201,11 +201,7 @@ def apply_rewrites(model: Any) -> list[str]:
 
 
 def _outputs(path: Path, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
-    import onnxruntime as ort
-
-    from common.inference import session_options
-
-    session = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
+    session = cpu_session(path)
     name = session.get_inputs()[0].name
     return [session.run(None, {name: x})[0] for x in inputs]
 

@@ -65,10 +65,7 @@ def rule_flags(rules: dict[str, float]) -> list[str]:
 def rules_of(args: argparse.Namespace) -> dict[str, float]:
     """The rules given by the arguments :func:`add_tracker_arguments` added (:func:`given_rules`)."""
     return given_rules(
-        person_confirm_travel_m=args.person_confirm_travel,
-        person_resume_s=args.person_resume,
-        person_show_coast_s=args.person_show_coast,
-        person_show_coast_share=args.person_show_coast_share,
+        **{field: getattr(args, flag[2:].replace("-", "_")) for field, flag in RULE_FLAGS.items()}
     )
 
 
