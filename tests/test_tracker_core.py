@@ -248,8 +248,8 @@ def test_boxes_with_no_pose_known_from_before_their_scan_open_no_track() -> None
 
 def test_one_desk_followed_by_two_tracks_keeps_the_older_and_close_people_stay_apart() -> None:
     """A big desk seen in part gives two boxes with their own centres; the second opens a track while
-    the first is still tentative. Once both are established the younger is retired. Two chairs
-    further apart than the duplicate radius, and two people walking side by side, stay two."""
+    the first is still tentative. Once both are established the younger is retired. Two chairs, and
+    two people walking side by side, further apart than the duplicate radius stay two."""
     core = TrackerCore()
     still = pose(0.0, 0.0, 0.0)
     first = core.update(message(0, [det(2.0, 1.0, "desk")], still))
@@ -257,7 +257,7 @@ def test_one_desk_followed_by_two_tracks_keeps_the_older_and_close_people_stay_a
     (desk_id,) = [t.track_id for t in first.tracks]
     for k in range(1, 6):
         dets = [det(2.0, 1.0, "desk"), det(2.0, 0.5, "desk"), det(0.0, 2.0, "chair"), det(0.7, 2.0, "chair")]
-        people = [det(1.0, -1.0 + 0.1 * k, "person"), det(1.5, -1.0 + 0.1 * k, "person")]
+        people = [det(1.0, -1.0 + 0.1 * k, "person"), det(1.7, -1.0 + 0.1 * k, "person")]
         out = core.update(message(k, dets + people, still))
         assert out is not None
     confirmed = [t for t in out.tracks if t.state == "confirmed"]
@@ -291,6 +291,25 @@ def test_a_second_detection_within_the_duplicate_radius_is_one_object_for_every_
     apart = [det(2.0, 0.0, "desk"), det(0.0, 2.0, "person"), det(0.8, 2.0, "person")]
     core.update(message(5, apart, pose(0, 0, 0)))
     assert core.counters.tracks_created == 3  # 0.8 m off is someone else
+
+
+def test_a_person_seen_twice_in_one_scan_opens_one_track_and_the_better_detection_leads_it() -> None:
+    """A newcomer detected twice in one scan, a box on a leg beside the box of both legs, is one person:
+    the weaker detection opens no second track to take turns with the first. Someone further off than
+    the duplicate radius is someone else."""
+    core = TrackerCore()  # the default radius, 0.6 m
+    for k in range(5):
+        walker = 1.0 + 0.1 * k
+        weak, strong = (0.3, 0.8) if k % 2 else (0.8, 0.3)  # which box scores higher flickers
+        dets = [det(walker, 2.0, "person", weak), det(walker + 0.4, 2.0, "person", strong)]
+        out = core.update(message(k, [*dets, det(walker, -1.0, "person")], pose(0, 0, 0)))
+        assert out is not None
+    people = [t for t in out.tracks if t.class_name == "person"]
+    assert len(people) == 2 and all(t.state == "confirmed" for t in people)
+    assert core.counters.tracks_created == 2
+    assert core.counters.duplicates == 5
+    (ahead,) = [t for t in people if t.y_m > 0]
+    assert 1.4 < ahead.x_m < 1.8  # led by the better box of each scan, between the two
 
 
 def test_with_a_travel_rule_only_a_person_who_moves_is_confirmed() -> None:

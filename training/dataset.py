@@ -10,7 +10,7 @@ the same for a seed whatever the number of workers or the order they finish in.
 
 Domain randomisation makes the simulated LiDAR look like real ones: each scenario draws its own range
 noise σ, dropout rate and spurious-return rate from the configured ranges, and each motion may hold
-non-target clutter (poles, wall stubs, walking legs) that is never labelled. Labels stay those of the
+non-target clutter (poles, wall stubs) that is never labelled. Labels stay those of the
 true geometry. The defaults are the paper's clean setting, and they reproduce its data set exactly:
 the randomisation draws from streams of their own.
 """

@@ -204,7 +204,7 @@ def fresh_samples(
     Gaussian noise draws under every imperfection setting, with labels of the true geometry. ``padding``
     ``invalid`` and ``raster_yaw_deg`` must be the model's own (:attr:`OnnxDetector.padding`,
     ``.invalid``, ``.raster_yaw_deg``): tensors and labels are made in its raster's frame. ``clutter``
-    puts up to that many unlabelled poles, wall stubs and walking leg pairs into each motion, drawn
+    puts up to that many unlabelled poles and wall stubs into each motion, drawn
     from their own stream: the same worlds and motions with things in them that must not be detected
     (a pole is not a chair leg), and which occlude what must. ``people`` puts up to that many labelled
     people into each motion; ``open_space`` moves the walls of that share of the worlds out

@@ -17,7 +17,9 @@ Method (docs/tracking.md has the reasoning and the scores):
 * **Assignment.** Cost = distance from each track's predicted position to each detection, plus a
   penalty when the classes differ (a detection whose class flickers still continues its track);
   pairs farther than ``gate_m`` are never matched. The optimum is scipy's
-  ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library).
+  ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library). Before it, of
+  two person detections of one scan closer than ``duplicate_m`` only the higher-scoring one is kept:
+  one person, seen twice.
 * **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it; a
   confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
   without a hit; a coasting person's velocity decays (``person_coast_decay_s``), since people stop
@@ -201,7 +203,7 @@ class TrackerCounters:
     tracks_resumed: int = 0  # new person tracks that took a lost one's id back (person_resume_s)
     tracks_merged: int = 0  # furniture tracks retired as a second track of an object (duplicate_m)
     forgotten_robots: int = 0
-    duplicates: int = 0  # detections of an object a track already follows: no new track
+    duplicates: int = 0  # second detections of one object (a track's, or a person in one scan): no track
     rejected: Counter[str] = field(default_factory=Counter)  # payloads that are no detections message
     dropped: Counter[str] = field(default_factory=Counter)  # valid messages not used: out_of_order
     resets: Counter[str] = field(default_factory=Counter)  # odom_jump, odom_reset, frame_change, restart
@@ -492,11 +494,12 @@ class TrackerCore:
             self.counters.dropped["unplaced"] += 1
             self.counters.published += 1
             return self._message(message, robot, pose)  # nothing updated: no track misses this scan
-        points = self._placed(message.detections, placing)
-        matches, unmatched = self._assign(robot.tracks, message.detections, points)
+        detections = self._one_per_person(message.detections)
+        points = self._placed(detections, placing)
+        matches, unmatched = self._assign(robot.tracks, detections, points)
         smooth = self.config.score_smoothing
         for ti, di in matches:
-            track, det = robot.tracks[ti], message.detections[di]
+            track, det = robot.tracks[ti], detections[di]
             track.update(points[di][0], points[di][1], det, stamp, models[ti], smooth)
             if track.state != "tentative":
                 track.state = "confirmed"
@@ -518,7 +521,7 @@ class TrackerCore:
                 if resume_ns > 0 and track.state != "tentative" and track.class_id == PERSON_ID:
                     robot.ended.append(track)
         for di in unmatched:
-            det = message.detections[di]
+            det = detections[di]
             if self._duplicate(points[di], det, kept):
                 self.counters.duplicates += 1
                 continue
@@ -541,6 +544,26 @@ class TrackerCore:
         robot.tracks = kept
         self.counters.published += 1
         return self._message(message, robot, pose)
+
+    def _one_per_person(self, detections: list[Detection]) -> list[Detection]:
+        """``detections`` less each person detection closer than ``duplicate_m`` to a higher-scoring
+        one: one person seen twice (a box on each leg of a long stride beside the box of both). Left
+        in, the second opened a track beside the person's, and the two took turns at the person's
+        detections until one of them carried on under the other's id. Distances are in the laser
+        frame, which the odometry frame only turns and shifts."""
+        people = [d for d in detections if d.class_id == PERSON_ID]
+        if len(people) < 2:
+            return detections
+        limit = self.config.duplicate_m
+        kept: list[Detection] = []
+        for det in sorted(people, key=lambda d: -d.score):
+            if all(math.hypot(k.x_m - det.x_m, k.y_m - det.y_m) >= limit for k in kept):
+                kept.append(det)
+        if len(kept) == len(people):
+            return detections
+        self.counters.duplicates += len(people) - len(kept)
+        chosen = {id(d) for d in kept}
+        return [d for d in detections if d.class_id != PERSON_ID or id(d) in chosen]
 
     def _confirm(self, robot: _Robot, track: _Track, live: list[_Track]) -> None:
         """Confirm a tentative track. A person takes back the id of the nearest person track lost a
