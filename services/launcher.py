@@ -102,6 +102,7 @@ class UpConfig:
     # The tracker rules of services.tracker.RULE_FLAGS, by their TrackerConfig field names (None: the
     # tracker's defaults, services.tracker.core).
     person_confirm_travel_m: float | None = None
+    person_confirm_hits: int | None = None
     person_resume_s: float | None = None
     person_show_coast_s: float | None = None
     person_show_coast_share: float | None = None

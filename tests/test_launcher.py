@@ -116,6 +116,9 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     assert flag_values(shown, "--person-show-coast") == ["1.5"] and not flag_values(
         default, "--person-show-coast"
     )
+    hits = service_commands(UpConfig(viewer="none", person_confirm_hits=3), ports, None)["tracker"]
+    assert flag_values(hits, "--person-confirm-hits") == ["3"]
+    assert not flag_values(default, "--person-confirm-hits")
     share = service_commands(UpConfig(viewer="none", person_show_coast_share=0.5), ports, None)["tracker"]
     assert flag_values(share, "--person-show-coast-share") == ["0.5"]
     assert not flag_values(default, "--person-show-coast-share")
@@ -125,6 +128,8 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     assert "person confirm travel must be >= 0 metres, got -1" in caplog.text
     assert cli_main(["up", "--person-resume", "nan", "--duration", "1"]) == 2
     assert "person resume must be finite and >= 0" in caplog.text
+    assert cli_main(["up", "--person-confirm-hits", "0", "--duration", "1"]) == 2
+    assert "person confirm hits must be a whole number >= 1, got 0" in caplog.text
 
 
 def test_a_replay_replaces_the_simulator_and_gets_its_flags(tmp_path: Path) -> None:

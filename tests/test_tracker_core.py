@@ -100,9 +100,10 @@ def by_class(tracks: Tracks, name: str) -> list:
 
 
 def test_ids_hold_furniture_stays_still_and_people_get_their_velocity_in_the_odom_frame() -> None:
-    core = TrackerCore(TrackerConfig(confirm_hits=3))
+    core = TrackerCore(TrackerConfig(confirm_hits=3, person_confirm_hits=2))
     frames = drive(core, 40)
     assert [t.state for t in frames[0].tracks] == ["tentative", "tentative"]
+    assert {t.class_name: t.state for t in frames[1].tracks} == {"chair": "tentative", "person": "confirmed"}
     assert {t.state for t in frames[2].tracks} == {"confirmed"}
     last = frames[-1]
     assert last.frame == "odom" and last.seq == 39
@@ -580,7 +581,7 @@ def test_furniture_found_where_a_person_was_lost_takes_no_id() -> None:
 
 
 def test_with_one_hit_to_confirm_two_newcomers_never_share_a_lost_persons_id() -> None:
-    core = TrackerCore(TrackerConfig(confirm_hits=1, delete_after_s=0.5))
+    core = TrackerCore(TrackerConfig(confirm_hits=1, person_confirm_hits=1, delete_after_s=0.5))
     for k in range(10):
         core.update(message(k, [det(2.0, 0.0, "person")], pose(0, 0, 0)))
     for k in range(10, 15):
@@ -589,6 +590,12 @@ def test_with_one_hit_to_confirm_two_newcomers_never_share_a_lost_persons_id() -
     assert out is not None
     ids = [t.track_id for t in out.tracks]
     assert len(ids) == 2 and len(set(ids)) == 2 and core.counters.tracks_resumed == 1
+
+
+@pytest.mark.parametrize("bad", [0, 2.0])
+def test_a_person_confirm_hits_that_is_no_whole_number_of_at_least_one_is_refused(bad: float) -> None:
+    with pytest.raises(ValueError, match="person confirm hits must be a whole number >= 1"):
+        TrackerConfig(person_confirm_hits=bad)  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(

@@ -23,6 +23,11 @@ def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: off; docs/tracking.md has both effects measured)",
     )  # fmt: skip
     parser.add_argument(
+        "--person-confirm-hits", type=int, default=None, metavar="N",
+        help="confirm a person track at its Nth detection (default: the tracker's, "
+        "services.tracker.core.TrackerConfig; furniture: 3)",
+    )  # fmt: skip
+    parser.add_argument(
         "--person-resume", type=float, default=None, metavar="S",
         help="a person found again within S seconds near where their track was lost takes its id back "
         "(default: the tracker's, services.tracker.core.TrackerConfig; 0: off)",
@@ -42,6 +47,7 @@ def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
 
 RULE_FLAGS: dict[str, str] = {
     "person_confirm_travel_m": "--person-confirm-travel",
+    "person_confirm_hits": "--person-confirm-hits",
     "person_resume_s": "--person-resume",
     "person_show_coast_s": "--person-show-coast",
     "person_show_coast_share": "--person-show-coast-share",
@@ -58,8 +64,9 @@ def given_rules(**values: float | None) -> dict[str, float]:
 
 
 def rule_flags(rules: dict[str, float]) -> list[str]:
-    """The tracker's command-line flags for ``rules`` (:func:`given_rules`)."""
-    return [arg for field, value in rules.items() for arg in (RULE_FLAGS[field], repr(float(value)))]
+    """The tracker's command-line flags for ``rules`` (:func:`given_rules`): a count as an int, every
+    other rule as a float, as its flag parses it."""
+    return [arg for field, value in rules.items() for arg in (RULE_FLAGS[field], repr(value))]
 
 
 def rules_of(args: argparse.Namespace) -> dict[str, float]:
@@ -73,4 +80,4 @@ def tracker_config(args: argparse.Namespace) -> TrackerConfig:
     """The tracker rules of the arguments :func:`add_tracker_arguments` added (unset: the defaults)."""
     from services.tracker.core import TrackerConfig
 
-    return TrackerConfig(**rules_of(args))  # type: ignore[arg-type]  # each rule is a float field
+    return TrackerConfig(**rules_of(args))  # type: ignore[arg-type]  # each rule is a number field

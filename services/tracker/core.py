@@ -20,7 +20,8 @@ Method (docs/tracking.md has the reasoning and the scores):
   ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library). Before it, of
   two person detections of one scan closer than ``duplicate_m`` only the higher-scoring one is kept:
   one person, seen twice.
-* **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it; a
+* **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it
+  (``person_confirm_hits`` a person's); a
   confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
   without a hit; a coasting person's velocity decays (``person_coast_decay_s``), since people stop
   and turn, and a track that kept walking would leave them; a tentative track is deleted after
@@ -128,6 +129,11 @@ class TrackerConfig:
     gate_m: float = 0.8
     class_penalty_m: float = 0.3
     confirm_hits: int = 3
+    # People are confirmed sooner: a passer-by is often seen for a second or two, and each scan of a
+    # person's tentative track is a person missed, while furniture is seen for long and a false chair
+    # confirmed stays. One person's second box of a scan opens no track of its own (_one_per_person),
+    # so two hits no longer confirm such duplicates (measured: bench.tracking, docs/tracking.md).
+    person_confirm_hits: int = 2
     tentative_misses: int = 2
     delete_after_s: float = 1.5
     still_delete_after_s: float = 30.0
@@ -172,6 +178,9 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
             raise ValueError(f"invalid tracker config: {self}")
+        hits = self.person_confirm_hits
+        if not (isinstance(hits, int) and hits >= 1):
+            raise ValueError(f"person confirm hits must be a whole number >= 1, got {hits!r}")
         if not (self.delete_after_s > 0 and self.jump_m > 0 and self.jump_rad > 0):
             raise ValueError(f"invalid tracker config: {self}")
         if not self.person_coast_decay_s >= 0:  # NaN included
@@ -633,10 +642,10 @@ class TrackerCore:
 
     def _confirms(self, track: _Track) -> bool:
         """Whether a tentative track has earned confirmation: enough hits, and a person enough travel."""
-        if track.hits < self.config.confirm_hits:
-            return False
+        if track.class_id != PERSON_ID:
+            return track.hits >= self.config.confirm_hits
         travel = self.config.person_confirm_travel_m
-        return travel <= 0.0 or track.class_id != PERSON_ID or track.moved_m >= travel
+        return track.hits >= self.config.person_confirm_hits and (travel <= 0.0 or track.moved_m >= travel)
 
     def _duplicate(self, point: tuple[float, float], det: Detection, tracks: list[_Track]) -> bool:
         """A second detection of an object a track already follows: within ``duplicate_m`` of a
