@@ -131,7 +131,7 @@ def live(
     passed to the loop's tracker; checked here first, so a bad value fails before anything starts.
     ``motion_confirm`` False runs the detector with ``--no-motion-confirm``."""
     rules = rules or {}
-    config = TrackerConfig(**rules)  # type: ignore[arg-type]  # each rule is a float field
+    config = TrackerConfig(**rules)  # type: ignore[arg-type]  # each rule is a number field
     (port,) = free_tcp_ports(1)
     truths: dict[str, dict[int, GroundTruth]] = defaultdict(dict)
     tracks: dict[str, list[Tracks]] = defaultdict(list)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 
+import numpy as np
 import pytest
 
 from common.keys import detections_key
@@ -17,6 +19,7 @@ from common.messages import (
     encode_message,
 )
 from common.model_spec import CLASS_NAMES
+from services.tracker import RULE_FLAGS, add_tracker_arguments, rule_flags, rules_of
 from services.tracker.core import TrackerConfig, TrackerCore
 
 PERIOD_NS = 100_000_000  # 10 Hz
@@ -295,22 +298,43 @@ def test_a_second_detection_within_the_duplicate_radius_is_one_object_for_every_
 
 
 def test_a_person_seen_twice_in_one_scan_opens_one_track_and_the_better_detection_leads_it() -> None:
-    """A newcomer detected twice in one scan, a box on a leg beside the box of both legs, is one person:
-    the weaker detection opens no second track to take turns with the first. Someone further off than
-    the duplicate radius is someone else."""
+    """A newcomer detected twice in one scan, a second box beside the first, is one person: the weaker
+    detection opens no second track to take turns with the first, and the track follows the better
+    box wherever it is listed. Of two equal boxes the earlier counts. Someone further off than the
+    duplicate radius is someone else."""
     core = TrackerCore()  # the default radius, 0.6 m
     for k in range(5):
-        walker = 1.0 + 0.1 * k
-        weak, strong = (0.3, 0.8) if k % 2 else (0.8, 0.3)  # which box scores higher flickers
-        dets = [det(walker, 2.0, "person", weak), det(walker + 0.4, 2.0, "person", strong)]
-        out = core.update(message(k, [*dets, det(walker, -1.0, "person")], pose(0, 0, 0)))
+        lesser, better = det(1.0, 2.0, "person", 0.3), det(1.4, 2.0, "person", 0.8)
+        out = core.update(message(k, [lesser, better, det(1.0, -1.0, "person")], pose(0, 0, 0)))
         assert out is not None
     people = [t for t in out.tracks if t.class_name == "person"]
     assert len(people) == 2 and all(t.state == "confirmed" for t in people)
     assert core.counters.tracks_created == 2
     assert core.counters.duplicates == 5
-    (ahead,) = [t for t in people if t.y_m > 0]
-    assert 1.4 < ahead.x_m < 1.8  # led by the better box of each scan, between the two
+    (seen_twice,) = [t for t in people if t.y_m > 0]
+    assert seen_twice.x_m == pytest.approx(1.4, abs=1e-6) and seen_twice.score == pytest.approx(0.8)
+    tie = TrackerCore()
+    for k in range(3):
+        out = tie.update(message(k, [det(2.0, 1.0, "person"), det(2.3, 1.0, "person")], pose(0, 0, 0)))
+    assert out is not None and [t.x_m for t in out.tracks] == [pytest.approx(2.0, abs=1e-6)]
+
+
+def test_two_people_together_share_one_track_and_the_other_takes_their_id_back_when_they_part() -> None:
+    """Closer than the duplicate radius, the person whose detections score lower is not followed: their
+    track coasts, leaves the message and ends. When they part, their new track takes that id back."""
+    core = TrackerCore()
+    ys = [1.6] * 10 + [1.6 - 0.115 * i for i in range(1, 11)] + [0.45] * 30
+    ys += [0.45 + 0.115 * i for i in range(1, 11)] + [1.6] * 5
+    shown: list[list[int]] = []
+    for k, y in enumerate(ys):
+        dets = [det(2.0, 0.0, "person", 0.9), det(2.0, y, "person", 0.6)]
+        out = core.update(message(k, dets, pose(0, 0, 0)))
+        assert out is not None
+        shown.append(sorted(t.track_id for t in out.tracks if t.state != "tentative"))
+    first = shown[9]
+    assert len(first) == 2
+    assert shown[45] == [first[0]]  # together: only the better-seen person's track is reported
+    assert shown[-1] == first and core.counters.tracks_resumed == 1
 
 
 def test_with_a_travel_rule_only_a_person_who_moves_is_confirmed() -> None:
@@ -592,7 +616,7 @@ def test_with_one_hit_to_confirm_two_newcomers_never_share_a_lost_persons_id() -
     assert len(ids) == 2 and len(set(ids)) == 2 and core.counters.tracks_resumed == 1
 
 
-@pytest.mark.parametrize("bad", [0, 2.0])
+@pytest.mark.parametrize("bad", [0, 2.0, True])
 def test_a_person_confirm_hits_that_is_no_whole_number_of_at_least_one_is_refused(bad: float) -> None:
     with pytest.raises(ValueError, match="person confirm hits must be a whole number >= 1"):
         TrackerConfig(person_confirm_hits=bad)  # type: ignore[arg-type]
@@ -604,3 +628,21 @@ def test_a_person_confirm_hits_that_is_no_whole_number_of_at_least_one_is_refuse
 def test_a_person_resume_rule_that_is_no_finite_number_is_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError, match="person resume must be finite and >= 0"):
         TrackerConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_every_rule_given_to_triscan_up_reaches_the_tracker_as_its_flags_parse_it() -> None:
+    """``triscan up`` hands its tracker rules on as flags: each must parse back to the value given, a
+    numpy float and an int for a float rule included."""
+    given = {
+        "person_confirm_travel_m": np.float64(0.5),
+        "person_confirm_hits": 4,
+        "person_resume_s": 5,
+        "person_show_coast_s": 1.25,
+        "person_show_coast_share": 0.2,
+    }
+    assert set(given) == set(RULE_FLAGS)
+    parser = argparse.ArgumentParser()
+    add_tracker_arguments(parser)
+    parsed = rules_of(parser.parse_args(rule_flags(given)))
+    assert parsed == given and type(parsed["person_confirm_hits"]) is int
+    assert TrackerConfig(**parsed).person_confirm_hits == 4  # type: ignore[arg-type]

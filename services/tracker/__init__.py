@@ -63,10 +63,18 @@ def given_rules(**values: float | None) -> dict[str, float]:
     return {field: value for field, value in values.items() if value is not None}
 
 
+COUNT_RULES: frozenset[str] = frozenset({"person_confirm_hits"})
+"""The rules of :data:`RULE_FLAGS` that are whole numbers; every other one is a float."""
+
+
 def rule_flags(rules: dict[str, float]) -> list[str]:
-    """The tracker's command-line flags for ``rules`` (:func:`given_rules`): a count as an int, every
-    other rule as a float, as its flag parses it."""
-    return [arg for field, value in rules.items() for arg in (RULE_FLAGS[field], repr(value))]
+    """The tracker's command-line flags for ``rules`` (:func:`given_rules`), each value written as its
+    flag parses it (a numpy float as a plain one)."""
+    return [
+        arg
+        for field, value in rules.items()
+        for arg in (RULE_FLAGS[field], str(int(value)) if field in COUNT_RULES else repr(float(value)))
+    ]
 
 
 def rules_of(args: argparse.Namespace) -> dict[str, float]:

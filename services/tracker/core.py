@@ -21,14 +21,14 @@ Method (docs/tracking.md has the reasoning and the scores):
   two person detections of one scan closer than ``duplicate_m`` only the higher-scoring one is kept:
   one person, seen twice.
 * **Life cycle.** A new detection opens a ``tentative`` track; ``confirm_hits`` hits confirm it
-  (``person_confirm_hits`` a person's); a
-  confirmed track that misses is ``coasting`` (predicted, not updated) until ``delete_after_s`` pass
-  without a hit; a coasting person's velocity decays (``person_coast_decay_s``), since people stop
-  and turn, and a track that kept walking would leave them; a tentative track is deleted after
-  ``tentative_misses`` misses. In the odometry frame, of two established tracks of one furniture
-  class closer than ``duplicate_m``, the younger is retired: one object followed twice. With
-  ``person_confirm_travel_m`` set, a person track also has to move that far to be confirmed. The class
-  is the one with the most summed score over the track, the score a running mean.
+  (``person_confirm_hits`` a person's); a confirmed track that misses is ``coasting`` (predicted,
+  not updated) until ``delete_after_s`` pass without a hit; a coasting person's velocity decays
+  (``person_coast_decay_s``), since people stop and turn, and a track that kept walking would leave
+  them; a tentative track is deleted after ``tentative_misses`` misses. In the odometry frame, of
+  two established tracks of one furniture class closer than ``duplicate_m``, the younger is retired:
+  one object followed twice. With ``person_confirm_travel_m`` set, a person track also has to move
+  that far to be confirmed. The class is the one with the most summed score over the track, the
+  score a running mean.
 * **People found again.** A person track confirmed near where a person track was lost a moment
   before takes that track's id back (``person_resume_s``, ``person_resume_speed_mps``): the
   detector loses people for seconds behind furniture and each other, and to anyone following
@@ -132,7 +132,7 @@ class TrackerConfig:
     # People are confirmed sooner: a passer-by is often seen for a second or two, and each scan of a
     # person's tentative track is a person missed, while furniture is seen for long and a false chair
     # confirmed stays. One person's second box of a scan opens no track of its own (_one_per_person),
-    # so two hits no longer confirm such duplicates (measured: bench.tracking, docs/tracking.md).
+    # so two hits confirm no such duplicate (measured: bench.tracking, docs/tracking.md).
     person_confirm_hits: int = 2
     tentative_misses: int = 2
     delete_after_s: float = 1.5
@@ -144,8 +144,10 @@ class TrackerConfig:
     person_coast_decay_s: float = 0.2
     # A second detection this close to a track its scan already updated is the same object seen twice:
     # a split desk or a doorframe's two jambs lie up to about 0.6 m from the track's centre, and so do a
-    # walking person's two detections, one on each leg of a long stride. Two people walking closer
-    # than this share a track until they part (measured: bench.tracking, docs/tracking.md).
+    # walking person's two detections, one on each leg of a long stride. Two people closer than this
+    # share a track until they part: the one whose detections score lower is not updated, and if they
+    # stay together past delete_after_s their track ends and takes its id back when they part
+    # (person_resume_s) (measured: bench.tracking, docs/tracking.md).
     duplicate_m: float = 0.6
     jump_m: float = ODOM_JUMP_M
     jump_rad: float = ODOM_JUMP_RAD
@@ -179,7 +181,7 @@ class TrackerConfig:
         if not (self.gate_m > 0 and self.confirm_hits >= 1 and self.tentative_misses >= 1):
             raise ValueError(f"invalid tracker config: {self}")
         hits = self.person_confirm_hits
-        if not (isinstance(hits, int) and hits >= 1):
+        if not (type(hits) is int and hits >= 1):  # not a bool, which the tracker's flag cannot take
             raise ValueError(f"person confirm hits must be a whole number >= 1, got {hits!r}")
         if not (self.delete_after_s > 0 and self.jump_m > 0 and self.jump_rad > 0):
             raise ValueError(f"invalid tracker config: {self}")
@@ -556,23 +558,26 @@ class TrackerCore:
 
     def _one_per_person(self, detections: list[Detection]) -> list[Detection]:
         """``detections`` less each person detection closer than ``duplicate_m`` to a higher-scoring
-        one: one person seen twice (a box on each leg of a long stride beside the box of both). Left
-        in, the second opened a track beside the person's, and the two took turns at the person's
-        detections until one of them carried on under the other's id. Distances are in the laser
+        one (the earlier of two equal ones), in their order: one person seen twice. A second box of one
+        person, left in, opens a track beside the person's, and the two take turns at the person's
+        detections until one of them carries on under the other's id; before assignment, the
+        person's track is also updated by the better of the two boxes. Distances are in the laser
         frame, which the odometry frame only turns and shifts."""
-        people = [d for d in detections if d.class_id == PERSON_ID]
+        people = [i for i, d in enumerate(detections) if d.class_id == PERSON_ID]
         if len(people) < 2:
             return detections
         limit = self.config.duplicate_m
         kept: list[Detection] = []
-        for det in sorted(people, key=lambda d: -d.score):
+        chosen: set[int] = set()
+        for i in sorted(people, key=lambda i: -detections[i].score):  # stable: ties keep their order
+            det = detections[i]
             if all(math.hypot(k.x_m - det.x_m, k.y_m - det.y_m) >= limit for k in kept):
                 kept.append(det)
-        if len(kept) == len(people):
+                chosen.add(i)
+        if len(chosen) == len(people):
             return detections
-        self.counters.duplicates += len(people) - len(kept)
-        chosen = {id(d) for d in kept}
-        return [d for d in detections if d.class_id != PERSON_ID or id(d) in chosen]
+        self.counters.duplicates += len(people) - len(chosen)
+        return [d for i, d in enumerate(detections) if d.class_id != PERSON_ID or i in chosen]
 
     def _confirm(self, robot: _Robot, track: _Track, live: list[_Track]) -> None:
         """Confirm a tentative track. A person takes back the id of the nearest person track lost a
