@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.sensors:
+        labels = [sensor_label(name, hz) for name, hz in args.sensors]
+        if len(set(labels)) < len(labels):
+            parser.error(f"--sensors names a profile and rate twice: {' '.join(labels)}")
         write_report(sensor_cpu(args.sensors, args.seconds, args.model), args.out)
         return 0
     separate = run_pipeline(1, 10.0, args.seconds, from_scans=False, threads=None)
@@ -79,13 +82,17 @@ def sensor_at_rate(text: str) -> tuple[str, float]:
     return name, hz
 
 
+def sensor_label(name: str, rate_hz: float) -> str:
+    """A report row's name: the profile, with ``@HZ`` when it runs at another rate than its own."""
+    return name if rate_hz == PROFILES[name].rate_hz else f"{name}@{rate_hz:g}"
+
+
 def sensor_cpu(sensors: list[tuple[str, float]], seconds: float, model: Path | None) -> dict[str, object]:
     """Cores busy in the encoder and the detector while one robot streams each sensor at its rate."""
     rows = {}
     for name, rate_hz in sensors:
         result = run_pipeline(1, rate_hz, seconds, from_scans=False, threads=None, model=model, sensor=name)
-        label = name if rate_hz == PROFILES[name].rate_hz else f"{name}@{rate_hz:g}"
-        rows[label] = {
+        rows[sensor_label(name, rate_hz)] = {
             "rate_hz": rate_hz,
             "beams": PROFILES[name].beams,
             "cpu_cores": result.cpu_cores,

@@ -135,6 +135,9 @@ def test_robot_footprint_runs_a_sensor_profile_at_another_rate(tmp_path: Path) -
         with pytest.raises(argparse.ArgumentTypeError):
             robot_footprint.sensor_at_rate(bad)
     out = tmp_path / "cpu.json"
+    with pytest.raises(SystemExit):  # one row each: a second ust-10lx@40 would overwrite the first
+        robot_footprint.main(["--seconds", "1", "--sensors", "ust-10lx", "ust-10lx@40", "--out", str(out)])
+    assert not out.exists()
     argv = ["--seconds", "1", "--sensors", "lds-01@5", "--out", str(out)]
     assert robot_footprint.main(argv) == 0
     (row,) = json.loads(out.read_text())["sensors"].items()
