@@ -103,6 +103,7 @@ class UpConfig:
     # tracker's defaults, services.tracker.core).
     person_confirm_travel_m: float | None = None
     person_confirm_hits: int | None = None
+    person_coast_penalty_m: float | None = None
     person_resume_s: float | None = None
     person_show_coast_s: float | None = None
     person_show_coast_share: float | None = None

@@ -337,6 +337,25 @@ def test_two_people_together_share_one_track_and_the_other_takes_their_id_back_w
     assert shown[-1] == first and core.counters.tracks_resumed == 1
 
 
+@pytest.mark.parametrize("penalty", [0.05, 0.0])
+def test_a_detection_both_could_take_goes_to_the_track_that_followed_its_person(penalty: float) -> None:
+    """A walker reaches the spot where a lost person's track coasts, standing: the detection lies
+    nearer that track's prediction than the walker's own, yet the walker's track, which followed them
+    a scan ago, takes it (``person_coast_penalty_m``); without the penalty the lost track takes the
+    walker for a scan, and hands them back: two ID switches to any consumer."""
+    core = TrackerCore(TrackerConfig(person_coast_penalty_m=penalty))
+    owners = []
+    for k in range(14):
+        dets = [det(2.0, 0.1 * k, "person")] + ([det(2.0, 1.0, "person")] if k < 5 else [])
+        out = core.update(message(k, dets, pose(0, 0, 0)))
+        assert out is not None
+        owners.append({t.track_id for t in out.tracks if t.misses == 0 and abs(t.y_m - 0.1 * k) < 0.05})
+    walker = owners[4]
+    assert len(walker) == 1
+    assert (owners[10] == walker) is (penalty > 0)
+    assert owners[13] == walker
+
+
 def test_with_a_travel_rule_only_a_person_who_moves_is_confirmed() -> None:
     """leg_tracker's rule, opt-in: a still person-like cluster stays tentative however often it is seen,
     a walker is confirmed once it has moved far enough, and furniture is confirmed as before."""
@@ -622,6 +641,12 @@ def test_a_person_confirm_hits_that_is_no_whole_number_of_at_least_one_is_refuse
         TrackerConfig(person_confirm_hits=bad)  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("bad", [-0.1, math.nan, math.inf])
+def test_a_person_coast_penalty_that_is_no_finite_distance_is_refused(bad: float) -> None:
+    with pytest.raises(ValueError, match="person coast penalty must be finite and >= 0 metres"):
+        TrackerConfig(person_coast_penalty_m=bad)
+
+
 @pytest.mark.parametrize(
     "bad", [{"person_resume_s": -1.0}, {"person_resume_speed_mps": math.nan}, {"person_resume_s": math.inf}]
 )
@@ -636,6 +661,7 @@ def test_every_rule_given_to_triscan_up_reaches_the_tracker_as_its_flags_parse_i
     given = {
         "person_confirm_travel_m": np.float64(0.5),
         "person_confirm_hits": 4,
+        "person_coast_penalty_m": 0.1,
         "person_resume_s": 5,
         "person_show_coast_s": 1.25,
         "person_show_coast_share": 0.2,

@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         motion_confirm=args.motion_confirm,
         person_confirm_travel_m=args.person_confirm_travel,
         person_confirm_hits=args.person_confirm_hits,
+        person_coast_penalty_m=args.person_coast_penalty,
         person_resume_s=args.person_resume,
         person_show_coast_s=args.person_show_coast,
         person_show_coast_share=args.person_show_coast_share,

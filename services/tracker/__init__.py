@@ -7,51 +7,65 @@ The command-line rules live here, free of the core's numpy and scipy imports, so
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from services.tracker.core import TrackerConfig
 
 
+_DEFAULT = "default: the tracker's, services.tracker.core.TrackerConfig"
+
+
+@dataclass(frozen=True)
+class _Rule:
+    flag: str
+    kind: type[int] | type[float]
+    metavar: str
+    help: str
+
+
+_RULES: dict[str, _Rule] = {
+    "person_confirm_travel_m": _Rule(
+        "--person-confirm-travel", float, "M",
+        "confirm a person track only once it has moved M metres, as leg_tracker starts people: drops still "
+        "look-alikes (table legs, broken-up walls) and people who stand all the time they are seen "
+        "(default: off; docs/tracking.md has both effects measured)",
+    ),
+    "person_confirm_hits": _Rule(
+        "--person-confirm-hits", int, "N",
+        f"confirm a person track at its Nth detection ({_DEFAULT}; furniture: 3)",
+    ),
+    "person_coast_penalty_m": _Rule(
+        "--person-coast-penalty", float, "M",
+        "a person track that missed its last scan pays M metres more for a detection, so the track that "
+        f"followed its person takes it ({_DEFAULT}; 0: off)",
+    ),
+    "person_resume_s": _Rule(
+        "--person-resume", float, "S",
+        "a person found again within S seconds near where their track was lost takes its id back "
+        f"({_DEFAULT}; 0: off)",
+    ),
+    "person_show_coast_s": _Rule(
+        "--person-show-coast", float, "S",
+        "leave a person track out of the output S seconds after it was last seen, though it keeps its id if "
+        f"found again before it ends ({_DEFAULT})",
+    ),
+    "person_show_coast_share": _Rule(
+        "--person-show-coast-share", float, "F",
+        f"and sooner after a short track: at most F times the track's age at its last hit ({_DEFAULT})",
+    ),
+}  # fmt: skip
+
+
 def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     """The tracker rules a user may change: for the tracker service, ``triscan up`` (which passes them on),
     ``triscan eval --tracks`` and ``bench.tracking``."""
-    parser.add_argument(
-        "--person-confirm-travel", type=float, default=None, metavar="M",
-        help="confirm a person track only once it has moved M metres, as leg_tracker starts people: drops "
-        "still look-alikes (table legs, broken-up walls) and people who stand all the time they are seen "
-        "(default: off; docs/tracking.md has both effects measured)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--person-confirm-hits", type=int, default=None, metavar="N",
-        help="confirm a person track at its Nth detection (default: the tracker's, "
-        "services.tracker.core.TrackerConfig; furniture: 3)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--person-resume", type=float, default=None, metavar="S",
-        help="a person found again within S seconds near where their track was lost takes its id back "
-        "(default: the tracker's, services.tracker.core.TrackerConfig; 0: off)",
-    )  # fmt: skip
-
-    parser.add_argument(
-        "--person-show-coast", type=float, default=None, metavar="S",
-        help="leave a person track out of the output S seconds after it was last seen, though it keeps "
-        "its id if found again before it ends (default: the tracker's, services.tracker.core.TrackerConfig)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--person-show-coast-share", type=float, default=None, metavar="F",
-        help="and sooner after a short track: at most F times the track's age at its last hit (default: "
-        "the tracker's, services.tracker.core.TrackerConfig)",
-    )  # fmt: skip
+    for rule in _RULES.values():
+        parser.add_argument(rule.flag, type=rule.kind, default=None, metavar=rule.metavar, help=rule.help)
 
 
-RULE_FLAGS: dict[str, str] = {
-    "person_confirm_travel_m": "--person-confirm-travel",
-    "person_confirm_hits": "--person-confirm-hits",
-    "person_resume_s": "--person-resume",
-    "person_show_coast_s": "--person-show-coast",
-    "person_show_coast_share": "--person-show-coast-share",
-}
+RULE_FLAGS: dict[str, str] = {field: rule.flag for field, rule in _RULES.items()}
 """The :class:`~services.tracker.core.TrackerConfig` fields a user may set, and their flags."""
 
 
@@ -63,18 +77,13 @@ def given_rules(**values: float | None) -> dict[str, float]:
     return {field: value for field, value in values.items() if value is not None}
 
 
-COUNT_RULES: frozenset[str] = frozenset({"person_confirm_hits"})
-"""The rules of :data:`RULE_FLAGS` that are whole numbers; every other one is a float."""
-
-
 def rule_flags(rules: dict[str, float]) -> list[str]:
     """The tracker's command-line flags for ``rules`` (:func:`given_rules`), each value written as its
     flag parses it (a numpy float as a plain one)."""
-    return [
-        arg
-        for field, value in rules.items()
-        for arg in (RULE_FLAGS[field], str(int(value)) if field in COUNT_RULES else repr(float(value)))
-    ]
+    flags = []
+    for field, value in rules.items():
+        flags += [RULE_FLAGS[field], repr(_RULES[field].kind(value))]
+    return flags
 
 
 def rules_of(args: argparse.Namespace) -> dict[str, float]:

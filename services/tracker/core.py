@@ -15,7 +15,8 @@ Method (docs/tracking.md has the reasoning and the scores):
   The model follows the track's class, and a track whose class changes group starts its velocity
   afresh under the new one (:meth:`_Track.use`).
 * **Assignment.** Cost = distance from each track's predicted position to each detection, plus a
-  penalty when the classes differ (a detection whose class flickers still continues its track);
+  penalty when the classes differ (a detection whose class flickers still continues its track) and
+  when a person track missed its last scan (the one that followed its person is the likelier owner);
   pairs farther than ``gate_m`` are never matched. The optimum is scipy's
   ``linear_sum_assignment`` (the Hungarian method's job, done by a maintained library). Before it, of
   two person detections of one scan closer than ``duplicate_m`` only the higher-scoring one is kept:
@@ -128,6 +129,12 @@ MOTION_MODELS: Final[dict[str, MotionModel]] = {
 class TrackerConfig:
     gate_m: float = 0.8
     class_penalty_m: float = 0.3
+    # A person track that missed its last scan pays this much more for a detection than one that did
+    # not: of two tracks that could take it, the one that followed its person a scan ago is the
+    # likelier owner (DeepSORT's matching cascade, softened to a cost). Without it, a person who
+    # turned back to where a coasting track of theirs had stopped was taken by that track from the
+    # one following them, and back (measured: bench.tracking, docs/tracking.md). 0: off.
+    person_coast_penalty_m: float = 0.05
     confirm_hits: int = 3
     # People are confirmed sooner: a passer-by is often seen for a second or two, and each scan of a
     # person's tentative track is a person missed, while furniture is seen for long and a false chair
@@ -189,6 +196,9 @@ class TrackerConfig:
             raise ValueError(f"person coast decay must be >= 0 seconds, got {self.person_coast_decay_s:g}")
         if not self.person_show_coast_s >= 0:  # NaN included
             raise ValueError(f"person show coast must be >= 0 seconds, got {self.person_show_coast_s:g}")
+        penalty = self.person_coast_penalty_m
+        if not (penalty >= 0 and math.isfinite(penalty)):
+            raise ValueError(f"person coast penalty must be finite and >= 0 metres, got {penalty:g}")
         if not self.person_show_coast_share >= 0:  # NaN included
             raise ValueError(f"person show coast share must be >= 0, got {self.person_show_coast_share:g}")
         travel = self.person_confirm_travel_m
@@ -718,6 +728,9 @@ class TrackerCore:
         track_class = np.array([t.class_id for t in tracks])
         det_class = np.array([d.class_id for d in detections])
         cost = distance + self.config.class_penalty_m * (track_class[:, None] != det_class[None, :])
+        if self.config.person_coast_penalty_m:
+            lost = np.array([t.misses > 0 for t in tracks]) & (track_class == PERSON_ID)
+            cost += self.config.person_coast_penalty_m * lost[:, None]
         gated = distance > self.config.gate_m
         cost[gated] = 1e6  # never chosen over leaving both unmatched, filtered below
         rows, cols = linear_sum_assignment(cost)
