@@ -8,6 +8,7 @@ import pytest
 
 from common.model_spec import SHIPPED_MODEL
 from services.launcher import SERVICES, UpConfig, free_tcp_ports, service_commands
+from services.tracker import RULE_FLAGS
 
 
 def flag_values(command: list[str], flag: str) -> list[str]:
@@ -122,12 +123,18 @@ def test_the_person_travel_rule_reaches_the_tracker_and_a_negative_one_is_refuse
     share = service_commands(UpConfig(viewer="none", person_show_coast_share=0.5), ports, None)["tracker"]
     assert flag_values(share, "--person-show-coast-share") == ["0.5"]
     assert not flag_values(default, "--person-show-coast-share")
+    penalty = service_commands(UpConfig(viewer="none", person_coast_penalty_m=0.0), ports, None)["tracker"]
+    assert flag_values(penalty, "--person-coast-penalty") == ["0.0"]
+    assert not flag_values(default, "--person-coast-penalty")
+    assert not [flag for flag in RULE_FLAGS.values() if flag in default]  # every rule: the tracker's default
     with pytest.raises(ValueError, match="person confirm travel must be >= 0 metres, got -1"):
         UpConfig(person_confirm_travel_m=-1.0)
     assert cli_main(["up", "--person-confirm-travel", "-1", "--duration", "1"]) == 2  # before any start
     assert "person confirm travel must be >= 0 metres, got -1" in caplog.text
     assert cli_main(["up", "--person-resume", "nan", "--duration", "1"]) == 2
     assert "person resume must be finite and >= 0" in caplog.text
+    assert cli_main(["up", "--person-coast-penalty", "nan", "--duration", "1"]) == 2
+    assert "person coast penalty must be finite and >= 0 metres" in caplog.text
     assert cli_main(["up", "--person-confirm-hits", "0", "--duration", "1"]) == 2
     assert "person confirm hits must be a whole number >= 1, got 0" in caplog.text
 

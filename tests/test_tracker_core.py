@@ -672,3 +672,5 @@ def test_every_rule_given_to_triscan_up_reaches_the_tracker_as_its_flags_parse_i
     parsed = rules_of(parser.parse_args(rule_flags(given)))
     assert parsed == given and type(parsed["person_confirm_hits"]) is int
     assert TrackerConfig(**parsed).person_confirm_hits == 4  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"--person-confirm-hits takes a whole number, got 2\.5"):
+        rule_flags({"person_confirm_hits": 2.5})

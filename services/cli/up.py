@@ -16,7 +16,7 @@ from common.transport import add_zenoh_arguments
 from services.cli.command import Command
 from services.runtime import default_of
 from services.simulator.sensors import PROFILES
-from services.tracker import add_tracker_arguments
+from services.tracker import add_tracker_arguments, rules_of
 
 SIMULATOR_ONLY_FLAGS = {
     "robots": "--robots",
@@ -153,18 +153,13 @@ def run(args: argparse.Namespace) -> int:
         batch=args.batch,
         detectors=args.detectors,
         motion_confirm=args.motion_confirm,
-        person_confirm_travel_m=args.person_confirm_travel,
-        person_confirm_hits=args.person_confirm_hits,
-        person_coast_penalty_m=args.person_coast_penalty,
-        person_resume_s=args.person_resume,
-        person_show_coast_s=args.person_show_coast,
-        person_show_coast_share=args.person_show_coast_share,
         max_restarts=args.max_restarts,
         settings=settings,
         verbose=args.verbose,
         replay=replay,
         snapshot_dir=args.snapshot,
         **simulator_flags,  # type: ignore[arg-type]
+        **rules_of(args),  # type: ignore[arg-type]  # UpConfig names its tracker rules by their fields
     )
     return up(config, stop_event_on_signals())
 

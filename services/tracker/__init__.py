@@ -82,7 +82,10 @@ def rule_flags(rules: dict[str, float]) -> list[str]:
     flag parses it (a numpy float as a plain one)."""
     flags = []
     for field, value in rules.items():
-        flags += [RULE_FLAGS[field], repr(_RULES[field].kind(value))]
+        written = _RULES[field].kind(value)
+        if written != value:
+            raise ValueError(f"{RULE_FLAGS[field]} takes a whole number, got {value!r}")
+        flags += [RULE_FLAGS[field], repr(written)]
     return flags
 
 
