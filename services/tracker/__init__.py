@@ -61,8 +61,10 @@ _RULES: dict[str, _Rule] = {
 def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     """The tracker rules a user may change: for the tracker service, ``triscan up`` (which passes them on),
     ``triscan eval --tracks`` and ``bench.tracking``."""
-    for rule in _RULES.values():
-        parser.add_argument(rule.flag, type=rule.kind, default=None, metavar=rule.metavar, help=rule.help)
+    for field, rule in _RULES.items():
+        parser.add_argument(
+            rule.flag, dest=field, type=rule.kind, default=None, metavar=rule.metavar, help=rule.help
+        )
 
 
 RULE_FLAGS: dict[str, str] = {field: rule.flag for field, rule in _RULES.items()}
@@ -82,8 +84,9 @@ def rule_flags(rules: dict[str, float]) -> list[str]:
     flag parses it (a numpy float as a plain one)."""
     flags = []
     for field, value in rules.items():
-        written = _RULES[field].kind(value)
-        if written != value:
+        kind = _RULES[field].kind
+        written = kind(value)
+        if kind is int and written != value:
             raise ValueError(f"{RULE_FLAGS[field]} takes a whole number, got {value!r}")
         flags += [RULE_FLAGS[field], repr(written)]
     return flags
@@ -91,9 +94,7 @@ def rule_flags(rules: dict[str, float]) -> list[str]:
 
 def rules_of(args: argparse.Namespace) -> dict[str, float]:
     """The rules given by the arguments :func:`add_tracker_arguments` added (:func:`given_rules`)."""
-    return given_rules(
-        **{field: getattr(args, flag[2:].replace("-", "_")) for field, flag in RULE_FLAGS.items()}
-    )
+    return given_rules(**{field: getattr(args, field) for field in _RULES})
 
 
 def tracker_config(args: argparse.Namespace) -> TrackerConfig:
